@@ -1,0 +1,28 @@
+# tal: every target bootstraps first (venv + pinned wheels + colcon build; a fast no-op when unchanged).
+SHELL := /bin/bash
+ENV := source scripts/env.sh
+SCENARIO ?= stand
+PYTEST_ARGS ?=
+
+.PHONY: bootstrap run test bench experiments lint clean
+
+bootstrap:
+	@bash scripts/bootstrap.sh
+
+run: bootstrap
+	@$(ENV) && bash scripts/run_scenario.sh $(SCENARIO)
+
+test: bootstrap
+	@$(ENV) && python -m pytest $(PYTEST_ARGS)
+
+bench: bootstrap
+	@$(ENV) && python bench/bench_bridge.py
+
+experiments: bootstrap
+	@echo "no accuracy experiments yet (they arrive with the controller and estimator issues)"
+
+lint: bootstrap
+	@$(ENV) && ruff check . && ruff format --check .
+
+clean:
+	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log ros2_ws/.tal-build.sha256

@@ -1,0 +1,1 @@
+"""Heightmaps, foothold evaluation criteria, VFA and VPA with their CNN approximations; nodes vfa and vpa."""
