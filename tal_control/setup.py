@@ -24,7 +24,7 @@ setup(
     license="BSD-3-Clause",
     entry_points={
         "console_scripts": [
-            
+            "stand_controller = tal_control.stand_controller_node:main",
         ],
     },
 )

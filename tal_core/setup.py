@@ -10,7 +10,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
-    package_data={PACKAGE: ["py.typed"]},
+    package_data={PACKAGE: ["py.typed", "config/robots/*.yaml", "config/courses/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml", "README.md"]),
@@ -23,8 +23,6 @@ setup(
     description=open("README.md", encoding="utf-8").read().splitlines()[2],
     license="BSD-3-Clause",
     entry_points={
-        "console_scripts": [
-            
-        ],
+        "console_scripts": [],
     },
 )

@@ -25,7 +25,6 @@ setup(
     entry_points={
         "console_scripts": [
             "sim_bridge = tal_sim_bridge.sim_bridge_node:main",
-            "trivial_controller = tal_sim_bridge.trivial_controller_node:main",
         ],
     },
 )

@@ -16,15 +16,16 @@ import math
 import os
 import sys
 import xml.etree.ElementTree as ElementTree
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
 
-from tal_core.errors import RobotConfigError
+from tal_core.errors import InputError, RobotConfigError
 from tal_core.legs import JOINT_KINDS, JOINTS_PER_LEG, LEG_NAMES, LEGS, NUM_LEGS, Leg, PerLeg
 
 EXAMPLE_ROBOT_DATA_ENV = "TAL_EXAMPLE_ROBOT_DATA_DIR"
@@ -32,17 +33,22 @@ EXAMPLE_ROBOT_DATA_SCHEME = "example-robot-data://"
 _EXAMPLE_ROBOT_DATA_SUBDIR = Path("cmeel.prefix") / "share" / "example-robot-data"
 NUM_JOINTS = NUM_LEGS * JOINTS_PER_LEG
 
-_REQUIRED_KEYS = ("name", "urdf", "base_frame", "joints", "foot_frames", "foot_radius_m",
-                  "nominal_joint_positions_rad")
-_OPTIONAL_KEYS = ("hip_frames", "limits", "imu", "description")
+_REQUIRED_KEYS = (
+    "name",
+    "urdf",
+    "base_frame",
+    "joints",
+    "foot_frames",
+    "foot_radius_m",
+    "nominal_joint_positions_rad",
+)
+_OPTIONAL_KEYS = ("hip_frames", "limits", "imu")
 _LIMIT_KEYS = ("position_rad", "velocity_rad_s", "torque_Nm")
 _IMU_KEYS = ("position_m", "orientation_xyzw")
 _ACTUATED_URDF_TYPES = ("revolute", "prismatic")
 
 
-# ----------------------------------------------------------------------------------------------------
-# Locating files
-# ----------------------------------------------------------------------------------------------------
+# --- Locating files ---
 def find_example_robot_data_dir() -> Path:
     """Return the ``share/example-robot-data`` directory of the example-robot-data package.
 
@@ -61,14 +67,15 @@ def find_example_robot_data_dir() -> Path:
             return candidate
     raise RobotConfigError(
         f"example-robot-data not found: no sys.path entry contains {_EXAMPLE_ROBOT_DATA_SUBDIR}; "
-        f"install it (pip install example-robot-data) or set {EXAMPLE_ROBOT_DATA_ENV}")
+        f"install it (pip install example-robot-data) or set {EXAMPLE_ROBOT_DATA_ENV}"
+    )
 
 
 def resolve_urdf_path(spec: str, yaml_dir: Path, source: Path | str = "<robot yaml>") -> Path:
     """Resolve the YAML ``urdf`` field: ``example-robot-data://<rel>``, an absolute path, or a path
     relative to the YAML's directory. Raises RobotConfigError if the file does not exist."""
     if spec.startswith(EXAMPLE_ROBOT_DATA_SCHEME):
-        path = find_example_robot_data_dir() / spec[len(EXAMPLE_ROBOT_DATA_SCHEME):]
+        path = find_example_robot_data_dir() / spec[len(EXAMPLE_ROBOT_DATA_SCHEME) :]
     else:
         path = Path(spec).expanduser()
         if not path.is_absolute():
@@ -84,9 +91,7 @@ def shipped_robot_names() -> tuple[str, ...]:
     return tuple(sorted(entry.name[:-5] for entry in robots_dir.iterdir() if entry.name.endswith(".yaml")))
 
 
-# ----------------------------------------------------------------------------------------------------
-# URDF summary (joints, links, limits)
-# ----------------------------------------------------------------------------------------------------
+# --- URDF summary (joints, links, limits) ---
 @dataclass(frozen=True)
 class UrdfJoint:
     """One URDF joint with its ``<limit>`` values (None where the URDF gives none). Units: rad or m,
@@ -124,10 +129,12 @@ def read_urdf_summary(path: Path) -> UrdfSummary:
     joints: dict[str, UrdfJoint] = {}
     for element in root.findall("joint"):
         limit = element.find("limit")
-        attribute = (lambda key: _optional_float(limit.get(key))) if limit is not None else (lambda key: None)
+        values = {
+            key: None if limit is None else _optional_float(limit.get(key))
+            for key in ("lower", "upper", "velocity", "effort")
+        }
         name = element.get("name", "")
-        joints[name] = UrdfJoint(name, element.get("type", ""), attribute("lower"), attribute("upper"),
-                                 attribute("velocity"), attribute("effort"))
+        joints[name] = UrdfJoint(name, element.get("type", ""), **values)
     return UrdfSummary(Path(path), links, joints)
 
 
@@ -135,9 +142,7 @@ def _optional_float(text: str | None) -> float | None:
     return None if text is None else float(text)
 
 
-# ----------------------------------------------------------------------------------------------------
-# Torque limit tables
-# ----------------------------------------------------------------------------------------------------
+# --- Torque limit tables ---
 @dataclass(frozen=True, eq=False)
 class TorqueLimitTable:
     """Maximum joint torque [N m] as a piecewise-linear function of the joint angle [rad].
@@ -146,25 +151,21 @@ class TorqueLimitTable:
     minimum torque is the negative of the maximum (the actuators are symmetric).
     """
 
-    joint_angles_rad: np.ndarray
-    max_torques_Nm: np.ndarray
+    joint_angles_rad: np.ndarray  # (n,) [rad] breakpoints, strictly increasing
+    max_torques: np.ndarray  # (n,) [N m] maximum torque at each breakpoint, > 0
 
     @classmethod
-    def constant(cls, max_torque_Nm: float) -> "TorqueLimitTable":
+    def constant(cls, max_torque_Nm: float) -> TorqueLimitTable:
         return cls(_frozen_array([0.0]), _frozen_array([max_torque_Nm]))
-
-    @property
-    def is_constant(self) -> bool:
-        return bool(self.max_torques_Nm.size == 1 or np.all(self.max_torques_Nm == self.max_torques_Nm[0]))
 
     def max_torque(self, joint_angle_rad: float) -> float:
         """Maximum torque [N m] at ``joint_angle_rad`` [rad]."""
-        return float(np.interp(joint_angle_rad, self.joint_angles_rad, self.max_torques_Nm))
+        if self.max_torques.size == 1:  # constant limit: skip np.interp, this runs per joint per tick
+            return float(self.max_torques[0])
+        return float(np.interp(joint_angle_rad, self.joint_angles_rad, self.max_torques))
 
 
-# ----------------------------------------------------------------------------------------------------
-# The description
-# ----------------------------------------------------------------------------------------------------
+# --- The description ---
 @dataclass(frozen=True, eq=False)
 class RobotDescription:
     """Everything tal needs to know about a quadruped besides its URDF dynamics.
@@ -174,20 +175,20 @@ class RobotDescription:
     """
 
     name: str
-    source: Path                         # the robot YAML this came from
-    urdf_path: Path                      # absolute path of the URDF
-    base_frame: str                      # URDF link rigidly attached to the floating base (x fwd, z up)
-    joint_names: tuple[str, ...]         # 12 URDF joint names, canonical order
-    foot_frames: PerLeg[str]             # frame at the centre of each foot sphere
-    hip_frames: PerLeg[str]              # frame at each leg's HAA joint
-    foot_radius_m: float                 # [m] radius of the foot sphere
-    position_lower_rad: np.ndarray       # (12,) [rad] joint position lower limits
-    position_upper_rad: np.ndarray       # (12,) [rad] joint position upper limits
-    velocity_limit_rad_s: np.ndarray     # (12,) [rad/s] joint speed limits (symmetric)
+    source: Path  # the robot YAML this came from
+    urdf_path: Path  # absolute path of the URDF
+    base_frame: str  # URDF link rigidly attached to the floating base (x fwd, z up)
+    joint_names: tuple[str, ...]  # 12 URDF joint names, canonical order
+    foot_frames: PerLeg[str]  # frame at the centre of each foot sphere
+    hip_frames: PerLeg[str]  # frame at each leg's HAA joint
+    foot_radius_m: float  # [m] radius of the foot sphere
+    position_lower_rad: np.ndarray  # (12,) [rad] joint position lower limits
+    position_upper_rad: np.ndarray  # (12,) [rad] joint position upper limits
+    velocity_limit_rad_s: np.ndarray  # (12,) [rad/s] joint speed limits (symmetric)
     torque_limit_tables: tuple[TorqueLimitTable, ...]  # 12 tables, [N m] over [rad]
     nominal_joint_positions_rad: np.ndarray  # (12,) [rad] nominal standing pose
-    imu_position_base_m: np.ndarray      # (3,) [m] IMU origin in the base frame
-    base_quat_imu_xyzw: np.ndarray       # (4,) orientation of the IMU frame in the base frame (x, y, z, w)
+    imu_position_base_m: np.ndarray  # (3,) [m] IMU origin in the base frame
+    base_quat_imu_xyzw: np.ndarray  # (4,) orientation of the IMU frame in the base frame (x, y, z, w)
 
     @staticmethod
     def joint_index(leg: Leg, kind: str) -> int:
@@ -204,12 +205,19 @@ class RobotDescription:
         """URDF names of the leg's HAA, HFE, KFE joints."""
         return self.joint_names[self.leg_joint_slice(leg)]
 
-    def torque_limits(self, joint_positions_rad: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def torque_limits(
+        self, joint_positions_rad: Sequence[float] | np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Return ``(tau_min, tau_max)`` [N m], each (12,), at the canonical joint positions [rad]."""
         q = np.asarray(joint_positions_rad, dtype=float)
         if q.shape != (NUM_JOINTS,):
-            raise ValueError(f"torque_limits expects {NUM_JOINTS} joint positions, got shape {q.shape}")
-        tau_max = np.array([table.max_torque(angle) for table, angle in zip(self.torque_limit_tables, q)])
+            raise InputError(f"torque_limits expects {NUM_JOINTS} joint positions, got shape {q.shape}")
+        if not np.isfinite(q).all():
+            bad = np.flatnonzero(~np.isfinite(q)).tolist()
+            raise InputError(f"torque_limits: non-finite joint position(s) at index {bad}")
+        tau_max = np.array(
+            [table.max_torque(angle) for table, angle in zip(self.torque_limit_tables, q, strict=True)]
+        )
         return -tau_max, tau_max
 
 
@@ -253,7 +261,9 @@ class _Fields:
     def error(self, field: str, message: str) -> RobotConfigError:
         return RobotConfigError(f"{self.source}: field '{field}': {message}")
 
-    def check_keys(self, mapping: Any, field: str, required: Sequence[str], optional: Sequence[str] = ()) -> None:
+    def check_keys(
+        self, mapping: Any, field: str, required: Sequence[str], optional: Sequence[str] = ()
+    ) -> None:
         if not isinstance(mapping, dict):
             raise self.error(field, f"expected a mapping, got {type(mapping).__name__}")
         unknown = sorted(set(mapping) - set(required) - set(optional))
@@ -331,17 +341,20 @@ def _parse_joint_names(fields: _Fields, value: Any, urdf: UrdfSummary) -> tuple[
         leg_field = f"joints.{leg_name}"
         leg_joints = per_leg[leg_name]
         if not isinstance(leg_joints, list) or len(leg_joints) != JOINTS_PER_LEG:
-            raise fields.error(leg_field, f"expected {JOINTS_PER_LEG} joint names ({', '.join(JOINT_KINDS)}), "
-                                          f"got {leg_joints!r}")
-        for kind, joint_name in zip(JOINT_KINDS, leg_joints):
+            raise fields.error(
+                leg_field,
+                f"expected {JOINTS_PER_LEG} joint names ({', '.join(JOINT_KINDS)}), got {leg_joints!r}",
+            )
+        for kind, joint_name in zip(JOINT_KINDS, leg_joints, strict=True):
             field = f"{leg_field}.{kind}"
             joint_name = fields.string(joint_name, field)
             if joint_name not in urdf.joints:
                 raise fields.error(field, f"joint {joint_name!r} not in URDF {urdf.path}")
-            if urdf.joints[joint_name].joint_type not in _ACTUATED_URDF_TYPES:
-                raise fields.error(field, f"joint {joint_name!r} has URDF type "
-                                          f"{urdf.joints[joint_name].joint_type!r}; expected one of "
-                                          f"{_ACTUATED_URDF_TYPES}")
+            joint_type = urdf.joints[joint_name].joint_type
+            if joint_type not in _ACTUATED_URDF_TYPES:
+                raise fields.error(
+                    field, f"joint {joint_name!r} is {joint_type!r}, not {_ACTUATED_URDF_TYPES}"
+                )
             names.append(joint_name)
     duplicates = sorted({name for name in names if names.count(name) > 1})
     if duplicates:
@@ -358,8 +371,9 @@ def _parse_frame(fields: _Fields, value: Any, field: str, urdf: UrdfSummary) -> 
 
 def _parse_leg_frames(fields: _Fields, value: Any, field: str, urdf: UrdfSummary) -> PerLeg[str]:
     per_leg = fields.per_leg(value, field)
-    return PerLeg.from_sequence([_parse_frame(fields, per_leg[name], f"{field}.{name}", urdf)
-                                 for name in LEG_NAMES])
+    return PerLeg.from_sequence(
+        [_parse_frame(fields, per_leg[name], f"{field}.{name}", urdf) for name in LEG_NAMES]
+    )
 
 
 def _override_for(overrides: dict[str, Any], joint_name: str, joint_index: int) -> tuple[str, Any] | None:
@@ -384,8 +398,9 @@ def _urdf_limit(fields: _Fields, urdf: UrdfSummary, joint_name: str, attribute: 
     return value
 
 
-def _position_limits(fields: _Fields, overrides: Any, joint_names: Sequence[str],
-                     urdf: UrdfSummary) -> tuple[list[float], list[float]]:
+def _position_limits(
+    fields: _Fields, overrides: Any, joint_names: Sequence[str], urdf: UrdfSummary
+) -> tuple[list[float], list[float]]:
     field = "limits.position_rad"
     overrides = _check_override_keys(fields, overrides, field, joint_names)
     lower, upper = [], []
@@ -400,15 +415,17 @@ def _position_limits(fields: _Fields, overrides: Any, joint_names: Sequence[str]
             low, high = fields.numbers(value, f"{field}.{key}", 2)
             origin = f"{field}.{key}"
         if not low < high:
-            raise fields.error(field, f"inverted position limits [{low}, {high}] for joint {joint_name!r} "
-                                      f"(from {origin})")
+            raise fields.error(
+                field, f"inverted position limits [{low}, {high}] for joint {joint_name!r} (from {origin})"
+            )
         lower.append(low)
         upper.append(high)
     return lower, upper
 
 
-def _velocity_limits(fields: _Fields, overrides: Any, joint_names: Sequence[str],
-                     urdf: UrdfSummary) -> list[float]:
+def _velocity_limits(
+    fields: _Fields, overrides: Any, joint_names: Sequence[str], urdf: UrdfSummary
+) -> list[float]:
     field = "limits.velocity_rad_s"
     overrides = _check_override_keys(fields, overrides, field, joint_names)
     limits = []
@@ -424,8 +441,9 @@ def _velocity_limits(fields: _Fields, overrides: Any, joint_names: Sequence[str]
     return limits
 
 
-def _torque_tables(fields: _Fields, overrides: Any, joint_names: Sequence[str],
-                   urdf: UrdfSummary) -> tuple[TorqueLimitTable, ...]:
+def _torque_tables(
+    fields: _Fields, overrides: Any, joint_names: Sequence[str], urdf: UrdfSummary
+) -> tuple[TorqueLimitTable, ...]:
     field = "limits.torque_Nm"
     overrides = _check_override_keys(fields, overrides, field, joint_names)
     tables = []
@@ -434,7 +452,9 @@ def _torque_tables(fields: _Fields, overrides: Any, joint_names: Sequence[str],
         if override is None:
             limit = _urdf_limit(fields, urdf, joint_name, "effort", field)
             if not limit > 0.0:
-                raise fields.error(field, f"URDF effort limit of joint {joint_name!r} must be > 0, got {limit}")
+                raise fields.error(
+                    field, f"URDF effort limit of joint {joint_name!r} must be > 0, got {limit}"
+                )
             tables.append(TorqueLimitTable.constant(limit))
         else:
             tables.append(_parse_torque_override(fields, override[1], f"{field}.{override[0]}"))
@@ -458,24 +478,30 @@ def _parse_torque_override(fields: _Fields, value: Any, field: str) -> TorqueLim
     return TorqueLimitTable(_frozen_array(rows[:, 0]), _frozen_array(rows[:, 1]))
 
 
-def _parse_nominal(fields: _Fields, value: Any, joint_names: Sequence[str], lower: Sequence[float],
-                   upper: Sequence[float]) -> list[float]:
+def _parse_nominal(
+    fields: _Fields, value: Any, joint_names: Sequence[str], lower: Sequence[float], upper: Sequence[float]
+) -> list[float]:
     per_leg = fields.per_leg(value, "nominal_joint_positions_rad")
     nominal: list[float] = []
     for leg_name in LEG_NAMES:
-        nominal += fields.numbers(per_leg[leg_name], f"nominal_joint_positions_rad.{leg_name}", JOINTS_PER_LEG)
-    for joint_name, angle, low, high in zip(joint_names, nominal, lower, upper):
+        nominal += fields.numbers(
+            per_leg[leg_name], f"nominal_joint_positions_rad.{leg_name}", JOINTS_PER_LEG
+        )
+    for joint_name, angle, low, high in zip(joint_names, nominal, lower, upper, strict=True):
         if not low <= angle <= high:
-            raise fields.error("nominal_joint_positions_rad",
-                               f"{angle} rad for joint {joint_name!r} is outside its limits [{low}, {high}]")
+            raise fields.error(
+                "nominal_joint_positions_rad",
+                f"{angle} rad for joint {joint_name!r} is outside its limits [{low}, {high}]",
+            )
     return nominal
 
 
 def _parse_imu(fields: _Fields, value: Any) -> tuple[list[float], list[float]]:
     fields.check_keys(value, "imu", (), _IMU_KEYS)
     position = fields.numbers(value.get("position_m", [0.0, 0.0, 0.0]), "imu.position_m", 3)
-    quat = np.array(fields.numbers(value.get("orientation_xyzw", [0.0, 0.0, 0.0, 1.0]),
-                                   "imu.orientation_xyzw", 4))
+    quat = np.array(
+        fields.numbers(value.get("orientation_xyzw", [0.0, 0.0, 0.0, 1.0]), "imu.orientation_xyzw", 4)
+    )
     norm = float(np.linalg.norm(quat))
     if abs(norm - 1.0) > 1e-3:
         raise fields.error("imu.orientation_xyzw", f"quaternion must have unit norm, got norm {norm:.6f}")

@@ -1,0 +1,95 @@
+"""Small helpers shared by the thin ROS 2 node adapters of every tal package.
+
+This is the only tal_core module that imports rclpy; algorithm modules never import it. It holds what
+every node needs the same way: declaring validated parameters with descriptions and ranges, stamp
+conversions, and the Jazzy ``main()`` pattern.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import rclpy
+from builtin_interfaces.msg import Time
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+
+NS_PER_S = 1_000_000_000
+
+
+def stamp_from_ns(nanoseconds: int) -> Time:
+    """builtin_interfaces/Time from integer nanoseconds."""
+    sec, nanosec = divmod(int(nanoseconds), NS_PER_S)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def ns_from_stamp(stamp: Time) -> int:
+    """Integer nanoseconds from builtin_interfaces/Time."""
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
+def declare(node: Node, name: str, default: Any, description: str, *,
+            low: float | int | None = None, high: float | int | None = None,
+            choices: Sequence[str] | None = None, read_only: bool = False) -> Any:
+    """Declare a parameter with a description and an optional range or set of choices; return its value.
+
+    Out-of-range values given at start-up (overrides or YAML) raise ``ValueError`` naming the parameter;
+    at run time rclpy rejects them through the descriptor's range.
+    """
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if choices is not None:
+        descriptor.additional_constraints = f"one of: {', '.join(choices)}"
+    if low is not None and high is not None:
+        if isinstance(default, bool):
+            pass
+        elif isinstance(default, int):
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=0)]
+        elif isinstance(default, float):
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high),
+                                                                  step=0.0)]
+    try:
+        value = node.declare_parameter(name, default, descriptor).value
+    except Exception as exc:  # rclpy raises several exception types for invalid start-up values
+        raise ValueError(f"parameter '{name}': {exc}") from exc
+    if choices is not None and value not in choices:
+        raise ValueError(f"parameter '{name}' must be one of {list(choices)}, got {value!r}")
+    if low is not None and isinstance(value, (int, float)) and not isinstance(value, bool) and value < low:
+        raise ValueError(f"parameter '{name}' must be >= {low}, got {value!r}")
+    if high is not None and isinstance(value, (int, float)) and not isinstance(value, bool) and value > high:
+        raise ValueError(f"parameter '{name}' must be <= {high}, got {value!r}")
+    return value
+
+
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None,
+             until: Callable[[Node], bool] | None = None, name: str = "node") -> int:
+    """Jazzy main() pattern: init, spin until shutdown (or ``until(node)``), clean up. Returns an exit code.
+
+    A configuration error raised while constructing the node (invalid parameter, bad course or robot
+    file) is printed as one line naming the problem, and the exit code is 2 (no traceback).
+    """
+    rclpy.init(args=args)
+    node = None
+    executor = SingleThreadedExecutor()
+    code = 0
+    try:
+        try:
+            node = factory()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            raise
+        except Exception as exc:  # start-up configuration errors of any tal package
+            print(f"[{name}] start-up error: {type(exc).__name__}: {exc}", file=sys.stderr)
+            return 2
+        executor.add_node(node)
+        while rclpy.ok() and not (until is not None and until(node)):
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code

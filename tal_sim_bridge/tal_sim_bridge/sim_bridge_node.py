@@ -1,0 +1,335 @@
+"""Node ``sim_bridge``: PyBullet HyQ on a compliant course, standing in for the robot hardware.
+
+Publishes (relative names): clock, joint_states, imu, ground_truth/odom (1 kHz by default),
+ground_truth/contacts (250 Hz), terrain/heightmap (20 Hz). Subscribes: joint_command.
+
+Modes:
+  * lockstep: physics advances one control period (control_period_s) only after a joint_command stamped
+    at (or after) the current control tick arrives, so results do not depend on machine speed. If no
+    command arrives within lockstep_timeout_s of wall time the bridge advances anyway with the held
+    command and counts a lockstep timeout (a controller that never starts cannot freeze the graph).
+  * realtime: physics follows the wall clock (steady time), catching up at most max_catch_up_steps per
+    timer call; falling behind is counted as overruns.
+
+The bridge is the clock source: its own timers run on the steady clock, never on sim time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+from geometry_msgs.msg import Point, Vector3
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import Imu, JointState
+
+from tal_core.heightmap import extract_heightmap
+from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
+from tal_core.robot_description import load_robot_description
+from tal_core.terrain import load_course
+from tal_msgs.msg import ContactState, HeightMap, JointCommand
+
+from .bridge_core import BridgeCore, ImuModel, _rotation_from_quat_xyzw
+from .effects import ModelEffects
+from .errors import CommandRejected
+from .physics import Simulation
+
+EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
+    "actuator_delay_s": (0.0, "[s] transport delay of the joint torques"),
+    "actuator_lag_s": (0.0, "[s] first-order lag time constant of the joint torques"),
+    "torque_gain": (1.0, "[-] delivered / commanded torque"),
+    "torque_limit_scale": (1.0, "[-] scale on the robot's torque limits"),
+    "joint_viscous_friction_nms_per_rad": (0.0, "[N m s/rad] viscous joint friction"),
+    "joint_coulomb_friction_nm": (0.0, "[N m] Coulomb joint friction"),
+    "payload_mass_kg": (0.0, "[kg] point mass added to the trunk"),
+    "payload_offset_m": ([0.0, 0.0, 0.0], "[m] payload position relative to the trunk CoM, base frame"),
+    "imu_gyro_bias_rad_s": ([0.0, 0.0, 0.0], "[rad/s] gyroscope bias, base frame"),
+    "imu_accel_bias_m_s2": ([0.0, 0.0, 0.0], "[m/s^2] accelerometer bias, base frame"),
+}
+
+
+class SimBridgeNode(Node):
+    """Thin ROS adapter around ``BridgeCore``."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("sim_bridge", **kwargs)
+        p = self._declare_parameters()
+        self.mode: str = p["mode"]
+        robot = load_robot_description(p["robot"])
+        course = load_course(p["course"])
+        effects = ModelEffects.from_mapping(
+            {name: self.get_parameter(f"effects.{name}").value for name in EFFECT_PARAMETERS})
+        sim = Simulation(robot, course, time_step_s=1.0 / p["physics_rate_hz"], effects=effects,
+                         gui=p["gui"], initial_xy=(p["initial_x_m"], p["initial_y_m"]),
+                         initial_yaw_rad=p["initial_yaw_rad"])
+        imu = ImuModel(effects, p["imu_gyro_noise_std_rad_s"], p["imu_accel_noise_std_m_s2"], p["seed"])
+        self.core = BridgeCore(sim, imu=imu, safe_damping_nms_per_rad=p["safe_damping_nms_per_rad"],
+                               summary_window_steps=max(1, int(p["contact_rate_hz"])))
+        self.params = p
+        self.steps_per_control = max(1, round(p["control_period_s"] * p["physics_rate_hz"]))
+        self.sensor_every = max(1, round(p["physics_rate_hz"] / p["sensor_rate_hz"]))
+        self.contact_every = max(1, round(p["physics_rate_hz"] / p["contact_rate_hz"]))
+        self.heightmap_every = max(1, round(p["physics_rate_hz"] / p["heightmap_rate_hz"]))
+        self.duration_steps = (round(p["duration_s"] * p["physics_rate_hz"]) if p["duration_s"] > 0 else None)
+        self.finished = False
+        self.lockstep_timeouts = 0
+        self.realtime_overruns = 0
+        self._summary: dict[str, object] | None = None
+
+        qos_sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+        self.pub_clock = self.create_publisher(ClockMsg, "clock", qos_sensor)
+        self.pub_joints = self.create_publisher(JointState, "joint_states", qos_sensor)
+        self.pub_imu = self.create_publisher(Imu, "imu", qos_sensor)
+        self.pub_odom = self.create_publisher(Odometry, "ground_truth/odom", qos_sensor)
+        self.pub_contacts = self.create_publisher(ContactState, "ground_truth/contacts", qos_sensor)
+        self.pub_heightmap = self.create_publisher(HeightMap, "terrain/heightmap", qos_sensor)
+        self.create_subscription(JointCommand, "joint_command", self._on_command, 10)
+
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._wall_start = time.monotonic()
+        self._waiting_since = time.monotonic()
+        self._awaiting_tick_ns: int | None = None
+        if self.mode == "lockstep":
+            self._publish_step_outputs(force_all=True)
+            self._awaiting_tick_ns = self.core.sim.time_ns
+            self.create_timer(0.05, self._check_lockstep_timeout, clock=steady)
+        else:
+            self._publish_step_outputs(force_all=True)
+            self.create_timer(1.0 / p["physics_rate_hz"], self._realtime_tick, clock=steady)
+        self.get_logger().info(
+            f"sim_bridge ready: robot '{robot.name}' ({sim.total_mass_kg:.2f} kg), course '{course.name}', "
+            f"mode {self.mode}, physics {p['physics_rate_hz']:.0f} Hz, control period {p['control_period_s']} s"
+            + (f", effects {effects.active()}" if effects.active() else ""))
+
+    # -- parameters -------------------------------------------------------------------------------------
+    def _declare_parameters(self) -> dict[str, object]:
+        p: dict[str, object] = {
+            "mode": declare(self, "mode", "lockstep", "lockstep (deterministic) or realtime (wall clock)",
+                            choices=("lockstep", "realtime"), read_only=True),
+            "robot": declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True),
+            "course": declare(self, "course", "flat_rigid", "course YAML: shipped name or path", read_only=True),
+            "gui": declare(self, "gui", False, "open the PyBullet GUI instead of DIRECT", read_only=True),
+            "physics_rate_hz": declare(self, "physics_rate_hz", 1000.0, "[Hz] physics step rate",
+                                       low=100.0, high=10000.0, read_only=True),
+            "control_period_s": declare(self, "control_period_s", 0.004,
+                                        "[s] control tick of the lockstep protocol", low=0.0005, high=0.1,
+                                        read_only=True),
+            "lockstep_timeout_s": declare(self, "lockstep_timeout_s", 2.0,
+                                          "[s] wall time to wait for a command before advancing anyway",
+                                          low=0.01, high=3600.0),
+            "max_catch_up_steps": declare(self, "max_catch_up_steps", 20,
+                                          "[-] realtime: most physics steps per timer call", low=1, high=1000),
+            "sensor_rate_hz": declare(self, "sensor_rate_hz", 1000.0,
+                                      "[Hz] clock, joint_states, imu, ground_truth/odom", low=1.0, high=10000.0),
+            "contact_rate_hz": declare(self, "contact_rate_hz", 250.0, "[Hz] ground_truth/contacts",
+                                       low=1.0, high=10000.0),
+            "heightmap_rate_hz": declare(self, "heightmap_rate_hz", 20.0, "[Hz] terrain/heightmap",
+                                         low=0.1, high=1000.0),
+            "heightmap_rows": declare(self, "heightmap_rows", 33, "[-] cells along x", low=1, high=1001),
+            "heightmap_cols": declare(self, "heightmap_cols", 33, "[-] cells along y", low=1, high=1001),
+            "heightmap_resolution_m": declare(self, "heightmap_resolution_m", 0.02, "[m] cell size",
+                                              low=0.001, high=1.0),
+            "initial_x_m": declare(self, "initial_x_m", 0.0, "[m] world x of the robot at start",
+                                   low=-1e4, high=1e4, read_only=True),
+            "initial_y_m": declare(self, "initial_y_m", 0.0, "[m] world y of the robot at start",
+                                   low=-1e4, high=1e4, read_only=True),
+            "initial_yaw_rad": declare(self, "initial_yaw_rad", 0.0, "[rad] heading at start",
+                                       low=-math.pi, high=math.pi, read_only=True),
+            "imu_gyro_noise_std_rad_s": declare(self, "imu_gyro_noise_std_rad_s", 0.0,
+                                                "[rad/s] gyroscope white noise", low=0.0, high=10.0),
+            "imu_accel_noise_std_m_s2": declare(self, "imu_accel_noise_std_m_s2", 0.0,
+                                                "[m/s^2] accelerometer white noise", low=0.0, high=100.0),
+            "seed": declare(self, "seed", 0, "[-] seed of the sensor noise", low=0, high=2**31 - 1),
+            "safe_damping_nms_per_rad": declare(self, "safe_damping_nms_per_rad", 5.0,
+                                                "[N m s/rad] joint damping before any valid command",
+                                                low=0.0, high=1000.0),
+            "duration_s": declare(self, "duration_s", 0.0, "[s] sim time after which the bridge stops; 0 = never",
+                                  low=0.0, high=1e6),
+            "summary_path": declare(self, "summary_path", "", "JSON file for the end-of-run summary ('' = none)"),
+        }
+        for name, (default, description) in EFFECT_PARAMETERS.items():
+            declare(self, f"effects.{name}", default, description, read_only=True)
+        return p
+
+    # -- commands ---------------------------------------------------------------------------------------
+    def _on_command(self, msg: JointCommand) -> None:
+        stamp_ns = ns_from_stamp(msg.header.stamp)
+        try:
+            self.core.commands.submit(stamp_ns, list(msg.name), msg.effort, msg.position, msg.velocity,
+                                      msg.kp, msg.kd)
+        except CommandRejected as exc:
+            self.get_logger().warn(
+                f"rejected joint_command ({exc.reason}, {self.core.commands.rejected_total} so far): {exc}",
+                throttle_duration_sec=1.0)
+            return
+        if self._awaiting_tick_ns is not None and stamp_ns >= self._awaiting_tick_ns:
+            self._advance_control_period()
+
+    def _check_lockstep_timeout(self) -> None:
+        if self.finished or self._awaiting_tick_ns is None:
+            return
+        if self.core.commands.accepted == 0 and self.core.sim.step_count == 0:
+            # Controllers may join after the bridge (DDS discovery): re-send the initial state until the
+            # first command arrives. Consumers drop the repeated stamp as not newer.
+            self._publish_step_outputs(force_all=True, record=False)
+        if time.monotonic() - self._waiting_since > self.params["lockstep_timeout_s"]:
+            self.lockstep_timeouts += 1
+            self.get_logger().warn(
+                f"lockstep: no joint_command for tick {self._awaiting_tick_ns * 1e-9:.3f} s within "
+                f"{self.params['lockstep_timeout_s']} s; advancing with the held command "
+                f"({self.lockstep_timeouts} timeouts)", throttle_duration_sec=1.0)
+            self._advance_control_period()
+
+    # -- stepping ---------------------------------------------------------------------------------------
+    def _advance_control_period(self) -> None:
+        self._awaiting_tick_ns = None
+        for _ in range(self.steps_per_control):
+            if self._step_once():
+                return
+        self._awaiting_tick_ns = self.core.sim.time_ns
+        self._waiting_since = time.monotonic()
+
+    def _realtime_tick(self) -> None:
+        if self.finished:
+            return
+        target_steps = int((time.monotonic() - self._wall_start) * self.params["physics_rate_hz"])
+        behind = target_steps - self.core.sim.step_count
+        if behind > self.params["max_catch_up_steps"]:
+            self.realtime_overruns += 1
+            # Drop the backlog rather than spiral: sim time then runs slower than the wall clock.
+            self._wall_start += (behind - self.params["max_catch_up_steps"]) / self.params["physics_rate_hz"]
+            behind = self.params["max_catch_up_steps"]
+        for _ in range(max(0, behind)):
+            if self._step_once():
+                return
+
+    def _step_once(self) -> bool:
+        """One physics step plus the outputs due at it; returns True when the run is finished."""
+        self.core.step()
+        self._publish_step_outputs()
+        if self.duration_steps is not None and self.core.sim.step_count >= self.duration_steps:
+            self._finish()
+            return True
+        return False
+
+    def _publish_step_outputs(self, force_all: bool = False, record: bool = True) -> None:
+        step = self.core.sim.step_count
+        stamp = stamp_from_ns(self.core.sim.time_ns)
+        self.pub_clock.publish(ClockMsg(clock=stamp))
+        state = self.core.sim.robot_state()
+        if force_all or step % self.sensor_every == 0:
+            self._publish_sensors(stamp, state)
+        if force_all or step % self.contact_every == 0:
+            contacts = self.core.sim.foot_contacts()
+            self._publish_contacts(stamp, contacts)
+            if record:
+                self.core.record_statistics(state, contacts)
+        if force_all or step % self.heightmap_every == 0:
+            self._publish_heightmap(stamp, state)
+
+    def _publish_sensors(self, stamp, state) -> None:
+        joints = JointState()
+        joints.header.stamp = stamp
+        joints.header.frame_id = "base"
+        joints.name = list(self.core.sim.description.joint_names)
+        joints.position = state.joint_position_rad.tolist()
+        joints.velocity = state.joint_velocity_rad_s.tolist()
+        joints.effort = state.joint_torque_nm.tolist()
+        self.pub_joints.publish(joints)
+
+        specific_force, angular_rate = self.core.imu.measure(state)
+        imu = Imu()
+        imu.header.stamp = stamp
+        imu.header.frame_id = "base"
+        imu.orientation_covariance[0] = -1.0  # no orientation estimate from this IMU
+        imu.angular_velocity = Vector3(x=angular_rate[0], y=angular_rate[1], z=angular_rate[2])
+        imu.linear_acceleration = Vector3(x=specific_force[0], y=specific_force[1], z=specific_force[2])
+        gyro_var = self.params["imu_gyro_noise_std_rad_s"] ** 2
+        accel_var = self.params["imu_accel_noise_std_m_s2"] ** 2
+        for i in (0, 4, 8):
+            imu.angular_velocity_covariance[i] = gyro_var
+            imu.linear_acceleration_covariance[i] = accel_var
+        self.pub_imu.publish(imu)
+
+        odom = Odometry()
+        odom.header.stamp = stamp
+        odom.header.frame_id = "world"
+        odom.child_frame_id = "base"
+        pos, quat = state.base_position_m, state.base_quat_xyzw
+        odom.pose.pose.position = Point(x=pos[0], y=pos[1], z=pos[2])
+        odom.pose.pose.orientation.x, odom.pose.pose.orientation.y = float(quat[0]), float(quat[1])
+        odom.pose.pose.orientation.z, odom.pose.pose.orientation.w = float(quat[2]), float(quat[3])
+        # ROS convention: the twist is expressed in child_frame_id (base).
+        base_R_world = _rotation_from_quat_xyzw(quat).T
+        lin = base_R_world @ state.base_lin_vel_m_s
+        ang = base_R_world @ state.base_ang_vel_rad_s
+        odom.twist.twist.linear = Vector3(x=lin[0], y=lin[1], z=lin[2])
+        odom.twist.twist.angular = Vector3(x=ang[0], y=ang[1], z=ang[2])
+        self.pub_odom.publish(odom)
+
+    def _publish_contacts(self, stamp, contacts) -> None:
+        msg = ContactState()
+        msg.header.stamp = stamp
+        msg.header.frame_id = "world"
+        for i, c in enumerate(contacts):
+            msg.in_contact[i] = c.in_contact
+            msg.probability[i] = 1.0 if c.in_contact else 0.0
+            msg.force[i] = Vector3(x=c.force_n[0], y=c.force_n[1], z=c.force_n[2])
+            msg.foot_position[i] = Point(x=c.position_m[0], y=c.position_m[1], z=c.position_m[2])
+            msg.foot_velocity[i] = Vector3(x=c.velocity_m_s[0], y=c.velocity_m_s[1], z=c.velocity_m_s[2])
+            msg.normal[i] = Vector3(x=c.normal[0], y=c.normal[1], z=c.normal[2])
+            msg.penetration[i] = c.penetration_m
+            msg.penetration_rate[i] = float(-(c.velocity_m_s @ c.normal)) if c.in_contact else 0.0
+        self.pub_contacts.publish(msg)
+
+    def _publish_heightmap(self, stamp, state) -> None:
+        p = self.params
+        quat = state.base_quat_xyzw
+        yaw = math.atan2(2.0 * (quat[3] * quat[2] + quat[0] * quat[1]), 1.0 - 2.0 * (quat[1] ** 2 + quat[2] ** 2))
+        grid = extract_heightmap(self.core.sim.course, (state.base_position_m[0], state.base_position_m[1]), yaw,
+                                 rows=p["heightmap_rows"], cols=p["heightmap_cols"],
+                                 resolution_m=p["heightmap_resolution_m"])
+        msg = HeightMap()
+        msg.header.stamp = stamp
+        msg.header.frame_id = "world"
+        msg.center = Point(x=grid.center_xy[0], y=grid.center_xy[1], z=0.0)
+        msg.yaw = grid.yaw
+        msg.resolution = grid.resolution_m
+        msg.rows, msg.cols = grid.rows, grid.cols
+        msg.heights = np.ascontiguousarray(grid.heights, dtype=np.float32).ravel()
+        self.pub_heightmap.publish(msg)
+
+    # -- end of run -------------------------------------------------------------------------------------
+    def _finish(self) -> None:
+        self.finished = True
+        summary = self.summary()
+        self.get_logger().info("run finished: " + json.dumps(summary))
+        path = self.params["summary_path"]
+        if path:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            Path(path).write_text(json.dumps(summary, indent=2) + "\n")
+
+    def summary(self) -> dict[str, object]:
+        summary = self.core.summary(time.monotonic() - self._wall_start)
+        summary.update(mode=self.mode, lockstep_timeouts=self.lockstep_timeouts,
+                       realtime_overruns=self.realtime_overruns)
+        return summary
+
+    def destroy_node(self) -> None:
+        self.core.sim.close()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(lambda: SimBridgeNode(), args, until=lambda node: node.finished, name="sim_bridge")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
