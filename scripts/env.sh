@@ -12,3 +12,5 @@ source "$_tal_root/ros2_ws/install/setup.bash"
 [ "$_tal_nounset" = 1 ] && set -u
 export TAL_ROOT="$_tal_root"
 unset _tal_root _tal_nounset
+# Keep DDS discovery on this machine (loopback): nothing of tal talks to other hosts.
+export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"

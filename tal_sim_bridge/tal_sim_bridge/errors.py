@@ -7,7 +7,7 @@ class SimBridgeError(Exception):
     """Base class of all tal_sim_bridge errors."""
 
 
-class BridgeConfigError(SimBridgeError):
+class BridgeConfigError(SimBridgeError, ValueError):
     """An invalid bridge parameter or model-effect setting (the message names the parameter)."""
 
 

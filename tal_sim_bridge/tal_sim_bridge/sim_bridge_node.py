@@ -81,7 +81,7 @@ class SimBridgeNode(Node):
         self.finished = False
         self.lockstep_timeouts = 0
         self.realtime_overruns = 0
-        self._summary: dict[str, object] | None = None
+        self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
 
         qos_sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
         self.pub_clock = self.create_publisher(ClockMsg, "clock", qos_sensor)
@@ -309,7 +309,7 @@ class SimBridgeNode(Node):
     # -- end of run -------------------------------------------------------------------------------------
     def _finish(self) -> None:
         self.finished = True
-        summary = self.summary()
+        summary = self.final_summary = self.summary()
         self.get_logger().info("run finished: " + json.dumps(summary))
         path = self.params["summary_path"]
         if path:

@@ -1,0 +1,159 @@
+"""The sim_bridge node in a real rclpy graph (one process, private context): lockstep protocol, topic
+rates in sim time, bad joint commands, start-up errors."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+
+import pytest
+import rclpy
+from nav_msgs.msg import Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState
+
+from tal_control.stand_controller_node import StandControllerNode
+from tal_core.errors import CourseConfigError
+from tal_msgs.msg import ContactState, HeightMap, JointCommand
+from tal_sim_bridge.sim_bridge_node import SimBridgeNode
+
+pytestmark = pytest.mark.ros
+
+TOPICS = {
+    "clock": Clock, "joint_states": JointState, "imu": Imu, "ground_truth/odom": Odometry,
+    "ground_truth/contacts": ContactState, "terrain/heightmap": HeightMap,
+}
+
+
+@pytest.fixture
+def context():
+    ctx = rclpy.context.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.shutdown(context=ctx)
+
+
+class Probe:
+    """Counts messages per topic and keeps the last one."""
+
+    def __init__(self, ctx) -> None:
+        self.node = rclpy.create_node("probe", context=ctx)
+        self.counts: Counter[str] = Counter()
+        self.last: dict[str, object] = {}
+        for topic, msg_type in TOPICS.items():
+            self.node.create_subscription(msg_type, topic, self._callback(topic), 1000)
+        self.command_pub = self.node.create_publisher(JointCommand, "joint_command", 10)
+
+    def _callback(self, topic: str):
+        def on_message(msg) -> None:
+            self.counts[topic] += 1
+            self.last[topic] = msg
+        return on_message
+
+
+def spin_until(executor, predicate, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=0.05)
+    return predicate()
+
+
+def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(context) -> None:
+    bridge = SimBridgeNode(context=context, parameter_overrides=[
+        Parameter("course", value="flat_t2"), Parameter("duration_s", value=1.0)])
+    controller = StandControllerNode(context=context)
+    probe = Probe(context)
+    executor = SingleThreadedExecutor(context=context)
+    for node in (bridge, controller, probe.node):
+        executor.add_node(node)
+    try:
+        assert spin_until(executor, lambda: bridge.finished, 120.0), "bridge did not finish 1 s of sim time"
+        spin_until(executor, lambda: False, 0.5)  # drain the last messages
+    finally:
+        executor.shutdown()
+        for node in (bridge, controller, probe.node):
+            node.destroy_node()
+    summary = bridge.final_summary
+    assert summary is not None
+    # Lockstep: every control tick (250 in 1 s) was answered by the controller, none timed out.
+    assert summary["lockstep_timeouts"] == 0
+    assert summary["commands_accepted"] == 250
+    assert summary["sim_time_s"] == pytest.approx(1.0)
+    assert summary["body_ground_contact"] == []
+    # Rates in sim time: 1 kHz sensors, 250 Hz contacts, 20 Hz heightmap (+1 initial message each;
+    # a late-joining probe may miss the very first ones).
+    for topic, expected in (("clock", 1000), ("joint_states", 1000), ("imu", 1000), ("ground_truth/odom", 1000),
+                            ("ground_truth/contacts", 250), ("terrain/heightmap", 20)):
+        assert expected - 5 <= probe.counts[topic] <= expected + 1, (topic, probe.counts[topic])
+    last_clock = probe.last["clock"].clock
+    assert last_clock.sec + last_clock.nanosec * 1e-9 == pytest.approx(1.0)
+    joints = probe.last["joint_states"]
+    assert list(joints.name) == list(bridge.core.sim.description.joint_names)
+    assert all(math.isfinite(x) for x in joints.effort)
+    contacts = probe.last["ground_truth/contacts"]
+    assert all(contacts.in_contact)
+    assert sum(f.z for f in contacts.force) == pytest.approx(86.774 * 9.81, rel=0.05)
+    heightmap = probe.last["terrain/heightmap"]
+    assert (heightmap.rows, heightmap.cols, len(heightmap.heights)) == (33, 33, 33 * 33)
+    imu = probe.last["imu"]
+    assert imu.linear_acceleration.z == pytest.approx(9.81, abs=0.5)
+
+
+def test_bad_joint_commands_are_rejected_counted_and_the_bridge_keeps_damping(context) -> None:
+    bridge = SimBridgeNode(context=context, parameter_overrides=[
+        Parameter("mode", value="realtime"), Parameter("course", value="flat_rigid")])
+    probe = Probe(context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(bridge)
+    executor.add_node(probe.node)
+    names = list(bridge.core.sim.description.joint_names)
+    bad = []
+    unknown = JointCommand(name=["no_such_joint"] + names[1:], effort=[0.0] * 12)
+    bad.append(unknown)
+    bad.append(JointCommand(name=names, effort=[0.0] * 11))
+    bad.append(JointCommand(name=names, effort=[float("nan")] + [0.0] * 11))
+    bad.append(JointCommand(name=names, effort=[0.0] * 12, position=[0.0] * 12, kp=[-1.0] * 12))
+    try:
+        assert spin_until(executor, lambda: probe.counts["joint_states"] > 5, 20.0)
+        for _ in range(3):
+            for msg in bad:
+                probe.command_pub.publish(msg)
+            spin_until(executor, lambda: False, 0.2)
+        assert spin_until(executor, lambda: bridge.core.commands.rejected_total == 12, 10.0)
+        steps_before = bridge.core.sim.step_count
+        assert spin_until(executor, lambda: bridge.core.sim.step_count > steps_before + 50, 20.0), \
+            "the bridge stopped stepping after bad commands"
+    finally:
+        executor.shutdown()
+        bridge.destroy_node()
+        probe.node.destroy_node()
+    assert dict(bridge.core.commands.rejections) == {
+        "unknown_joint": 3, "wrong_size": 3, "non_finite": 3, "negative_gain": 3}
+    assert bridge.core.commands.held is None  # still damping: no valid command ever arrived
+    joints = probe.last["joint_states"]
+    damping = bridge.params["safe_damping_nms_per_rad"]
+    # The delivered torque is the damping torque of the previous step's velocity.
+    for effort, velocity in zip(joints.effort, joints.velocity):
+        assert abs(effort) <= damping * (abs(velocity) + 0.5)
+
+
+def test_invalid_course_fails_at_start_up_naming_file_patch_and_field(context, tmp_path) -> None:
+    course = tmp_path / "bad_course.yaml"
+    course.write_text(
+        "course:\n  name: bad\n  extent: {x: [-2.0, 4.0], y: [-1.0, 1.0]}\n"
+        "  default: {terrain: T4}\n"
+        "  patches:\n    - {name: mud, type: flat, x: [1.0, 2.0], stiffness_n_per_m: -5, damping_ns_per_m: 400}\n")
+    with pytest.raises(CourseConfigError, match=r"bad_course\.yaml.*'mud'.*stiffness_n_per_m"):
+        SimBridgeNode(context=context, parameter_overrides=[Parameter("course", value=str(course))])
+
+
+def test_invalid_parameter_fails_at_start_up_naming_it(context) -> None:
+    with pytest.raises(ValueError, match="mode"):
+        SimBridgeNode(context=context, parameter_overrides=[Parameter("mode", value="fast")])
+    with pytest.raises(ValueError, match="torque_gain"):
+        SimBridgeNode(context=context, parameter_overrides=[Parameter("effects.torque_gain", value=0.0)])
