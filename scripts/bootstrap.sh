@@ -48,8 +48,10 @@ REQ_STAMP="$VENV/.tal-requirements.sha256"
 req_hash="$(hash_of "$ROOT/requirements.txt" "$ROOT/requirements.lock" "$ROOT/scripts/bootstrap.sh")"
 if [ "$(cat "$REQ_STAMP" 2>/dev/null)" != "$req_hash" ]; then
     say "installing pinned Python packages (first run: a few minutes)"
+    # The machine's pip config lists local mirrors that lack most packages: drop those warnings.
     "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
         -r "$ROOT/requirements.txt" -c "$ROOT/requirements.lock" \
+        2> >(grep -v "is ignored: it is neither a file nor a directory" >&2) \
         || fail "pip could not install the pinned packages (see the pip output above)." \
                 "check that PyPI is reachable and that the local torch 2.13.0 CPU wheel is on pip's find-links."
 
