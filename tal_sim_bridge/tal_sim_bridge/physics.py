@@ -169,21 +169,26 @@ class Simulation:
         self.step_count = 0
         with _quiet_c_stdout():
             self.client = BulletClient(connection_mode=pybullet.GUI if gui else pybullet.DIRECT)
-        self.client.setGravity(0.0, 0.0, -GRAVITY_M_S2)
-        self.client.setPhysicsEngineParameter(fixedTimeStep=self.time_step_s,
-                                              numSolverIterations=int(solver_iterations),
-                                              deterministicOverlappingPairs=1)
-        self.ground_bodies = self._build_course()
-        self._urdf = _prepared_urdf(description, self.effects)
-        with _quiet_c_stdout():
-            self.robot = self.client.loadURDF(str(self._urdf), [0.0, 0.0, 1.0],
-                                              flags=pybullet.URDF_USE_INERTIA_FROM_FILE)
-        self._index_links()
-        self._configure_robot()
-        tau_min, tau_max = description.torque_limits(description.nominal_joint_positions_rad)
-        self.actuators = ActuatorModel(self.effects, self.time_step_s, tau_min, tau_max)
-        self._last_torque = np.zeros(len(self.joint_ids))
-        self.reset(initial_xy, initial_yaw_rad)
+        self._urdf: Path | None = None
+        try:  # a rejected setting (e.g. initial_xy off the course) must not leak the client or the URDF
+            self.client.setGravity(0.0, 0.0, -GRAVITY_M_S2)
+            self.client.setPhysicsEngineParameter(fixedTimeStep=self.time_step_s,
+                                                  numSolverIterations=int(solver_iterations),
+                                                  deterministicOverlappingPairs=1)
+            self.ground_bodies = self._build_course()
+            self._urdf = _prepared_urdf(description, self.effects)
+            with _quiet_c_stdout():
+                self.robot = self.client.loadURDF(str(self._urdf), [0.0, 0.0, 1.0],
+                                                  flags=pybullet.URDF_USE_INERTIA_FROM_FILE)
+            self._index_links()
+            self._configure_robot()
+            tau_min, tau_max = description.torque_limits(description.nominal_joint_positions_rad)
+            self.actuators = ActuatorModel(self.effects, self.time_step_s, tau_min, tau_max)
+            self._last_torque = np.zeros(len(self.joint_ids))
+            self.reset(initial_xy, initial_yaw_rad)
+        except BaseException:
+            self.close()
+            raise
 
     # -- construction ---------------------------------------------------------------------------------
     def _build_course(self) -> list[int]:
@@ -333,7 +338,8 @@ class Simulation:
             except pybullet.error:
                 pass
             self.client = None  # type: ignore[assignment]
-        self._urdf.unlink(missing_ok=True)
+        if self._urdf is not None:
+            self._urdf.unlink(missing_ok=True)
 
 
 def _terrain_colour(stiffness_n_per_m: float) -> list[float]:
