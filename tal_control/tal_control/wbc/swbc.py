@@ -46,6 +46,7 @@ class WbcSettings:
     min_normal_force_n: float = 10.0
     max_normal_force_n: float = 1000.0
     torque_limit_overrides_nm: tuple[tuple[str, float], ...] = ()   # (joint name, max |tau|) pairs
+    position_limit_overrides_rad: tuple[tuple[str, float, float], ...] = ()  # (joint, lower, upper)
     joint_limit_horizon_periods: int = 10
     control_period_s: float = 0.004
     max_iterations: int = 4000
@@ -100,6 +101,16 @@ class StandardWbc:
             raise InputError(f"torque limit override for unknown joint(s) {unknown}")
         self._overrides = [(names.index(name), float(limit))
                            for name, limit in self.settings.torque_limit_overrides_nm]
+        unknown = [o[0] for o in self.settings.position_limit_overrides_rad if o[0] not in names]
+        if unknown:
+            raise InputError(f"position limit override for unknown joint(s) {unknown}")
+        self.position_lower = self.description.position_lower_rad.copy()
+        self.position_upper = self.description.position_upper_rad.copy()
+        for name, low, high in self.settings.position_limit_overrides_rad:
+            if not low < high:
+                raise InputError(f"position limit override for {name}: lower {low} must be < upper {high}")
+            self.position_lower[names.index(name)] = low
+            self.position_upper[names.index(name)] = high
 
     # ------------------------------------------------------------------------------------------------
     def solve(self, q: np.ndarray, v: np.ndarray, refs: WbcReferences) -> WbcSolution:
@@ -273,9 +284,8 @@ class StandardWbc:
     def _joint_acceleration_bounds(self, q_joints: np.ndarray, qd_joints: np.ndarray):
         """Accelerations that reach each end stop at zero velocity within the horizon (thesis eq.)."""
         dt = self.settings.joint_limit_horizon_periods * self.settings.control_period_s
-        d = self.description
-        qdd_max = 2.0 / dt**2 * (d.position_upper_rad - q_joints - dt * qd_joints)
-        qdd_min = 2.0 / dt**2 * (d.position_lower_rad - q_joints - dt * qd_joints)
+        qdd_max = 2.0 / dt**2 * (self.position_upper - q_joints - dt * qd_joints)
+        qdd_min = 2.0 / dt**2 * (self.position_lower - q_joints - dt * qd_joints)
         # Beyond a limit the two bounds cross: keep the one that brings the joint back.
         qdd_min = np.minimum(qdd_min, qdd_max)
         return qdd_min, qdd_max
