@@ -1,19 +1,37 @@
 #!/usr/bin/env bash
 # `make run SCENARIO=...`: run one scenario of the full node graph and print its summary.
 # Scenarios:
-#   stand           (default) HyQ stands 10 s of sim time in lockstep, first on rigid ground, then on T1 soft
+#   trot            (default) HyQ trots forward at 0.3 m/s on rigid ground for 20 s of sim time (lockstep):
+#                   sim_bridge + wbc (sWBC) + cmd_vel_script; prints tracking errors and whether it fell
+#   crawl           the same with a crawl at 0.1 m/s
+#   stand           HyQ stands 10 s in lockstep (joint PD hold), first on rigid ground, then on T1 soft
 #   stand_realtime  the same, following the wall clock
 # Results: runs/<timestamp>/<part>/ (one log per node, summary.json) and runs/<timestamp>/report.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-SCENARIO="${1:-stand}"
-DURATION_S="${DURATION_S:-10.0}"
+SCENARIO="${1:-trot}"
 RUN_ROOT="$ROOT/runs/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
 # A private DDS domain per run, so concurrent runs and tests do not see each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
 
+walk() {
+    local gait="$1" speed="$2" duration="${DURATION_S:-20.0}"
+    local dir="$RUN_ROOT"
+    echo "[run] $SCENARIO: HyQ ${gait}s at $speed m/s on rigid ground for $duration s of sim time (lockstep)"
+    bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge \
+        -s "sim_bridge.course:=flat_rigid" -s "sim_bridge.duration_s:=$duration" \
+        -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
+        -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" \
+        -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
+        tal_sim_bridge/sim_bridge tal_control/wbc tal_control/cmd_vel_script \
+        || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
+    python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
+        --title "HyQ $gait at $speed m/s, rigid ground" --output "$RUN_ROOT/report.md"
+}
+
 stand() {
     local mode="$1"
+    DURATION_S="${DURATION_S:-10.0}"
     local parts=()
     for course in flat_rigid flat_t1; do
         local dir="$RUN_ROOT/$course"
@@ -29,8 +47,10 @@ stand() {
 }
 
 case "$SCENARIO" in
+    trot) walk trot 0.3 ;;
+    crawl) walk crawl 0.1 ;;
     stand) stand lockstep ;;
     stand_realtime) stand realtime ;;
-    *) echo "unknown SCENARIO '$SCENARIO'; known: stand, stand_realtime" >&2; exit 2 ;;
+    *) echo "unknown SCENARIO '$SCENARIO'; known: trot, crawl, stand, stand_realtime" >&2; exit 2 ;;
 esac
 echo "[run] report: $RUN_ROOT/report.md"

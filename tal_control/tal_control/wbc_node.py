@@ -1,0 +1,317 @@
+"""Node ``wbc``: motion generation + passive whole-body controller (sWBC) at 250 Hz.
+
+Subscribes: joint_states, the base state (``ground_truth/odom`` or ``state_estimate``, parameter
+state_source), cmd_vel, footholds, body_pose_reference, terrain/heightmap.
+Publishes: joint_command (feed-forward torques), gait_state, wbc/diagnostics.
+
+Ticks lie on the sim-time grid k * control_period_s. A tick is computed once the joint state of that
+tick and a base state with the same stamp have arrived (the order of arrival does not matter, so
+lockstep runs are deterministic). A base state older than ``stale_state_periods`` control periods puts
+the node in safe mode (joint damping hold, MODE_SAFE in diagnostics) until fresh state returns. Input
+with NaN, wrong sizes or unknown joints is rejected and counted; a QP that fails falls back to the
+decayed previous solution and is counted (MODE_FALLBACK); nothing raises out of the loop.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from geometry_msgs.msg import Twist, Vector3
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from tal_core.errors import InputError
+from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
+from tal_core.robot_model import RobotModel
+from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap, JointCommand, WbcDiagnostics
+
+from .locomotion import BaseState, LocomotionController, TickOutput
+from .motion.gait import PRESETS as GAITS
+from .tracking_stats import TrackingStats
+from .msg_conversions import (base_state_from_odometry, canonical_joint_state, gait_state_message,
+                              heightmap_grid, heightmap_normal)
+from .wbc import WbcGains, WbcSettings
+from .wbc.tasks import orientation_error
+
+TICK_TOLERANCE_NS = 100_000
+
+
+class WbcNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__("wbc", **kwargs)
+        p = self._declare_parameters()
+        self.p = p
+        self.model = RobotModel.from_name(p["robot"])
+        overrides = {name: p[name] for name in ("step_frequency_hz", "duty_factor", "step_height_m") if p[name]}
+        gait = dataclasses.replace(GAITS[p["gait"]], **overrides)
+        gains = WbcGains(K_x=p["K_x"], D_x=p["D_x"], K_theta=p["K_theta"], D_theta=p["D_theta"],
+                         K_sw=p["K_sw"], D_sw=p["D_sw"], K_st=p["K_st"], D_st=p["D_st"])
+        settings = WbcSettings(friction_coefficient=p["friction_coefficient"],
+                               min_normal_force_n=p["min_normal_force_n"],
+                               max_normal_force_n=p["max_normal_force_n"], control_period_s=p["control_period_s"])
+        self.controller = LocomotionController(self.model, gait, gains, settings)
+        self.joint_names = list(self.model.description.joint_names)
+        self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
+        self.period_ns = round(p["control_period_s"] * 1e9)
+        self.stale_ns = p["stale_state_periods"] * self.period_ns
+        self._next_tick_ns = 0
+        self._joints: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._base: tuple[int, BaseState] | None = None
+        self._cmd_vel = np.zeros(3)
+        self._grid = None
+        self.mode = WbcDiagnostics.MODE_NORMAL
+        self.rejected_inputs = 0
+        self.ticks = 0
+        self._last_joint_wall = time.monotonic()
+        self.stats = TrackingStats()
+
+        self.pub_command = self.create_publisher(JointCommand, "joint_command", 10)
+        self.pub_gait = self.create_publisher(GaitState, "gait_state", 10)
+        self.pub_diag = self.create_publisher(WbcDiagnostics, "wbc/diagnostics", 10)
+        state_topic = "ground_truth/odom" if p["state_source"] == "ground_truth" else "state_estimate"
+        self.create_subscription(JointState, "joint_states", self._on_joints, 10)
+        self.create_subscription(Odometry, state_topic, self._on_base, 10)
+        self.create_subscription(Twist, "cmd_vel", self._on_cmd_vel, 10)
+        self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
+        self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
+        self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
+        if p["watchdog_timeout_s"] > 0.0:
+            self.create_timer(p["watchdog_timeout_s"] / 3.0, self._watchdog,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(f"wbc ready: gait {gait.name}, state from '{state_topic}', "
+                               f"{1.0 / p['control_period_s']:.0f} Hz")
+
+    def _declare_parameters(self) -> dict:
+        g, s = WbcGains(), WbcSettings()
+        p = {
+            "robot": declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True),
+            "gait": declare(self, "gait", "trot", "gait: stand, crawl or trot", choices=tuple(GAITS),
+                            read_only=True),
+            "step_frequency_hz": declare(self, "step_frequency_hz", 0.0, "[Hz] 0 = gait preset", low=0.0,
+                                         high=5.0, read_only=True),
+            "duty_factor": declare(self, "duty_factor", 0.0, "[-] 0 = gait preset", low=0.0, high=1.0,
+                                   read_only=True),
+            "step_height_m": declare(self, "step_height_m", 0.0, "[m] 0 = gait preset", low=0.0, high=0.4,
+                                     read_only=True),
+            "state_source": declare(self, "state_source", "ground_truth",
+                                    "base state topic: ground_truth (ground_truth/odom) or estimate",
+                                    choices=("ground_truth", "estimate"), read_only=True),
+            "control_period_s": declare(self, "control_period_s", 0.004, "[s] control tick", low=0.0005,
+                                        high=0.1, read_only=True),
+            "stale_state_periods": declare(self, "stale_state_periods", 3,
+                                           "[-] base state older than this many periods: safe mode", low=1,
+                                           high=1000),
+            "watchdog_timeout_s": declare(self, "watchdog_timeout_s", 0.0,
+                                          "[s] wall time without joint_states before safe mode (0 = off; "
+                                          "keep off in lockstep)", low=0.0, high=10.0),
+            "safe_damping_nms_per_rad": declare(self, "safe_damping_nms_per_rad", 20.0,
+                                                "[N m s/rad] joint damping in safe mode", low=0.0, high=1000.0),
+            "summary_path": declare(self, "summary_path", "", "JSON file for the tracking summary written "
+                                    "at shutdown ('' = none)"),
+            "max_linear_velocity_m_s": declare(self, "max_linear_velocity_m_s", 1.0, "[m/s] cmd_vel clamp",
+                                               low=0.0, high=5.0),
+            "max_yaw_rate_rad_s": declare(self, "max_yaw_rate_rad_s", 1.0, "[rad/s] cmd_vel clamp", low=0.0,
+                                          high=5.0),
+            "friction_coefficient": declare(self, "friction_coefficient", s.friction_coefficient,
+                                            "[-] mu of the friction pyramids", low=0.01, high=5.0),
+            "min_normal_force_n": declare(self, "min_normal_force_n", s.min_normal_force_n,
+                                          "[N] stance normal force lower bound", low=0.0, high=1e4),
+            "max_normal_force_n": declare(self, "max_normal_force_n", s.max_normal_force_n,
+                                          "[N] stance normal force upper bound", low=1.0, high=1e5),
+        }
+        for name, unit in (("K_x", "N/m"), ("D_x", "N s/m"), ("K_theta", "N m/rad"), ("D_theta", "N m s/rad"),
+                           ("K_sw", "1/s^2"), ("D_sw", "1/s"), ("K_st", "1/s^2"), ("D_st", "1/s")):
+            p[name] = declare(self, name, float(getattr(g, name)), f"[{unit}] task gain (thesis default)",
+                              low=0.0, high=1e6, read_only=True)
+        return p
+
+    # -- inputs -----------------------------------------------------------------------------------------
+    def _reject(self, what: str, exc: Exception) -> None:
+        self.rejected_inputs += 1
+        self.get_logger().warn(f"rejected {what} ({self.rejected_inputs} so far): {exc}", throttle_duration_sec=1.0)
+
+    def _on_joints(self, msg: JointState) -> None:
+        try:
+            q, qd = canonical_joint_state(msg, self.joint_index)
+        except InputError as exc:
+            self._reject("joint_states", exc)
+            return
+        stamp = ns_from_stamp(msg.header.stamp)
+        if self._joints is not None and stamp <= self._joints[0]:
+            return  # repeated or out-of-order sample: keep the newer one
+        self._joints = (stamp, q, qd)
+        self._last_joint_wall = time.monotonic()
+        self._maybe_tick()
+
+    def _on_base(self, msg: Odometry) -> None:
+        try:
+            base = base_state_from_odometry(msg)
+        except InputError as exc:
+            self._reject("base state", exc)
+            return
+        stamp = ns_from_stamp(msg.header.stamp)
+        if self._base is not None and stamp <= self._base[0]:
+            return
+        self._base = (stamp, base)
+        self._maybe_tick()
+
+    def _on_cmd_vel(self, msg: Twist) -> None:
+        values = np.array([msg.linear.x, msg.linear.y, msg.angular.z])
+        if not np.all(np.isfinite(values)):
+            self._reject("cmd_vel", InputError("cmd_vel has NaN or inf"))
+            return
+        v_max, w_max = self.p["max_linear_velocity_m_s"], self.p["max_yaw_rate_rad_s"]
+        self._cmd_vel = np.array([np.clip(values[0], -v_max, v_max), np.clip(values[1], -v_max, v_max),
+                                  np.clip(values[2], -w_max, w_max)])
+
+    def _on_footholds(self, msg: FootholdArray) -> None:
+        for foothold in msg.footholds:
+            point = (foothold.selected.x, foothold.selected.y, foothold.selected.z)
+            try:
+                self.controller.motion.set_foothold(foothold.leg, foothold.step_count, point)
+            except InputError as exc:
+                self._reject("foothold", exc)
+
+    def _on_body_pose(self, msg: BodyPoseReference) -> None:
+        values = (msg.base_height, msg.roll, msg.pitch)
+        if not all(np.isfinite(values)):
+            self._reject("body_pose_reference", InputError("body pose reference has NaN or inf"))
+            return
+        self.controller.motion.set_body_pose_reference(*values)
+
+    def _on_heightmap(self, msg: HeightMap) -> None:
+        try:
+            self._grid = heightmap_grid(msg)
+        except InputError as exc:
+            self._reject("heightmap", exc)
+
+    # -- the tick -----------------------------------------------------------------------------------------
+    def _maybe_tick(self) -> None:
+        if self._joints is None or self._base is None:
+            return
+        stamp, q, qd = self._joints
+        if stamp < self._next_tick_ns - TICK_TOLERANCE_NS:
+            return  # not a control tick
+        base_stamp, base = self._base
+        age = stamp - base_stamp
+        if self.p["state_source"] == "ground_truth" and TICK_TOLERANCE_NS < age <= self.stale_ns:
+            return  # ground truth of this very stamp is on its way: wait for it (lockstep determinism)
+        self._next_tick_ns = ((stamp + TICK_TOLERANCE_NS) // self.period_ns + 1) * self.period_ns
+        if age > self.stale_ns:
+            self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")
+            return
+        self._tick(stamp, base, q, qd)
+
+    def _tick(self, stamp_ns: int, base: BaseState, q: np.ndarray, qd: np.ndarray) -> None:
+        grid = self._grid
+        height = (lambda x, y: float(grid.height_at(x, y))) if grid is not None else None
+        normal = (lambda x, y: heightmap_normal(grid, x, y)) if grid is not None else None
+        try:
+            out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self._cmd_vel, height, normal)
+        except InputError as exc:
+            self._reject("state", exc)
+            self._safe_mode(stamp_ns, str(exc))
+            return
+        if self.mode == WbcDiagnostics.MODE_SAFE:
+            self.get_logger().info("fresh state: leaving safe mode")
+        self.mode = WbcDiagnostics.MODE_FALLBACK if out.solution.fallback else WbcDiagnostics.MODE_NORMAL
+        self._publish_command(stamp_ns, effort=out.tau)
+        self.stats.add(stamp_ns * 1e-9, base, out)
+        stamp = self._joints_stamp_msg(stamp_ns)
+        self.pub_gait.publish(gait_state_message(out, stamp))
+        self.pub_diag.publish(self._diagnostics(stamp, out))
+        self.ticks += 1
+
+    def _safe_mode(self, stamp_ns: int, reason: str) -> None:
+        if self.mode != WbcDiagnostics.MODE_SAFE:
+            self.get_logger().warn(f"safe mode (joint damping hold): {reason}")
+        self.mode = WbcDiagnostics.MODE_SAFE
+        self.stats.safe_mode_ticks += 1
+        n = len(self.joint_names)
+        self._publish_command(stamp_ns, effort=np.zeros(n), velocity=np.zeros(n),
+                              kd=np.full(n, self.p["safe_damping_nms_per_rad"]))
+        diag = WbcDiagnostics()
+        diag.header.stamp = self._joints_stamp_msg(stamp_ns)
+        diag.header.frame_id = "world"
+        diag.mode = WbcDiagnostics.MODE_SAFE
+        diag.contact_model = "rigid"
+        diag.qp_status_text = reason
+        diag.rejected_inputs = self.rejected_inputs
+        diag.failed_qps = self.controller.wbc.failed_solves
+        self.pub_diag.publish(diag)
+
+    def _watchdog(self) -> None:
+        if self._joints is not None and time.monotonic() - self._last_joint_wall > self.p["watchdog_timeout_s"]:
+            self._safe_mode(self._joints[0], "no joint_states within the watchdog timeout")
+
+    # -- outputs ------------------------------------------------------------------------------------------
+    @staticmethod
+    def _joints_stamp_msg(stamp_ns: int):
+        return stamp_from_ns(stamp_ns)
+
+    def _publish_command(self, stamp_ns: int, effort: np.ndarray, velocity: np.ndarray | None = None,
+                         kd: np.ndarray | None = None) -> None:
+        cmd = JointCommand()
+        cmd.header.stamp = self._joints_stamp_msg(stamp_ns)
+        cmd.name = self.joint_names
+        cmd.effort = effort.tolist()
+        if kd is not None:
+            cmd.velocity = (velocity if velocity is not None else np.zeros(len(effort))).tolist()
+            cmd.kd = kd.tolist()
+        self.pub_command.publish(cmd)
+
+    def _diagnostics(self, stamp, out: TickOutput) -> WbcDiagnostics:
+        sol = out.solution
+        diag = WbcDiagnostics()
+        diag.header.stamp = stamp
+        diag.header.frame_id = "world"
+        diag.mode = self.mode
+        diag.contact_model = "rigid"
+        diag.qp_status = sol.status_val
+        diag.qp_status_text = sol.status
+        diag.qp_iterations = sol.iterations
+        diag.qp_solve_time = sol.solve_time_s
+        diag.cycle_time = sol.cycle_time_s
+        diag.slack_norm = sol.slack_norm
+        for leg in range(4):
+            diag.stance[leg] = bool(out.targets.stance[leg])
+            f = sol.forces[leg]
+            diag.desired_force[leg] = Vector3(x=float(f[0]), y=float(f[1]), z=float(f[2]))
+        w = sol.desired_wrench
+        diag.desired_com_wrench.force = Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2]))
+        diag.desired_com_wrench.torque = Vector3(x=float(w[3]), y=float(w[4]), z=float(w[5]))
+        e = out.targets.trunk.com_position - out.measured.com
+        diag.com_position_error = Vector3(x=float(e[0]), y=float(e[1]), z=float(e[2]))
+        r = orientation_error(out.targets.trunk.world_R_base, out.measured.world_R_base())
+        diag.orientation_error = Vector3(x=float(r[0]), y=float(r[1]), z=float(r[2]))
+        diag.joint_names = self.joint_names
+        diag.desired_torque = sol.tau.tolist()
+        diag.rejected_inputs = self.rejected_inputs
+        diag.failed_qps = self.controller.wbc.failed_solves
+        return diag
+
+
+    def summary(self) -> dict:
+        return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
+                "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name}
+
+    def destroy_node(self) -> None:
+        path = self.p["summary_path"]
+        if path:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            Path(path).write_text(json.dumps(self.summary(), indent=2) + "\n")
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(lambda: WbcNode(), args, name="wbc")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
