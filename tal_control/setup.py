@@ -25,6 +25,8 @@ setup(
     entry_points={
         "console_scripts": [
             "stand_controller = tal_control.stand_controller_node:main",
+            "wbc = tal_control.wbc_node:main",
+            "cmd_vel_script = tal_control.cmd_vel_script_node:main",
         ],
     },
 )
