@@ -61,6 +61,7 @@ class WbcNode(Node):
         self.period_ns = round(p["control_period_s"] * 1e9)
         self.stale_ns = p["stale_state_periods"] * self.period_ns
         self._next_tick_ns = 0
+        self._deferred_tick_ns: int | None = None
         self._joints: tuple[int, np.ndarray, np.ndarray] | None = None
         self._base: tuple[int, BaseState] | None = None
         self._cmd_vel = np.zeros(3)
@@ -193,6 +194,13 @@ class WbcNode(Node):
 
     # -- the tick -----------------------------------------------------------------------------------------
     def _maybe_tick(self) -> None:
+        """Compute the tick once its joint state and a base state of the same stamp have arrived.
+
+        With ground truth the base state of the tick is on its way (the bridge publishes both each step),
+        so a tick whose base state has not arrived yet is deferred; it is decided, with whatever base
+        state is there, when the next tick's joint state arrives (the robot driver moved on). Safe mode
+        follows when that base state is older than ``stale_state_periods``.
+        """
         if self._joints is None or self._base is None:
             return
         stamp, q, qd = self._joints
@@ -200,8 +208,11 @@ class WbcNode(Node):
             return  # not a control tick
         base_stamp, base = self._base
         age = stamp - base_stamp
-        if self.p["state_source"] == "ground_truth" and TICK_TOLERANCE_NS < age <= self.stale_ns:
-            return  # ground truth of this very stamp is on its way: wait for it (lockstep determinism)
+        deferred_before = self._deferred_tick_ns is not None and stamp > self._deferred_tick_ns
+        if self.p["state_source"] == "ground_truth" and age > TICK_TOLERANCE_NS and not deferred_before:
+            self._deferred_tick_ns = stamp
+            return
+        self._deferred_tick_ns = None
         self._next_tick_ns = ((stamp + TICK_TOLERANCE_NS) // self.period_ns + 1) * self.period_ns
         if age > self.stale_ns:
             self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")

@@ -1,0 +1,178 @@
+"""The wbc node in real rclpy graphs: it trots the simulated HyQ, enters and leaves safe mode on stale
+state, and rejects bad input without crashing."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from nav_msgs.msg import Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+
+from tal_control.cmd_vel_script_node import CmdVelScriptNode
+from tal_control.wbc_node import WbcNode
+from tal_core.node_utils import stamp_from_ns
+from tal_core.robot_model import RobotModel
+from tal_msgs.msg import GaitState, JointCommand, WbcDiagnostics
+from tal_sim_bridge.sim_bridge_node import SimBridgeNode
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def context():
+    ctx = rclpy.context.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.shutdown(context=ctx)
+
+
+def spin_until(executor, predicate, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=0.05)
+    return predicate()
+
+
+@pytest.mark.slow
+def test_graph_trots_forward_with_gait_state_and_diagnostics_at_250_hz(context) -> None:
+    bridge = SimBridgeNode(context=context, parameter_overrides=[Parameter("duration_s", value=3.0)])
+    wbc = WbcNode(context=context)
+    script = CmdVelScriptNode(context=context, parameter_overrides=[
+        Parameter("profile", value=[0.0, 0.0, 0.0, 0.0, 0.5, 0.3, 0.0, 0.0])])
+    probe = rclpy.create_node("probe", context=context)
+    counts = {"gait": 0, "diag": 0}
+    last: dict[str, object] = {}
+
+    def on_gait(msg: GaitState) -> None:
+        counts["gait"] += 1
+        last["gait"] = msg
+
+    def on_diag(msg: WbcDiagnostics) -> None:
+        counts["diag"] += 1
+        last["diag"] = msg
+    probe.create_subscription(GaitState, "gait_state", on_gait, 1000)
+    probe.create_subscription(WbcDiagnostics, "wbc/diagnostics", on_diag, 1000)
+    executor = SingleThreadedExecutor(context=context)
+    nodes = (bridge, wbc, script, probe)
+    for node in nodes:
+        executor.add_node(node)
+    start = bridge.core.sim.robot_state().base_position_m.copy()
+    try:
+        assert spin_until(executor, lambda: bridge.finished, 300.0)
+        spin_until(executor, lambda: False, 0.3)
+        end = bridge.core.sim.robot_state().base_position_m.copy()
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+    assert bridge.final_summary["lockstep_timeouts"] == 0
+    assert bridge.final_summary["body_ground_contact"] == []
+    assert end[2] > 0.6 * start[2]
+    assert end[0] - start[0] > 0.3          # trotting forward (0.3 m/s command from 0.5 s, ramped)
+    assert wbc.ticks == 750 or wbc.ticks == 751
+    assert 740 <= counts["gait"] <= 751 and 740 <= counts["diag"] <= 751
+    diag = last["diag"]
+    assert diag.mode == WbcDiagnostics.MODE_NORMAL and diag.failed_qps == 0 and diag.rejected_inputs == 0
+    assert sum(f.z for f in diag.desired_force) == pytest.approx(86.77 * 9.81, rel=0.3)
+    gait = last["gait"]
+    assert gait.gait == "trot" and max(gait.step_count) >= 3
+
+
+class FakeRobot:
+    """Publishes joint_states and ground-truth odometry of a standing HyQ with chosen stamps."""
+
+    def __init__(self, context) -> None:
+        self.node = rclpy.create_node("fake_robot", context=context)
+        self.model = RobotModel.from_name("hyq")
+        self.joints = self.node.create_publisher(JointState, "joint_states", 10)
+        self.odom = self.node.create_publisher(Odometry, "ground_truth/odom", 10)
+        self.commands: list[JointCommand] = []
+        self.diagnostics: list[WbcDiagnostics] = []
+        self.node.create_subscription(JointCommand, "joint_command", self.commands.append, 100)
+        self.node.create_subscription(WbcDiagnostics, "wbc/diagnostics", self.diagnostics.append, 100)
+        self.q = self.model.description.nominal_joint_positions_rad.copy()
+        self.base_z = float(self.model.neutral_q()[2])
+
+    def publish_joints(self, stamp_ns: int, position=None) -> None:
+        msg = JointState()
+        msg.header.stamp = stamp_from_ns(stamp_ns)
+        msg.name = list(self.model.description.joint_names)
+        msg.position = list(self.q if position is None else position)
+        msg.velocity = [0.0] * 12
+        msg.effort = [0.0] * 12
+        self.joints.publish(msg)
+
+    def publish_odom(self, stamp_ns: int, z: float | None = None) -> None:
+        msg = Odometry()
+        msg.header.stamp = stamp_from_ns(stamp_ns)
+        msg.pose.pose.position.z = self.base_z if z is None else z
+        msg.pose.pose.orientation.w = 1.0
+        self.odom.publish(msg)
+
+
+def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context) -> None:
+    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand")])
+    robot = FakeRobot(context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(wbc)
+    executor.add_node(robot.node)
+    try:
+        spin_until(executor, lambda: False, 0.5)  # discovery
+        # Tick 0: fresh state -> normal torque command (no damping term).
+        robot.publish_odom(0)
+        robot.publish_joints(0)
+        assert spin_until(executor, lambda: len(robot.commands) >= 1, 10.0)
+        assert len(robot.commands[-1].kd) == 0 and wbc.mode == WbcDiagnostics.MODE_NORMAL
+        # Ticks at 20 and 24 ms while the last base state is from 0 ms: the 20 ms tick waits for its
+        # ground truth; when the 24 ms joint state arrives it is decided: 6 periods old > 3 -> safe mode.
+        robot.publish_joints(20_000_000)
+        spin_until(executor, lambda: False, 0.3)
+        assert len(robot.commands) == 1
+        robot.publish_joints(24_000_000)
+        assert spin_until(executor, lambda: len(robot.commands) >= 2, 10.0)
+        safe = robot.commands[-1]
+        assert len(safe.kd) == 12 and all(k > 0 for k in safe.kd) and all(e == 0.0 for e in safe.effort)
+        assert spin_until(executor, lambda: any(d.mode == WbcDiagnostics.MODE_SAFE for d in robot.diagnostics), 5.0)
+        # Fresh state again at 28 ms (arrival order joints, then odom): back to normal.
+        robot.publish_joints(28_000_000)
+        robot.publish_odom(28_000_000)
+        assert spin_until(executor, lambda: len(robot.commands) >= 3, 10.0)
+        assert len(robot.commands[-1].kd) == 0 and wbc.mode == WbcDiagnostics.MODE_NORMAL
+    finally:
+        executor.shutdown()
+        wbc.destroy_node()
+        robot.node.destroy_node()
+
+
+def test_nan_and_unknown_joints_are_rejected_and_counted(context) -> None:
+    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand")])
+    robot = FakeRobot(context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(wbc)
+    executor.add_node(robot.node)
+    try:
+        spin_until(executor, lambda: False, 0.5)
+        bad_q = robot.q.copy()
+        bad_q[3] = np.nan
+        robot.publish_joints(0, position=bad_q)
+        robot.publish_odom(0, z=float("nan"))
+        unknown = JointState(name=["no_joint"] * 12, position=[0.0] * 12, velocity=[0.0] * 12)
+        robot.joints.publish(unknown)
+        assert spin_until(executor, lambda: wbc.rejected_inputs >= 3, 10.0)
+        assert robot.commands == []          # nothing computed from bad input
+        robot.publish_odom(4_000_000)
+        robot.publish_joints(4_000_000)
+        assert spin_until(executor, lambda: len(robot.commands) >= 1, 10.0)
+        assert np.all(np.isfinite(robot.commands[-1].effort))
+        assert wbc.rejected_inputs == 3
+    finally:
+        executor.shutdown()
+        wbc.destroy_node()
+        robot.node.destroy_node()
