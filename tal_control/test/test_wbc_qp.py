@@ -77,8 +77,9 @@ def test_friction_pyramid_holds_with_a_low_coefficient(model) -> None:
     wbc = StandardWbc(model, settings=WbcSettings(friction_coefficient=0.05))
     solution = wbc.solve(q, v, references(model, com_offset=(0.2, 0.0, 0.0)))
     f = solution.forces
-    assert np.all(np.abs(f[:, 0]) <= 0.05 * f[:, 2] + 1e-3)
-    assert np.all(np.abs(f[:, 1]) <= 0.05 * f[:, 2] + 1e-3)
+    # OSQP stops at eps 1e-4 (relative to forces of ~200 N): violations stay below 0.05 N.
+    assert np.all(np.abs(f[:, 0]) <= 0.05 * f[:, 2] + 0.05)
+    assert np.all(np.abs(f[:, 1]) <= 0.05 * f[:, 2] + 0.05)
 
 
 def test_swing_leg_has_no_force_and_tracks_its_target(model) -> None:
