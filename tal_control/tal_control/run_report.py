@@ -19,7 +19,8 @@ def format_report(bridge: dict, wbc: dict, title: str) -> str:
     rows = [
         ("gait", wbc.get("gait", "?")),
         ("course", bridge["course"]),
-        ("sim time", f"{bridge['sim_time_s']:.1f} s ({bridge['mode']}, real-time factor {bridge['real_time_factor']:.2f})"),
+        ("sim time", f"{bridge['sim_time_s']:.1f} s ({bridge['mode']}, "
+                     f"real-time factor {bridge['real_time_factor']:.2f})"),
         ("fell", fell),
         ("distance travelled", fmt(wbc.get("distance_m"), "m")),
         ("body height error (mean abs, after 2 s)", fmt(wbc.get("height_error_mean_abs_m"), "mm", 1e3, 1)),

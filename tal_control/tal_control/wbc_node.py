@@ -33,9 +33,14 @@ from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap,
 
 from .locomotion import BaseState, LocomotionController, TickOutput
 from .motion.gait import PRESETS as GAITS
+from .msg_conversions import (
+    base_state_from_odometry,
+    canonical_joint_state,
+    gait_state_message,
+    heightmap_grid,
+    heightmap_normal,
+)
 from .tracking_stats import TrackingStats
-from .msg_conversions import (base_state_from_odometry, canonical_joint_state, gait_state_message,
-                              heightmap_grid, heightmap_normal)
 from .wbc import WbcGains, WbcSettings
 from .wbc.tasks import orientation_error
 

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from tal_control.motion.footholds import (
     hip_at_touchdown,
     nominal_foothold,

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from tal_control.errors import MotionConfigError
 from tal_control.motion.gait import CRAWL, STAND, TROT, GaitParameters, GaitScheduler
 from tal_core.errors import InputError

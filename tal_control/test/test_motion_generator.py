@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+
 from tal_control.errors import MotionConfigError
 from tal_control.motion import (
     CRAWL,

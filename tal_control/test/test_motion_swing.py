@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from tal_control.errors import MotionConfigError
 from tal_control.motion.swing import SwingTrajectory
 from tal_core.errors import InputError

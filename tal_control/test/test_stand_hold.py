@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pinocchio as pin
 import pytest
+
 from tal_control.stand_hold import GRAVITY_M_S2, StandHold, balanced_vertical_forces
 from tal_core.errors import InputError
 from tal_core.legs import LEGS

@@ -6,9 +6,10 @@ the joints HAA, HFE, KFE in that order. Code names legs (``Leg.LF``) instead of 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Generic, Iterator, TypeVar
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
 
@@ -48,7 +49,7 @@ class PerLeg(Generic[T]):
         return NUM_LEGS
 
     @classmethod
-    def from_sequence(cls, values: "list[T] | tuple[T, ...]") -> "PerLeg[T]":
+    def from_sequence(cls, values: list[T] | tuple[T, ...]) -> PerLeg[T]:
         """Build from a sequence in LF, RF, LH, RH order; raises ValueError on a wrong length."""
         if len(values) != NUM_LEGS:
             raise ValueError(f"expected {NUM_LEGS} per-leg values (LF, RF, LH, RH), got {len(values)}")

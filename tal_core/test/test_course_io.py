@@ -8,6 +8,7 @@ from typing import Any
 
 import pytest
 import yaml
+
 from tal_core.course_io import load_course, parse_course
 from tal_core.errors import CourseConfigError
 

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from tal_core.errors import InputError
 from tal_core.heightmap import HeightMapGrid, extract_heightmap
 from tal_core.terrain import load_course

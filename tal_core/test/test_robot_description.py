@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+
 from tal_core.errors import InputError, RobotConfigError
 from tal_core.legs import Leg
 from tal_core.robot_description import (

@@ -8,6 +8,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
+
 from tal_core.errors import InputError, RobotConfigError
 from tal_core.legs import LEGS, Leg
 from tal_core.robot_description import load_robot_description

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+
 from tal_core.course_io import shipped_course_names
 from tal_core.errors import InputError
 from tal_core.terrain import (

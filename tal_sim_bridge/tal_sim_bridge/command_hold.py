@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import CommandRejected
+from .errors import CommandRejectedError
 
 
 @dataclass(frozen=True)
@@ -47,10 +47,10 @@ class JointCommandHold:
     def submit(self, stamp_ns: int, names: Sequence[str], effort: Sequence[float],
                position: Sequence[float] = (), velocity: Sequence[float] = (),
                kp: Sequence[float] = (), kd: Sequence[float] = ()) -> HeldCommand:
-        """Validate a command and hold it; raises CommandRejected (and counts it) when invalid."""
+        """Validate a command and hold it; raises CommandRejectedError (and counts it) when invalid."""
         try:
             command = self._validate(stamp_ns, names, effort, position, velocity, kp, kd)
-        except CommandRejected as exc:
+        except CommandRejectedError as exc:
             self.rejections[exc.reason] += 1
             raise
         self.held = command
@@ -75,14 +75,14 @@ class JointCommandHold:
                   kp: Sequence[float], kd: Sequence[float]) -> HeldCommand:
         n = len(names)
         if n == 0:
-            raise CommandRejected("empty", "joint command has no joint names")
+            raise CommandRejectedError("empty", "joint command has no joint names")
         unknown = [name for name in names if name not in self._index]
         if unknown:
-            raise CommandRejected("unknown_joint", f"joint command names unknown joint(s) {unknown}")
+            raise CommandRejectedError("unknown_joint", f"joint command names unknown joint(s) {unknown}")
         if len(set(names)) != n:
-            raise CommandRejected("duplicate_joint", f"joint command repeats joint names: {list(names)}")
+            raise CommandRejectedError("duplicate_joint", f"joint command repeats joint names: {list(names)}")
         if self.held is not None and stamp_ns < self.held.stamp_ns:
-            raise CommandRejected(
+            raise CommandRejectedError(
                 "out_of_order",
                 f"joint command stamp {stamp_ns} ns is older than the held command ({self.held.stamp_ns} ns)")
         order = np.array([self._index[name] for name in names])
@@ -93,23 +93,23 @@ class JointCommandHold:
                 canonical[field_name] = None
                 continue
             if len(values) != n:
-                raise CommandRejected(
+                raise CommandRejectedError(
                     "wrong_size", f"joint command field '{field_name}' has {len(values)} values for {n} names")
             array = np.asarray(values, dtype=float)
             if not np.all(np.isfinite(array)):
-                raise CommandRejected("non_finite", f"joint command field '{field_name}' has NaN or inf")
+                raise CommandRejectedError("non_finite", f"joint command field '{field_name}' has NaN or inf")
             full = np.zeros(len(self.joint_names))
             full[order] = array
             canonical[field_name] = full
         if canonical["kp"] is not None and canonical["position"] is None:
-            raise CommandRejected("wrong_size", "joint command gives kp without position targets")
+            raise CommandRejectedError("wrong_size", "joint command gives kp without position targets")
         for gain in ("kp", "kd"):
             values = canonical[gain]
             if values is not None and np.any(values < 0.0):
-                raise CommandRejected("negative_gain", f"joint command field '{gain}' has negative gains")
+                raise CommandRejectedError("negative_gain", f"joint command field '{gain}' has negative gains")
         if n != len(self.joint_names):
             # Joints not named keep zero effort and no PD term: make that explicit rather than silent.
-            raise CommandRejected(
+            raise CommandRejectedError(
                 "wrong_size", f"joint command names {n} joints, the robot has {len(self.joint_names)}")
         return HeldCommand(stamp_ns=stamp_ns, effort=canonical["effort"],  # type: ignore[arg-type]
                            position=canonical["position"], velocity=canonical["velocity"],

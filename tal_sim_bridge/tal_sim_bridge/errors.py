@@ -11,7 +11,7 @@ class BridgeConfigError(SimBridgeError, ValueError):
     """An invalid bridge parameter or model-effect setting (the message names the parameter)."""
 
 
-class CommandRejected(SimBridgeError):
+class CommandRejectedError(SimBridgeError):
     """A joint command was rejected (unknown joint, wrong array size, non-finite value, stale stamp).
 
     ``reason`` is a short category used for counting rejections in diagnostics.

@@ -15,54 +15,20 @@ No ROS here. One ``Simulation`` owns one PyBullet physics client. Conventions:
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import math
-import os
 import re
-import sys
 import tempfile
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-
-_LIBC = ctypes.CDLL(None)
-
-
-@contextlib.contextmanager
-def _quiet_c_stdout() -> Iterator[None]:
-    """Silence C-level stdout and stderr (PyBullet prints its build time and URDF importer warnings)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    try:
-        saved = [os.dup(1), os.dup(2)]
-    except OSError:  # no usable fds (some embedded runners): nothing to silence
-        yield
-        return
-    with open(os.devnull, "w") as devnull:
-        os.dup2(devnull.fileno(), 1)
-        os.dup2(devnull.fileno(), 2)
-        try:
-            yield
-        finally:
-            _LIBC.fflush(None)  # C stdio buffers would otherwise reach the restored streams later
-            for fd, copy in zip((1, 2), saved):
-                os.dup2(copy, fd)
-                os.close(copy)
-
-
-with _quiet_c_stdout():
-    import pybullet
-    from pybullet_utils.bullet_client import BulletClient
-
 from tal_core.legs import LEGS
 from tal_core.robot_description import RobotDescription, find_example_robot_data_dir
 from tal_core.terrain import Course
 
+from ._pybullet import BulletClient, pybullet, quiet_c_output
 from .effects import ActuatorModel, ModelEffects
 from .errors import BridgeConfigError
 
@@ -167,7 +133,7 @@ class Simulation:
         self.time_step_s = float(time_step_s)
         self.effects = effects or ModelEffects()
         self.step_count = 0
-        with _quiet_c_stdout():
+        with quiet_c_output():
             self.client = BulletClient(connection_mode=pybullet.GUI if gui else pybullet.DIRECT)
         self._urdf: Path | None = None
         try:  # a rejected setting (e.g. initial_xy off the course) must not leak the client or the URDF
@@ -177,7 +143,7 @@ class Simulation:
                                                   deterministicOverlappingPairs=1)
             self.ground_bodies = self._build_course()
             self._urdf = _prepared_urdf(description, self.effects)
-            with _quiet_c_stdout():
+            with quiet_c_output():
                 self.robot = self.client.loadURDF(str(self._urdf), [0.0, 0.0, 1.0],
                                                   flags=pybullet.URDF_USE_INERTIA_FROM_FILE)
             self._index_links()

@@ -26,7 +26,7 @@ from geometry_msgs.msg import Point, Vector3
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, JointState
 
@@ -38,7 +38,7 @@ from tal_msgs.msg import ContactState, HeightMap, JointCommand
 
 from .bridge_core import BridgeCore, ImuModel, _rotation_from_quat_xyzw
 from .effects import ModelEffects
-from .errors import CommandRejected
+from .errors import CommandRejectedError
 from .physics import Simulation
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
@@ -164,7 +164,7 @@ class SimBridgeNode(Node):
         try:
             self.core.commands.submit(stamp_ns, list(msg.name), msg.effort, msg.position, msg.velocity,
                                       msg.kp, msg.kd)
-        except CommandRejected as exc:
+        except CommandRejectedError as exc:
             self.get_logger().warn(
                 f"rejected joint_command ({exc.reason}, {self.core.commands.rejected_total} so far): {exc}",
                 throttle_duration_sec=1.0)

@@ -6,8 +6,9 @@ import math
 
 import numpy as np
 import pytest
+
 from tal_sim_bridge.command_hold import JointCommandHold
-from tal_sim_bridge.errors import CommandRejected
+from tal_sim_bridge.errors import CommandRejectedError
 
 JOINTS = tuple(f"{leg}_{kind}_joint" for leg in ("lf", "rf", "lh", "rh") for kind in ("haa", "hfe", "kfe"))
 N = len(JOINTS)
@@ -173,7 +174,7 @@ def test_rejection_is_counted_and_keeps_the_held_command(hold: JointCommandHold,
     q, qd = np.full(N, 0.2), np.full(N, -0.3)
     torque_before = hold.torque(q, qd)
     stamp, names, cmd = build()
-    with pytest.raises(CommandRejected, match=message) as info:
+    with pytest.raises(CommandRejectedError, match=message) as info:
         submit(hold, stamp, names, cmd)
     assert info.value.reason == reason
     assert hold.rejections == {reason: 1}
@@ -184,7 +185,7 @@ def test_rejection_is_counted_and_keeps_the_held_command(hold: JointCommandHold,
 
 
 def test_rejection_before_any_command_keeps_damping(hold: JointCommandHold) -> None:
-    with pytest.raises(CommandRejected) as info:
+    with pytest.raises(CommandRejectedError) as info:
         hold.submit(0, JOINTS, [math.nan] * N)
     assert info.value.reason == "non_finite"
     assert hold.held is None
@@ -202,7 +203,7 @@ def test_rejections_accumulate_per_reason(hold: JointCommandHold) -> None:
         (lambda: hold.submit(60, [], []), "empty"),
     ]
     for call, reason in bad:
-        with pytest.raises(CommandRejected) as info:
+        with pytest.raises(CommandRejectedError) as info:
             call()
         assert info.value.reason == reason
     assert hold.rejections == {"out_of_order": 1, "wrong_size": 2, "unknown_joint": 1, "empty": 1}

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from tal_sim_bridge.effects import COULOMB_SMOOTHING_RAD_S, ActuatorModel, ModelEffects
 from tal_sim_bridge.errors import BridgeConfigError
 

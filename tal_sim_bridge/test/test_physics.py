@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from tal_control.stand_hold import StandHold
 from tal_core.robot_description import RobotDescription, load_robot_description
 from tal_core.robot_model import RobotModel

@@ -15,6 +15,7 @@ import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
+
 from tal_core.errors import InputError
 
 HeightFunction = Callable[[float, float], "float | np.ndarray"]

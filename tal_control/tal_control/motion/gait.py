@@ -17,10 +17,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from tal_core.errors import InputError
-from tal_core.legs import LEGS, NUM_LEGS
 
 from tal_control.errors import MotionConfigError
+from tal_core.errors import InputError
+from tal_core.legs import LEGS, NUM_LEGS
 
 GAIT_NAMES: tuple[str, ...] = ("stand", "crawl", "trot")
 _EPS_S = 1e-9  # [s] tolerance when comparing event times

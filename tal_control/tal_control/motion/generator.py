@@ -18,10 +18,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from tal_core.errors import InputError
-from tal_core.legs import LEGS, NUM_LEGS, Leg
-from tal_core.robot_description import RobotDescription
-from tal_core.robot_model import RobotModel
 
 from tal_control.errors import MotionConfigError
 from tal_control.motion.footholds import (
@@ -35,6 +31,10 @@ from tal_control.motion.footholds import (
 from tal_control.motion.gait import STAND, GaitParameters, GaitPhase, GaitScheduler
 from tal_control.motion.swing import SwingTrajectory
 from tal_control.motion.trunk import FeetMotion, TrunkParameters, TrunkReference, TrunkTarget
+from tal_core.errors import InputError
+from tal_core.legs import LEGS, NUM_LEGS, Leg
+from tal_core.robot_description import RobotDescription
+from tal_core.robot_model import RobotModel
 
 _REACH_FRACTION = 0.4  # default foothold offset limit, as a fraction of the nominal hip-to-foot height
 

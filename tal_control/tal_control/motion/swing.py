@@ -15,9 +15,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from tal_core.errors import InputError
 
 from tal_control.errors import MotionConfigError
+from tal_core.errors import InputError
 
 # Re-planning the rise to the apex needs some time; closer to mid-swing than this fraction of the swing,
 # the rest of the swing goes straight to the new touchdown point.

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from tal_core.errors import InputError
 
 from tal_control.errors import MotionConfigError
 from tal_control.motion.gait import GaitParameters, GaitPhase
+from tal_core.errors import InputError
 
 
 @dataclass(frozen=True)
