@@ -16,10 +16,10 @@ test: bootstrap
 	@$(ENV) && python -m pytest $(PYTEST_ARGS)
 
 bench: bootstrap
-	@$(ENV) && python bench/bench_bridge.py
+	@$(ENV) && python bench/bench_bridge.py && python bench/bench_wbc.py
 
 experiments: bootstrap
-	@echo "no accuracy experiments yet (they arrive with the controller and estimator issues)"
+	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc
 
 lint: bootstrap
 	@$(ENV) && ruff check . && ruff format --check .

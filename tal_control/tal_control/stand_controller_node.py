@@ -18,6 +18,7 @@ from tal_msgs.msg import JointCommand
 
 from .stand_hold import StandHold
 
+CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
 TICK_TOLERANCE_NS = 100_000  # [ns] stamps are exact multiples of the physics step; absorb rounding
 
 
@@ -41,6 +42,9 @@ class StandControllerNode(Node):
 
     def _on_joint_states(self, msg: JointState) -> None:
         stamp_ns = ns_from_stamp(msg.header.stamp)
+        if stamp_ns + CLOCK_RESET_NS < self._next_tick_ns:
+            self.get_logger().warn("joint_states time jumped back (simulation restarted): resetting ticks")
+            self._next_tick_ns = 0
         if stamp_ns < self._next_tick_ns - TICK_TOLERANCE_NS:
             return
         try:

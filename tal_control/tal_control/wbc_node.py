@@ -45,6 +45,7 @@ from .wbc import WbcGains, WbcSettings
 from .wbc.tasks import orientation_error
 
 TICK_TOLERANCE_NS = 100_000
+CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
 
 
 class WbcNode(Node):
@@ -149,11 +150,22 @@ class WbcNode(Node):
             self._reject("joint_states", exc)
             return
         stamp = ns_from_stamp(msg.header.stamp)
+        if self._joints is not None and stamp + CLOCK_RESET_NS < self._joints[0]:
+            self._restart(stamp)
         if self._joints is not None and stamp <= self._joints[0]:
             return  # repeated or out-of-order sample: keep the newer one
         self._joints = (stamp, q, qd)
         self._last_joint_wall = time.monotonic()
         self._maybe_tick()
+
+    def _restart(self, stamp_ns: int) -> None:
+        """The robot's clock jumped back (simulation restarted): start the controller afresh."""
+        self.get_logger().warn(f"joint_states time jumped back to {stamp_ns * 1e-9:.3f} s: restarting the controller")
+        self.controller = LocomotionController(self.model, self.controller.motion.gait, self.controller.wbc.gains,
+                                               self.controller.wbc.settings)
+        self._joints = self._base = None
+        self._next_tick_ns = 0
+        self._deferred_tick_ns = None
 
     def _on_base(self, msg: Odometry) -> None:
         try:
@@ -162,6 +174,8 @@ class WbcNode(Node):
             self._reject("base state", exc)
             return
         stamp = ns_from_stamp(msg.header.stamp)
+        if self._base is not None and stamp + CLOCK_RESET_NS < self._base[0]:
+            self._base = None  # restarted clock: the joint_states handler restarts the controller
         if self._base is not None and stamp <= self._base[0]:
             return
         self._base = (stamp, base)

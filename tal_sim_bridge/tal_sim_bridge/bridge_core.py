@@ -96,8 +96,8 @@ class BridgeCore:
 
     def record_statistics(self, state: RobotState, contacts: list[FootContact]) -> None:
         """Feed the summary statistics (called at the contact publishing rate)."""
-        stiffness = np.array([self.sim.course.properties(c.position_m[0], c.position_m[1]).stiffness_n_per_m
-                              for c in contacts])
+        feet = np.array([c.position_m for c in contacts])
+        stiffness = np.asarray(self.sim.course.properties_array(feet[:, 0], feet[:, 1]).stiffness_n_per_m)
         self.stats.add(float(state.base_position_m[2]), contacts, stiffness)
         self.max_body_contacts.update(self.sim.body_ground_contact())
 

@@ -169,6 +169,8 @@ class SimBridgeNode(Node):
                 f"rejected joint_command ({exc.reason}, {self.core.commands.rejected_total} so far): {exc}",
                 throttle_duration_sec=1.0)
             return
+        if self.core.commands.accepted == 1 and self.mode == "lockstep":
+            self._wall_start = time.monotonic()  # the run starts now: discovery time is not sim time
         if self._awaiting_tick_ns is not None and stamp_ns >= self._awaiting_tick_ns:
             self._advance_control_period()
 
@@ -212,18 +214,19 @@ class SimBridgeNode(Node):
 
     def _step_once(self) -> bool:
         """One physics step plus the outputs due at it; returns True when the run is finished."""
-        self.core.step()
-        self._publish_step_outputs()
+        state = self.core.step()
+        self._publish_step_outputs(state=state)
         if self.duration_steps is not None and self.core.sim.step_count >= self.duration_steps:
             self._finish()
             return True
         return False
 
-    def _publish_step_outputs(self, force_all: bool = False, record: bool = True) -> None:
+    def _publish_step_outputs(self, force_all: bool = False, record: bool = True, state=None) -> None:
         step = self.core.sim.step_count
         stamp = stamp_from_ns(self.core.sim.time_ns)
         self.pub_clock.publish(ClockMsg(clock=stamp))
-        state = self.core.sim.robot_state()
+        if state is None:
+            state = self.core.sim.robot_state()
         if force_all or step % self.sensor_every == 0:
             self._publish_sensors(stamp, state)
         if force_all or step % self.contact_every == 0:

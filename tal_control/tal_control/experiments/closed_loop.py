@@ -25,6 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from tal_control.locomotion import BaseState, LocomotionController, TickOutput
+from tal_control.motion.gait import PRESETS, GaitParameters
+from tal_control.wbc import WbcGains, WbcSettings
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
 from tal_core.robot_description import load_robot_description
@@ -33,10 +36,6 @@ from tal_core.terrain import Course, load_course
 from tal_sim_bridge.bridge_core import BridgeCore
 from tal_sim_bridge.effects import ModelEffects
 from tal_sim_bridge.physics import RobotState, Simulation
-
-from tal_control.locomotion import BaseState, LocomotionController, TickOutput
-from tal_control.motion.gait import PRESETS, GaitParameters
-from tal_control.wbc import WbcGains, WbcSettings
 
 FALL_HEIGHT_FRACTION = 0.6
 """A trunk lower than this fraction of the nominal height above the terrain counts as a fall."""
@@ -78,8 +77,10 @@ class ClosedLoopConfig:
             raise InputError(f"closed loop '{self.name}': control_decimation must be >= 1")
         commands = tuple(tuple(float(v) for v in c) for c in self.commands)
         if any(len(c) != 4 or not all(math.isfinite(v) for v in c) for c in commands):
-            raise InputError(f"closed loop '{self.name}': commands must be (t_start, vx, vy, yaw_rate) "
-                             f"finite tuples, got {self.commands!r}")
+            raise InputError(
+                f"closed loop '{self.name}': commands must be (t_start, vx, vy, yaw_rate) "
+                f"finite tuples, got {self.commands!r}"
+            )
         if any(b[0] < a[0] for a, b in zip(commands, commands[1:])):
             raise InputError(f"closed loop '{self.name}': commands must be sorted by t_start")
         object.__setattr__(self, "commands", commands)
@@ -115,38 +116,38 @@ TickHook = Callable[[TickContext], "np.ndarray | None"]
 class ClosedLoopLog:
     """Samples at the control rate (250 Hz). Shapes: (N,), (N, 3), (N, 4), (N, 4, 3), (N, 12)."""
 
-    t: np.ndarray                      # [s] sim time
-    base_position: np.ndarray          # (N, 3) [m]
-    base_rpy: np.ndarray               # (N, 3) [rad] roll, pitch, yaw (ZYX, yaw unwrapped)
-    base_position_des: np.ndarray      # (N, 3) [m] desired base origin
-    rpy_des: np.ndarray                # (N, 3) [rad] desired roll, pitch, yaw (yaw unwrapped)
-    com: np.ndarray                    # (N, 3) [m]
-    com_des: np.ndarray                # (N, 3) [m]
-    com_velocity: np.ndarray           # (N, 3) [m/s]
-    com_velocity_des: np.ndarray       # (N, 3) [m/s] desired CoM velocity (incl. the crawl's CoM shift)
-    trunk_height: np.ndarray           # (N,) [m] base origin above the terrain under it
-    velocity_h: np.ndarray             # (N, 3) actual (vx, vy [m/s], yaw rate [rad/s]), horizontal frame
-    cmd_profile: np.ndarray            # (N, 3) raw command (vx, vy, yaw rate) of the profile
-    cmd_velocity_h: np.ndarray         # (N, 3) rate-limited command the trunk reference integrates
-    stance: np.ndarray                 # (N, 4) bool, planned stance
-    normals: np.ndarray                # (N, 4, 3) terrain normals given to the WBC
-    wbc_forces: np.ndarray             # (N, 4, 3) [N] WBC ground reaction forces on the feet
-    slacks: np.ndarray                 # (N, 4, 3) [m/s^2] swing-task slacks
-    tau_wbc: np.ndarray                # (N, 12) [N m] WBC torques
-    tau_cmd: np.ndarray                # (N, 12) [N m] torques submitted (after the hook)
-    tau_measured: np.ndarray           # (N, 12) [N m] torques the actuators delivered (last step)
-    qp_status: np.ndarray              # (N,) int OSQP status value (-1: fallback)
-    qp_iterations: np.ndarray          # (N,) int
-    fallback: np.ndarray               # (N,) bool QP not solved, previous solution decayed
-    qp_solve_time: np.ndarray          # (N,) [s]
-    joint_position: np.ndarray         # (N, 12) [rad]
-    joint_velocity: np.ndarray         # (N, 12) [rad/s]
-    foot_position: np.ndarray          # (N, 4, 3) [m] true foot-sphere centres
-    foot_position_des: np.ndarray      # (N, 4, 3) [m] desired foot centres (stance: touchdown sample)
-    foot_contact: np.ndarray           # (N, 4) bool, true contact with the ground
-    contact_force: np.ndarray          # (N, 4, 3) [N] true ground reaction forces on the feet
-    foot_slip_velocity: np.ndarray     # (N, 4, 3) [m/s] velocity of the foot material point at the contact
-    body_contact: np.ndarray           # (N,) bool, a non-foot link touches the ground
+    t: np.ndarray  # [s] sim time
+    base_position: np.ndarray  # (N, 3) [m]
+    base_rpy: np.ndarray  # (N, 3) [rad] roll, pitch, yaw (ZYX, yaw unwrapped)
+    base_position_des: np.ndarray  # (N, 3) [m] desired base origin
+    rpy_des: np.ndarray  # (N, 3) [rad] desired roll, pitch, yaw (yaw unwrapped)
+    com: np.ndarray  # (N, 3) [m]
+    com_des: np.ndarray  # (N, 3) [m]
+    com_velocity: np.ndarray  # (N, 3) [m/s]
+    com_velocity_des: np.ndarray  # (N, 3) [m/s] desired CoM velocity (incl. the crawl's CoM shift)
+    trunk_height: np.ndarray  # (N,) [m] base origin above the terrain under it
+    velocity_h: np.ndarray  # (N, 3) actual (vx, vy [m/s], yaw rate [rad/s]), horizontal frame
+    cmd_profile: np.ndarray  # (N, 3) raw command (vx, vy, yaw rate) of the profile
+    cmd_velocity_h: np.ndarray  # (N, 3) rate-limited command the trunk reference integrates
+    stance: np.ndarray  # (N, 4) bool, planned stance
+    normals: np.ndarray  # (N, 4, 3) terrain normals given to the WBC
+    wbc_forces: np.ndarray  # (N, 4, 3) [N] WBC ground reaction forces on the feet
+    slacks: np.ndarray  # (N, 4, 3) [m/s^2] swing-task slacks
+    tau_wbc: np.ndarray  # (N, 12) [N m] WBC torques
+    tau_cmd: np.ndarray  # (N, 12) [N m] torques submitted (after the hook)
+    tau_measured: np.ndarray  # (N, 12) [N m] torques the actuators delivered (last step)
+    qp_status: np.ndarray  # (N,) int OSQP status value (-1: fallback)
+    qp_iterations: np.ndarray  # (N,) int
+    fallback: np.ndarray  # (N,) bool QP not solved, previous solution decayed
+    qp_solve_time: np.ndarray  # (N,) [s]
+    joint_position: np.ndarray  # (N, 12) [rad]
+    joint_velocity: np.ndarray  # (N, 12) [rad/s]
+    foot_position: np.ndarray  # (N, 4, 3) [m] true foot-sphere centres
+    foot_position_des: np.ndarray  # (N, 4, 3) [m] desired foot centres (stance: touchdown sample)
+    foot_contact: np.ndarray  # (N, 4) bool, true contact with the ground
+    contact_force: np.ndarray  # (N, 4, 3) [N] true ground reaction forces on the feet
+    foot_slip_velocity: np.ndarray  # (N, 4, 3) [m/s] velocity of the foot material point at the contact
+    body_contact: np.ndarray  # (N,) bool, a non-foot link touches the ground
     meta: dict[str, object] = field(default_factory=dict)
 
     @property
@@ -216,13 +217,21 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
     gait = PRESETS[config.gait] if isinstance(config.gait, str) else config.gait
     settings = config.settings or WbcSettings()
     if abs(settings.control_period_s - config.physics_dt_s * config.control_decimation) > 1e-12:
-        raise InputError(f"closed loop '{config.name}': WbcSettings.control_period_s "
-                         f"{settings.control_period_s} s differs from the control period "
-                         f"{config.physics_dt_s * config.control_decimation} s")
+        raise InputError(
+            f"closed loop '{config.name}': WbcSettings.control_period_s "
+            f"{settings.control_period_s} s differs from the control period "
+            f"{config.physics_dt_s * config.control_decimation} s"
+        )
     controller = LocomotionController(model, gait, gains=config.gains, settings=settings)
     course = config.course if isinstance(config.course, Course) else load_course(config.course)
-    sim = Simulation(description, course, time_step_s=config.physics_dt_s, effects=config.effects,
-                     initial_xy=config.initial_xy, initial_yaw_rad=config.initial_yaw_rad)
+    sim = Simulation(
+        description,
+        course,
+        time_step_s=config.physics_dt_s,
+        effects=config.effects,
+        initial_xy=config.initial_xy,
+        initial_yaw_rad=config.initial_yaw_rad,
+    )
     core = BridgeCore(sim)
     nominal = controller.motion.nominal_height_m
 
@@ -244,11 +253,13 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
             if k % decimation == 0:
                 t = k * config.physics_dt_s
                 state = sim.robot_state()
-                base = BaseState(state.base_position_m, state.base_quat_xyzw, state.base_lin_vel_m_s,
-                                 state.base_ang_vel_rad_s)
+                base = BaseState(
+                    state.base_position_m, state.base_quat_xyzw, state.base_lin_vel_m_s, state.base_ang_vel_rad_s
+                )
                 cmd = config.command_at(t)
-                out = controller.tick(t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd,
-                                      height_fn, normal_fn)
+                out = controller.tick(
+                    t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd, height_fn, normal_fn
+                )
                 tau = out.tau
                 if hook is not None:
                     replaced = hook(TickContext(t, k // decimation, core, controller, out, state))
@@ -263,25 +274,41 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                 sol = out.solution
                 fallbacks += int(sol.fallback)
                 recorder.add(
-                    t=t, base_position=state.base_position_m, base_rpy=rpy,
-                    base_position_des=trunk.base_position, rpy_des=trunk.rpy, com=out.measured.com,
-                    com_des=trunk.com_position, com_velocity=out.measured.com_velocity,
-                    com_velocity_des=trunk.com_velocity, trunk_height=height,
-                    velocity_h=np.r_[_to_horizontal(state.base_lin_vel_m_s[:2], rpy[2]),
-                                     state.base_ang_vel_rad_s[2]],
+                    t=t,
+                    base_position=state.base_position_m,
+                    base_rpy=rpy,
+                    base_position_des=trunk.base_position,
+                    rpy_des=trunk.rpy,
+                    com=out.measured.com,
+                    com_des=trunk.com_position,
+                    com_velocity=out.measured.com_velocity,
+                    com_velocity_des=trunk.com_velocity,
+                    trunk_height=height,
+                    velocity_h=np.r_[_to_horizontal(state.base_lin_vel_m_s[:2], rpy[2]), state.base_ang_vel_rad_s[2]],
                     cmd_profile=np.asarray(cmd),
-                    cmd_velocity_h=np.r_[_to_horizontal(trunk.command_velocity_world[:2], rpy[2]),
-                                         trunk.command_yaw_rate],
-                    stance=out.targets.stance, normals=out.targets.normals, wbc_forces=sol.forces,
-                    slacks=sol.slacks, tau_wbc=sol.tau, tau_cmd=tau, tau_measured=state.joint_torque_nm,
-                    qp_status=sol.status_val, qp_iterations=sol.iterations, fallback=sol.fallback,
-                    qp_solve_time=sol.solve_time_s, joint_position=state.joint_position_rad,
+                    cmd_velocity_h=np.r_[
+                        _to_horizontal(trunk.command_velocity_world[:2], rpy[2]), trunk.command_yaw_rate
+                    ],
+                    stance=out.targets.stance,
+                    normals=out.targets.normals,
+                    wbc_forces=sol.forces,
+                    slacks=sol.slacks,
+                    tau_wbc=sol.tau,
+                    tau_cmd=tau,
+                    tau_measured=state.joint_torque_nm,
+                    qp_status=sol.status_val,
+                    qp_iterations=sol.iterations,
+                    fallback=sol.fallback,
+                    qp_solve_time=sol.solve_time_s,
+                    joint_position=state.joint_position_rad,
                     joint_velocity=state.joint_velocity_rad_s,
                     foot_position=np.array([c.position_m for c in contacts]),
                     foot_position_des=out.targets.foot_position,
                     foot_contact=np.array([c.in_contact for c in contacts]),
                     contact_force=np.array([c.force_n for c in contacts]),
-                    foot_slip_velocity=_foot_slip_velocity(sim, contacts), body_contact=body)
+                    foot_slip_velocity=_foot_slip_velocity(sim, contacts),
+                    body_contact=body,
+                )
                 if not fell and (height < FALL_HEIGHT_FRACTION * nominal or body):
                     fell, fall_time = True, t
                     fall_reason = "body-ground contact" if body else f"trunk height {height:.3f} m"
@@ -297,15 +324,24 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                     f"[{config.name}] t={(k + 1) * config.physics_dt_s:5.1f}/{config.duration_s:.1f} s  "
                     f"x={st.base_position_m[0]:+.2f} y={st.base_position_m[1]:+.2f} "
                     f"z={st.base_position_m[2]:.3f} m  vx={st.base_lin_vel_m_s[0]:+.2f} m/s  "
-                    f"fallbacks={fallbacks}  wall={elapsed:.0f} s\n")
+                    f"fallbacks={fallbacks}  wall={elapsed:.0f} s\n"
+                )
     finally:
         sim.close()
     wall = time.perf_counter() - wall_start
     meta: dict[str, object] = {
-        "name": config.name, "course": course.name, "gait": gait.name, "duration_s": config.duration_s,
-        "commands": [list(c) for c in config.commands], "nominal_height_m": nominal,
-        "control_period_s": config.physics_dt_s * decimation, "fell": fell, "fall_time_s": fall_time,
-        "fall_reason": fall_reason, "wall_time_s": wall, "joint_names": list(description.joint_names),
+        "name": config.name,
+        "course": course.name,
+        "gait": gait.name,
+        "duration_s": config.duration_s,
+        "commands": [list(c) for c in config.commands],
+        "nominal_height_m": nominal,
+        "control_period_s": config.physics_dt_s * decimation,
+        "fell": fell,
+        "fall_time_s": fall_time,
+        "fall_reason": fall_reason,
+        "wall_time_s": wall,
+        "joint_names": list(description.joint_names),
         "friction_coefficient_wbc": settings.friction_coefficient,
         "real_time_factor": (n_steps * config.physics_dt_s / wall) if wall > 0 else None,
     }
@@ -347,11 +383,16 @@ def tracking_metrics(log: ClosedLoopLog, settle_s: float = 2.0) -> dict[str, flo
         "com_error_mean_m": float(np.mean(com_err)),
         "roll_mae_rad": float(np.mean(rpy_err[:, 0])),
         "pitch_mae_rad": float(np.mean(rpy_err[:, 1])),
+        "roll_error_max_rad": float(np.max(rpy_err[:, 0])),
+        "pitch_error_max_rad": float(np.max(rpy_err[:, 1])),
         "fallbacks": float(np.sum(log.fallback)),
         "qp_iterations_mean": float(np.mean(log.qp_iterations)),
         "qp_iterations_max": float(np.max(log.qp_iterations)),
         "net_displacement_m": float(np.linalg.norm(xy[-1] - xy[0])),
         "path_length_m": float(np.sum(np.linalg.norm(np.diff(xy, axis=0), axis=1))),
+        "path_length_1s_m": float(
+            np.sum(np.linalg.norm(np.diff(xy[:: max(1, int(round(1.0 / log.dt)))], axis=0), axis=1))
+        ),
         "window_displacement_m": float(np.linalg.norm(xy_window[-1] - xy_window[0])) if span else 0.0,
         "window_s": span,
     }

@@ -4,7 +4,7 @@
     s.t. M_u qdd + h_u = J_st,u^T F                     (floating-base dynamics, 6 rows)
          J_st qdd + dJ_st v = a_st                      (stance feet; a_st = stance-task impedance)
          -eta <= J_sw qdd + dJ_sw v - a_sw,d <= eta     (swing task with one slack per direction)
-         friction pyramid about the terrain normal, F_min <= n.F <= F_max(load factor)
+         friction pyramid inscribed in the cone about the terrain normal, F_min <= n.F <= F_max(load)
          tau_min(q) <= M_a qdd + h_j - J_st,j^T F <= tau_max(q)
          qdd_j within the bounds that reach the end stop at zero velocity in 10 control periods
     tau* = M_a qdd* + h_j - J_st,j^T F*
@@ -91,6 +91,9 @@ class StandardWbc:
         legs = tuple(tuple(int(i) for i in model.leg_joint_v_indices(leg)) for leg in range(NUM_LEGS))
         self.layout = QpLayout(nv=model.nv, nj=model.nv - 6, leg_joint_v_indices=legs)
         self.joint_v = model.canonical_joint_v_indices()          # canonical joint k -> v index
+        pin_model = model.model
+        self._joint_q = np.array([pin_model.joints[pin_model.getJointId(name)].idx_q
+                                  for name in model.description.joint_names])
         self.A_pattern = FixedPatternMatrix(self.layout.constraint_mask())
         self.P_pattern = FixedPatternMatrix(self.layout.cost_mask(), upper_triangular=True)
         self._prepare_static_blocks()
@@ -122,6 +125,13 @@ class StandardWbc:
         A, lower, upper = self._constraints(q, v, refs)
         P, q_cost, wrench_d = self._cost(q, v, refs)
         solution = self._run_osqp(P, q_cost, A, lower, upper)
+        relaxed = False
+        if solution is None:
+            # Conflicting hard constraints (e.g. a torque limit the rigid stance cannot respect): re-solve
+            # with the stance conditions softened by the same penalised slacks as the swing task.
+            self.failed_solves += 1
+            relaxed = True
+            solution = self._run_osqp(P, q_cost, A, *self._relax_stance(lower, upper, refs))
         lay = self.layout
         if solution is None:
             result = self._fallback(wrench_d)
@@ -132,7 +142,10 @@ class StandardWbc:
             tau_v = self._torques(qdd, forces)
             result = WbcSolution(tau=tau_v, qdd=qdd, forces=forces, slacks=x[lay.slack].reshape(NUM_LEGS, 3),
                                  desired_wrench=wrench_d, status=info.status, status_val=int(info.status_val),
-                                 iterations=int(info.iter), solve_time_s=float(info.solve_time))
+                                 iterations=int(info.iter), solve_time_s=float(info.solve_time),
+                                 fallback=relaxed)
+            if relaxed:
+                result.status = f"relaxed stance ({info.status})"
             self._last = result
         result.cycle_time_s = time.perf_counter() - start
         return result
@@ -140,14 +153,23 @@ class StandardWbc:
     # ------------------------------------------------------------------------------------------------
     def _torques(self, qdd: np.ndarray, forces: np.ndarray) -> np.ndarray:
         m = self.model
-        tau_v = m.mass_matrix()[6:] @ qdd + m.nonlinear_effects()[6:]
-        for leg in range(NUM_LEGS):
-            tau_v -= m.foot_jacobian(leg)[:, 6:].T @ forces[leg]
+        tau_v = m.mass_matrix()[6:] @ qdd + m.nonlinear_effects()[6:] - m.foot_jacobians()[:, 6:].T @ forces.ravel()
         return tau_v[self.joint_v - 6]
 
+    def _relax_stance(self, lower: np.ndarray, upper: np.ndarray, refs: WbcReferences):
+        """Bounds with the stance rows turned into slack-bounded rows like the swing task's."""
+        lower, upper = lower.copy(), upper.copy()
+        stance3 = np.repeat(refs.stance, 3)
+        sl = self._slices
+        low_rows = sl["task_low_rows"].start + self._task_row_index[stance3]
+        high_rows = sl["task_high_rows"].start + self._task_row_index[stance3]
+        lower[high_rows] = lower[low_rows]        # J qdd + eta >= target
+        lower[low_rows] = -INF                    # J qdd - eta <= target
+        upper[sl["slack_rows"].start + self._task_row_index[stance3]] = INF
+        return lower, upper
+
     def _fallback(self, wrench_d: np.ndarray) -> WbcSolution:
-        """QP not solved: decay the previous solution (never raise out of the control loop)."""
-        self.failed_solves += 1
+        """Even the relaxed QP failed: decay the previous solution (never raise out of the control loop)."""
         last = self._last
         nj = self.layout.nj
         if last is None:
@@ -293,7 +315,9 @@ class StandardWbc:
         if key == self._friction_key:
             return
         self._friction_key = key
-        mu = self.settings.friction_coefficient
+        # Square pyramid inscribed in the cone: each tangential component within mu/sqrt(2) of the normal
+        # one, so that also diagonal forces stay inside the true friction cone.
+        mu = self.settings.friction_coefficient / np.sqrt(2.0)
         lay = self.layout
         for leg in range(NUM_LEGS):
             n = normals[leg] / np.linalg.norm(normals[leg])
@@ -322,7 +346,7 @@ class StandardWbc:
 
     # -- state helpers ---------------------------------------------------------------------------------
     def _canonical_joint_positions(self, q: np.ndarray) -> np.ndarray:
-        return self.model.split_q(q)[2]
+        return q[self._joint_q]
 
     @staticmethod
     def _base_rotation(q: np.ndarray) -> np.ndarray:
