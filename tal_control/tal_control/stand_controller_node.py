@@ -35,6 +35,7 @@ class StandControllerNode(Node):
         self.joint_names = list(self.model.description.joint_names)
         self._index = {name: i for i, name in enumerate(self.joint_names)}
         self._next_tick_ns = 0
+        self._last_command: JointCommand | None = None
         self.rejected = 0
         self.commands_sent = 0
         self.pub = self.create_publisher(JointCommand, "joint_command", 10)
@@ -42,6 +43,9 @@ class StandControllerNode(Node):
 
     def _on_joint_states(self, msg: JointState) -> None:
         stamp_ns = ns_from_stamp(msg.header.stamp)
+        if self._last_command is not None and stamp_ns == ns_from_stamp(self._last_command.header.stamp):
+            self.pub.publish(self._last_command)  # the driver repeats a state until a command arrives
+            return
         if stamp_ns + CLOCK_RESET_NS < self._next_tick_ns:
             self.get_logger().warn("joint_states time jumped back (simulation restarted): resetting ticks")
             self._next_tick_ns = 0
@@ -61,6 +65,7 @@ class StandControllerNode(Node):
         for field, values in fields.items():
             setattr(cmd, field, values.tolist())
         self.pub.publish(cmd)
+        self._last_command = cmd
         self.commands_sent += 1
         self._next_tick_ns = ((stamp_ns + TICK_TOLERANCE_NS) // self.period_ns + 1) * self.period_ns
 

@@ -68,6 +68,7 @@ class WbcNode(Node):
         self.stale_ns = p["stale_state_periods"] * self.period_ns
         self._next_tick_ns = 0
         self._deferred_tick_ns: int | None = None
+        self._last_command: JointCommand | None = None
         self._joints: tuple[int, np.ndarray, np.ndarray] | None = None
         self._base: tuple[int, BaseState] | None = None
         self._cmd_vel = np.zeros(3)
@@ -152,6 +153,11 @@ class WbcNode(Node):
         stamp = ns_from_stamp(msg.header.stamp)
         if self._joints is not None and stamp + CLOCK_RESET_NS < self._joints[0]:
             self._restart(stamp)
+        if self._last_command is not None and stamp == ns_from_stamp(self._last_command.header.stamp):
+            # The driver repeats a state while it waits for its first command (our answer may have been
+            # published before DDS matched us): answer again, identically.
+            self.pub_command.publish(self._last_command)
+            return
         if self._joints is not None and stamp <= self._joints[0]:
             return  # repeated or out-of-order sample: keep the newer one
         self._joints = (stamp, q, qd)
@@ -166,6 +172,7 @@ class WbcNode(Node):
         self._joints = self._base = None
         self._next_tick_ns = 0
         self._deferred_tick_ns = None
+        self._last_command = None
 
     def _on_base(self, msg: Odometry) -> None:
         try:
@@ -295,6 +302,7 @@ class WbcNode(Node):
             cmd.velocity = (velocity if velocity is not None else np.zeros(len(effort))).tolist()
             cmd.kd = kd.tolist()
         self.pub_command.publish(cmd)
+        self._last_command = cmd
 
     def _diagnostics(self, stamp, out: TickOutput) -> WbcDiagnostics:
         sol = out.solution
