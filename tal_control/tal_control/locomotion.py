@@ -35,6 +35,16 @@ class BaseState:
 
 
 @dataclass(frozen=True)
+class TerrainImpedance:
+    """Per-leg terrain impedance in the contact frame (4,) each: stiffness [N/m], damping [N s/m]."""
+
+    stiffness_normal: np.ndarray
+    damping_normal: np.ndarray
+    stiffness_tangential: np.ndarray | None = None
+    damping_tangential: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class TickOutput:
     tau: np.ndarray                 # (12,) [N m] canonical joint order
     targets: MotionTargets
@@ -54,8 +64,14 @@ class LocomotionController:
 
     def tick(self, t_s: float, base: BaseState, joint_position: np.ndarray, joint_velocity: np.ndarray,
              cmd_vel: Sequence[float], terrain_height: HeightFunction | None = None,
-             terrain_normal: Callable[[float, float], np.ndarray] | None = None) -> TickOutput:
-        """Compute joint torques for the state at sim time ``t_s`` [s]. Raises InputError on bad input."""
+             terrain_normal: Callable[[float, float], np.ndarray] | None = None,
+             impedance: TerrainImpedance | None = None) -> TickOutput:
+        """Compute joint torques for the state at sim time ``t_s`` [s]. Raises InputError on bad input.
+
+        ``impedance`` (c3WBC): per-leg terrain stiffness/damping in the contact frame; None uses the WBC
+        settings' defaults. In compliant mode the legs load and unload over T = 4.6 / sqrt(k / m_e)
+        (thesis), m_e = robot mass / number of stance feet, instead of the gait's fixed loading time.
+        """
         for name, value in (("joint_position", joint_position), ("joint_velocity", joint_velocity)):
             if np.shape(value) != (self.model.nv - 6,) or not np.all(np.isfinite(value)):
                 raise InputError(f"{name} must be {self.model.nv - 6} finite values, got {value!r}")
@@ -69,14 +85,37 @@ class LocomotionController:
                                  com_velocity=self.model.com_velocity())
         targets = self.motion.update(t_s, measured, cmd_vel, terrain_height, terrain_normal_fn=terrain_normal)
         trunk = targets.trunk
+        load_factor = targets.load_factor
+        if self.wbc.compliant:
+            load_factor = self._terrain_aware_load_factor(targets, impedance)
+        stiffness = impedance.stiffness_normal if impedance is not None else None
         refs = WbcReferences(
             com_position=trunk.com_position, com_velocity=trunk.com_velocity,
             com_acceleration=trunk.com_acceleration, world_R_base=trunk.world_R_base,
             angular_velocity=trunk.angular_velocity, angular_acceleration=trunk.angular_acceleration,
             foot_position=targets.foot_position, foot_velocity=targets.foot_velocity,
             foot_acceleration=targets.foot_acceleration, stance=targets.stance,
-            load_factor=targets.load_factor, touchdown_position=targets.touchdown_positions,
-            normals=targets.normals)
+            load_factor=load_factor, touchdown_position=targets.touchdown_positions,
+            normals=targets.normals, stiffness_normal=stiffness,
+            stiffness_tangential=None if impedance is None else impedance.stiffness_tangential,
+            damping_normal=None if impedance is None else impedance.damping_normal,
+            damping_tangential=None if impedance is None else impedance.damping_tangential)
         solution = self.wbc.solve(q, v, refs)
         self.ticks += 1
         return TickOutput(tau=solution.tau, targets=targets, solution=solution, measured=measured)
+
+    def _terrain_aware_load_factor(self, targets: MotionTargets, impedance: TerrainImpedance | None) -> np.ndarray:
+        """Load factor ramps over T_l/u = 4.6 / sqrt(k / m_e) per leg (1 % settling of the foot-mass system)."""
+        phase = targets.gait
+        if phase.gait.is_standing:
+            return targets.load_factor
+        settings = self.wbc.settings
+        k = (impedance.stiffness_normal if impedance is not None
+             else np.full(len(targets.stance), settings.default_stiffness_n_per_m))
+        n_stance = max(int(np.sum(targets.stance)), 1)
+        m_e = self.model.total_mass_kg / n_stance
+        ramp = 4.6 / np.sqrt(np.maximum(k, 1.0) / m_e)
+        since_touchdown = phase.t_s - phase.touchdown_time_s
+        to_liftoff = phase.time_to_liftoff_s
+        factor = np.clip(np.minimum(since_touchdown, to_liftoff) / ramp, 0.0, 1.0)
+        return np.where(targets.stance, factor, 0.0)

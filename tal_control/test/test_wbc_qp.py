@@ -166,3 +166,32 @@ def test_orientation_error_sign(model) -> None:
     from tal_control.wbc.tasks import orientation_error
     desired = pin.rpy.rpyToMatrix(0.1, 0.0, 0.0)
     np.testing.assert_allclose(orientation_error(desired, np.eye(3)), [0.1, 0.0, 0.0], atol=1e-12)
+
+
+def test_compliant_wbc_keeps_forces_consistent_with_the_contact_model(model) -> None:
+    """c3WBC: F = K eps + D (eps - eps_prev)/dt and J qdd + dJ v = -(eps - 2 eps_prev + eps_prev2)/dt^2."""
+    q, v = standing_state(model)
+    settings = WbcSettings(contact_model="compliant")
+    wbc = StandardWbc(model, settings=settings)
+    refs = references(model)
+    k, d, dt = 3500.0, 400.0, settings.control_period_s
+    refs = WbcReferences(**{**refs.__dict__, "stiffness_normal": np.full(4, k), "damping_normal": np.full(4, d)})
+    history = [np.zeros((4, 3)), np.zeros((4, 3))]
+    for _ in range(3):
+        solution = wbc.solve(q, v, refs)
+        assert not solution.fallback
+        eps = solution.extras["penetration"]
+        for leg in Leg:
+            model_force = k * eps[leg] + d * (eps[leg] - history[-1][leg]) / dt
+            np.testing.assert_allclose(solution.forces[leg], model_force, atol=0.5)
+            foot_acc = model.foot_jacobian(leg) @ solution.qdd + model.foot_djdq(leg)
+            eps_dd = (eps[leg] - 2 * history[-1][leg] + history[-2][leg]) / dt**2
+            np.testing.assert_allclose(foot_acc, -eps_dd, atol=0.5)
+        assert np.all(eps[:, 2] >= -1e-6)            # normal penetration is never negative
+        history.append(eps.copy())
+    assert np.sum(solution.forces[:, 2]) > 0.0
+
+
+def test_unknown_contact_model_is_rejected() -> None:
+    with pytest.raises(InputError, match="contact_model"):
+        WbcSettings(contact_model="squishy")

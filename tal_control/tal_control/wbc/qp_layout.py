@@ -137,13 +137,14 @@ class QpLayout:
                 model_rows = slice(self.compliant_rows.start + 3 * leg, self.compliant_rows.start + 3 * leg + 3)
                 mask[model_rows, self.leg_cols(self.force, leg)] = np.eye(3, dtype=bool)
                 mask[model_rows, self.leg_cols(self.penetration, leg)] = True
+                # Penetration in the contact frame: rows (n, t1, t2) . eps, so a full 3x3 block.
                 bound_rows = slice(self.compliant_rows.start + self.n_force + 3 * leg,
                                    self.compliant_rows.start + self.n_force + 3 * leg + 3)
-                mask[bound_rows, self.leg_cols(self.penetration, leg)] = np.eye(3, dtype=bool)
-                # c3 stance task: J qdd + eps_dd terms live in the task rows.
+                mask[bound_rows, self.leg_cols(self.penetration, leg)] = True
+                # c3 stance task: J qdd + eps_k / dt^2 = ... lives in the task rows (diagonal block).
                 for block in (self.task_low_rows, self.task_high_rows):
                     block_rows = slice(block.start + 3 * leg, block.start + 3 * leg + 3)
-                    mask[block_rows, self.leg_cols(self.penetration, leg)] = True
+                    mask[block_rows, self.leg_cols(self.penetration, leg)] = np.eye(3, dtype=bool)
         mask[self.torque_rows, self.qdd] = True
         mask[self.joint_acc_rows, slice(6, self.nv)] = np.eye(self.nj, dtype=bool)
         mask[self.slack_rows, self.slack] = np.eye(self.n_force, dtype=bool)

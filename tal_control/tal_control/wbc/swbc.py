@@ -54,6 +54,16 @@ class WbcSettings:
     # from ~300 to ~25 (measured on HyQ trot states).
     eps_abs: float = 1e-4
     eps_rel: float = 1e-4
+    # c3WBC (contact_model "compliant"): desired penetrations eps become decision variables with
+    # F = K eps + D deps/dt and J_st qdd + dJ_st v = -d2eps/dt2 (finite differences over the last cycles).
+    contact_model: str = "rigid"
+    penetration_regularisation: float = 1.0          # weight on ||eps||^2 (eps in m; wrench error in N)
+    default_stiffness_n_per_m: float = 2e6           # used when the references carry no impedance
+    default_damping_ns_per_m: float = 400.0
+
+    def __post_init__(self) -> None:
+        if self.contact_model not in ("rigid", "compliant"):
+            raise InputError(f"contact_model must be 'rigid' or 'compliant', got {self.contact_model!r}")
 
 
 @dataclass
@@ -89,7 +99,12 @@ class StandardWbc:
         self.gains = gains or WbcGains()
         self.settings = settings or WbcSettings()
         legs = tuple(tuple(int(i) for i in model.leg_joint_v_indices(leg)) for leg in range(NUM_LEGS))
-        self.layout = QpLayout(nv=model.nv, nj=model.nv - 6, leg_joint_v_indices=legs)
+        self.compliant = self.settings.contact_model == "compliant"
+        self.layout = QpLayout(nv=model.nv, nj=model.nv - 6, leg_joint_v_indices=legs, compliant=self.compliant)
+        # Desired penetrations of the previous two cycles (world frame, per leg) for the finite differences.
+        self._eps_prev = np.zeros((NUM_LEGS, 3))
+        self._eps_prev2 = np.zeros((NUM_LEGS, 3))
+        self._was_stance = np.zeros(NUM_LEGS, dtype=bool)
         self.joint_v = model.canonical_joint_v_indices()          # canonical joint k -> v index
         pin_model = model.model
         self._joint_q = np.array([pin_model.joints[pin_model.getJointId(name)].idx_q
@@ -140,12 +155,19 @@ class StandardWbc:
             qdd = x[lay.qdd]
             forces = x[lay.force].reshape(NUM_LEGS, 3)
             tau_v = self._torques(qdd, forces)
+            if self.compliant:
+                # The QP's variable is eps / dt^2 (better scaled for OSQP than metres): convert back.
+                dt2 = self.settings.control_period_s ** 2
+                eps = np.where(refs.stance[:, None], dt2 * x[lay.penetration].reshape(NUM_LEGS, 3), 0.0)
+                self._eps_prev2, self._eps_prev = self._eps_prev, eps
             result = WbcSolution(tau=tau_v, qdd=qdd, forces=forces, slacks=x[lay.slack].reshape(NUM_LEGS, 3),
                                  desired_wrench=wrench_d, status=info.status, status_val=int(info.status_val),
                                  iterations=int(info.iter), solve_time_s=float(info.solve_time),
                                  fallback=relaxed)
             if relaxed:
                 result.status = f"relaxed stance ({info.status})"
+            if self.compliant:
+                result.extras["penetration"] = self._eps_prev.copy()
             self._last = result
         result.cycle_time_s = time.perf_counter() - start
         return result
@@ -228,6 +250,13 @@ class StandardWbc:
         self._P_static[sl["qdd"], sl["qdd"]] = s.qdd_regularisation * np.eye(lay.nv)
         self._P_static[sl["force"], sl["force"]] = s.force_regularisation * eye_f
         self._P_static[sl["slack"], sl["slack"]] = s.slack_weight * eye_f
+        if self.compliant:
+            # Variable z = eps / dt^2: the weight on ||eps||^2 becomes weight * dt^4 on ||z||^2.
+            self._P_static[lay.penetration, lay.penetration] = (s.penetration_regularisation
+                                                                * s.control_period_s**4 * eye_f)
+            self._model_rows = lay.compliant_rows.start + np.arange(lay.n_force)
+            self._eps_bound_rows = lay.compliant_rows.start + lay.n_force + np.arange(lay.n_force)
+            A[self._model_rows, sl["force"]] = eye_f
         self._Q = np.diag(s.wrench_weights)
         self._friction_key: bytes | None = None
         # Rows of the torque/joint blocks in Pinocchio's joint order that hold each canonical joint.
@@ -308,7 +337,65 @@ class StandardWbc:
         joint_rows = sl["joint_acc_rows"].start + self._rows_of_canonical
         lower[joint_rows] = qdd_min
         upper[joint_rows] = qdd_max
+        if self.compliant:
+            self._compliant_rows(refs, target, lower, upper)
         return A, lower, upper
+
+    def _compliant_rows(self, refs: WbcReferences, target: np.ndarray, lower: np.ndarray,
+                        upper: np.ndarray) -> None:
+        """c3-stance task: F = K eps + D deps, J qdd + dJ v = -d2eps, n.eps >= 0 (thesis' c3WBC)."""
+        lay, sl, s = self.layout, self._slices, self.settings
+        A = self._A
+        dt = s.control_period_s
+        touchdown = refs.stance & ~self._was_stance
+        self._eps_prev[touchdown] = 0.0      # a fresh contact starts undeformed
+        self._eps_prev2[touchdown] = 0.0
+        self._was_stance = refs.stance.copy()
+        def per_leg(value: np.ndarray | None, default: float | np.ndarray) -> np.ndarray:
+            return np.broadcast_to(default, (NUM_LEGS,)) if value is None else value
+
+        k_n = per_leg(refs.stiffness_normal, s.default_stiffness_n_per_m)
+        k_t = per_leg(refs.stiffness_tangential, k_n)
+        d_n = per_leg(refs.damping_normal, s.default_damping_ns_per_m)
+        d_t = per_leg(refs.damping_tangential, d_n)
+        eye3 = np.eye(3)
+        for leg in range(NUM_LEGS):
+            rows = slice(3 * leg, 3 * leg + 3)
+            eps_cols = lay.leg_cols(lay.penetration, leg)
+            n = refs.normals[leg] / np.linalg.norm(refs.normals[leg])
+            t1, t2 = tangent_basis(n)
+            contact_R = np.vstack([n, t1, t2])         # rows: contact-frame axes in world coordinates
+            model_rows = self._model_rows[rows]
+            bound_rows = self._eps_bound_rows[rows]
+            A[bound_rows, eps_cols] = contact_R
+            task_low = sl["task_low_rows"].start + 3 * leg
+            task_high = sl["task_high_rows"].start + 3 * leg
+            if refs.stance[leg]:
+                K = contact_R.T @ np.diag([k_n[leg], k_t[leg], k_t[leg]]) @ contact_R
+                D = contact_R.T @ np.diag([d_n[leg], d_t[leg], d_t[leg]]) @ contact_R
+                # F - (K + D/dt) eps_k = -D eps_{k-1}/dt, with the variable z = eps_k / dt^2
+                A[model_rows, eps_cols] = -(K + D / dt) * dt**2
+                lower[model_rows] = upper[model_rows] = -D @ self._eps_prev[leg] / dt
+                # J qdd + z = -dJ v + (2 eps_{k-1} - eps_{k-2})/dt^2   (replaces the rigid stance row)
+                A[task_low:task_low + 3, eps_cols] = eye3
+                A[task_high:task_high + 3, eps_cols] = eye3
+                rhs = target[rows] - self._stance_task_acceleration(refs, leg) + \
+                    (2.0 * self._eps_prev[leg] - self._eps_prev2[leg]) / dt**2
+                lower[task_low:task_low + 3] = upper[task_low:task_low + 3] = rhs
+                lower[bound_rows] = np.array([0.0, -INF, -INF])   # normal penetration >= 0
+                upper[bound_rows] = INF
+            else:
+                A[model_rows, eps_cols] = 0.0
+                A[task_low:task_low + 3, eps_cols] = 0.0
+                A[task_high:task_high + 3, eps_cols] = 0.0
+                lower[bound_rows] = upper[bound_rows] = 0.0
+                # model rows stay unbounded (-INF, INF): F is pinned to zero by the friction rows
+
+    def _stance_task_acceleration(self, refs: WbcReferences, leg: int) -> np.ndarray:
+        """The rigid stance-task impedance term that ``target`` holds for stance legs (removed in c3 mode)."""
+        m = self.model
+        foot = m.foot_positions()[leg]
+        return self.gains.K_st * (refs.touchdown_position[leg] - foot) - self.gains.D_st * m.foot_velocities()[leg]
 
     def _fill_friction_rows(self, normals: np.ndarray) -> None:
         key = normals.tobytes()

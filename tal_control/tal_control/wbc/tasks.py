@@ -58,6 +58,11 @@ class WbcReferences:
     load_factor: np.ndarray           # (4,) [0, 1] scales the normal-force upper bound
     touchdown_position: np.ndarray    # (4, 3) [m] stance feet samples at touchdown (stance task)
     normals: np.ndarray               # (4, 3) unit terrain normals
+    # c3WBC only: terrain impedance per leg in the contact frame (normal, tangential) [N/m], [N s/m].
+    stiffness_normal: np.ndarray | None = None       # (4,)
+    stiffness_tangential: np.ndarray | None = None   # (4,)
+    damping_normal: np.ndarray | None = None         # (4,)
+    damping_tangential: np.ndarray | None = None     # (4,)
 
     def __post_init__(self) -> None:
         shapes = {"com_position": (3,), "com_velocity": (3,), "com_acceleration": (3,), "world_R_base": (3, 3),
@@ -70,6 +75,14 @@ class WbcReferences:
                 raise InputError(f"WBC reference '{name}' must have shape {shape}, got {value.shape}")
             if name != "stance" and not np.all(np.isfinite(value)):
                 raise InputError(f"WBC reference '{name}' has NaN or inf")
+            object.__setattr__(self, name, value)
+        for name in ("stiffness_normal", "stiffness_tangential", "damping_normal", "damping_tangential"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            value = np.asarray(value, dtype=float)
+            if value.shape != (NUM_LEGS,) or not np.all(np.isfinite(value)) or np.any(value < 0.0):
+                raise InputError(f"WBC reference '{name}' must be {NUM_LEGS} finite values >= 0, got {value!r}")
             object.__setattr__(self, name, value)
 
 
