@@ -215,9 +215,13 @@ class RobotDescription:
         if not np.isfinite(q).all():
             bad = np.flatnonzero(~np.isfinite(q)).tolist()
             raise InputError(f"torque_limits: non-finite joint position(s) at index {bad}")
-        tau_max = np.array(
-            [table.max_torque(angle) for table, angle in zip(self.torque_limit_tables, q, strict=True)]
-        )
+        if all(len(table.joint_angles_rad) == 1 for table in self.torque_limit_tables):
+            # Constant limits (no angle table): skip the per-joint interpolation, called at 1 kHz.
+            tau_max = np.array([table.max_torques[0] for table in self.torque_limit_tables])
+        else:
+            tau_max = np.array(
+                [table.max_torque(angle) for table, angle in zip(self.torque_limit_tables, q, strict=True)]
+            )
         return -tau_max, tau_max
 
 
