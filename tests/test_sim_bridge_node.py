@@ -120,6 +120,8 @@ def test_bad_joint_commands_are_rejected_counted_and_the_bridge_keeps_damping(co
     bad.append(JointCommand(name=names, effort=[0.0] * 12, position=[0.0] * 12, kp=[-1.0] * 12))
     try:
         assert spin_until(executor, lambda: probe.counts["joint_states"] > 5, 20.0)
+        # Publish only once DDS has matched the bridge's subscription (else the first ones are dropped).
+        assert spin_until(executor, lambda: probe.command_pub.get_subscription_count() >= 1, 20.0)
         for _ in range(3):
             for msg in bad:
                 probe.command_pub.publish(msg)

@@ -100,6 +100,11 @@ class FakeRobot:
         self.q = self.model.description.nominal_joint_positions_rad.copy()
         self.base_z = float(self.model.neutral_q()[2])
 
+    def matched(self) -> bool:
+        """True once the wbc subscribes to our topics and publishes to our subscriptions."""
+        return (self.joints.get_subscription_count() >= 1 and self.odom.get_subscription_count() >= 1
+                and self.node.count_publishers("joint_command") >= 1)
+
     def publish_joints(self, stamp_ns: int, position=None) -> None:
         msg = JointState()
         msg.header.stamp = stamp_from_ns(stamp_ns)
@@ -124,7 +129,7 @@ def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context) -> None
     executor.add_node(wbc)
     executor.add_node(robot.node)
     try:
-        spin_until(executor, lambda: False, 0.5)  # discovery
+        assert spin_until(executor, robot.matched, 20.0)  # DDS discovery in both directions
         # Tick 0: fresh state -> normal torque command (no damping term).
         robot.publish_odom(0)
         robot.publish_joints(0)
@@ -158,7 +163,7 @@ def test_nan_and_unknown_joints_are_rejected_and_counted(context) -> None:
     executor.add_node(wbc)
     executor.add_node(robot.node)
     try:
-        spin_until(executor, lambda: False, 0.5)
+        assert spin_until(executor, robot.matched, 20.0)
         bad_q = robot.q.copy()
         bad_q[3] = np.nan
         robot.publish_joints(0, position=bad_q)
