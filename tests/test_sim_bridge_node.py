@@ -4,7 +4,6 @@ rates in sim time, bad joint commands, start-up errors."""
 from __future__ import annotations
 
 import math
-import time
 from collections import Counter
 
 import pytest
@@ -28,14 +27,6 @@ TOPICS = {
 }
 
 
-@pytest.fixture
-def context():
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.shutdown(context=ctx)
-
-
 class Probe:
     """Counts messages per topic and keeps the last one."""
 
@@ -54,16 +45,9 @@ class Probe:
         return on_message
 
 
-def spin_until(executor, predicate, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        executor.spin_once(timeout_sec=0.05)
-    return predicate()
 
 
-def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(context) -> None:
+def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(context, spin_until) -> None:
     bridge = SimBridgeNode(context=context, parameter_overrides=[
         Parameter("course", value="flat_t2"), Parameter("duration_s", value=1.0)])
     controller = StandControllerNode(context=context)
@@ -104,7 +88,7 @@ def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(contex
     assert imu.linear_acceleration.z == pytest.approx(9.81, abs=0.5)
 
 
-def test_bad_joint_commands_are_rejected_counted_and_the_bridge_keeps_damping(context) -> None:
+def test_bad_joint_commands_are_rejected_counted_and_the_bridge_keeps_damping(context, spin_until) -> None:
     bridge = SimBridgeNode(context=context, parameter_overrides=[
         Parameter("mode", value="realtime"), Parameter("course", value="flat_rigid")])
     probe = Probe(context)

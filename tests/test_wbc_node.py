@@ -3,8 +3,6 @@ state, and rejects bad input without crashing."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 import rclpy
@@ -23,25 +21,10 @@ from tal_sim_bridge.sim_bridge_node import SimBridgeNode
 pytestmark = pytest.mark.ros
 
 
-@pytest.fixture
-def context():
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.shutdown(context=ctx)
-
-
-def spin_until(executor, predicate, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        executor.spin_once(timeout_sec=0.05)
-    return predicate()
 
 
 @pytest.mark.slow
-def test_graph_trots_forward_with_gait_state_and_diagnostics_at_250_hz(context) -> None:
+def test_graph_trots_forward_with_gait_state_and_diagnostics_at_250_hz(context, spin_until) -> None:
     bridge = SimBridgeNode(context=context, parameter_overrides=[Parameter("duration_s", value=3.0)])
     wbc = WbcNode(context=context)
     script = CmdVelScriptNode(context=context, parameter_overrides=[
@@ -122,7 +105,7 @@ class FakeRobot:
         self.odom.publish(msg)
 
 
-def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context) -> None:
+def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context, spin_until) -> None:
     wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand")])
     robot = FakeRobot(context)
     executor = SingleThreadedExecutor(context=context)
@@ -156,7 +139,7 @@ def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context) -> None
         robot.node.destroy_node()
 
 
-def test_nan_and_unknown_joints_are_rejected_and_counted(context) -> None:
+def test_nan_and_unknown_joints_are_rejected_and_counted(context, spin_until) -> None:
     wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand")])
     robot = FakeRobot(context)
     executor = SingleThreadedExecutor(context=context)

@@ -9,18 +9,10 @@ from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
 from tal_core.heightmap import HeightMapGrid
+from tal_core.rotations import rotation_from_quat_xyzw
 from tal_msgs.msg import GaitState, HeightMap
 
 from .locomotion import BaseState, TickOutput
-
-
-def rotation_from_quat_xyzw(quat: np.ndarray) -> np.ndarray:
-    x, y, z, w = quat
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def base_state_from_odometry(msg: Odometry) -> BaseState:

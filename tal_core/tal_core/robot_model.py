@@ -31,6 +31,7 @@ import pinocchio as pin
 from tal_core.errors import InputError, RobotConfigError
 from tal_core.legs import JOINTS_PER_LEG, LEG_NAMES, NUM_LEGS, Leg, leg_from_name
 from tal_core.robot_description import NUM_JOINTS, RobotDescription, load_robot_description
+from tal_core.rotations import rotation_from_quat_xyzw as _rotation_from_quat_xyzw
 
 ArrayLike = Sequence[float] | np.ndarray
 QUATERNION_NORM_TOLERANCE = 1e-3  # |norm - 1| above this is an error, below it we normalise
@@ -366,15 +367,3 @@ def _checked_unit_quaternion(value: ArrayLike, name: str) -> np.ndarray:
             f"{name}: quaternion norm {norm:.6g} is not 1 (tolerance {QUATERNION_NORM_TOLERANCE})"
         )
     return quat / norm
-
-
-def _rotation_from_quat_xyzw(quat: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = quat
-    return np.array(
-        [
-            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
-            [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
-            [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
-        ]
-    )

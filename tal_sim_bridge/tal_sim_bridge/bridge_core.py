@@ -14,20 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from tal_core.legs import LEG_NAMES
+from tal_core.rotations import rotation_from_quat_xyzw
 
 from .command_hold import JointCommandHold
 from .effects import ModelEffects
 from .physics import GRAVITY_M_S2, FootContact, RobotState, Simulation
-
-
-def _rotation_from_quat_xyzw(quat: np.ndarray) -> np.ndarray:
-    """world_R_base from a unit quaternion (x, y, z, w)."""
-    x, y, z, w = quat
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 @dataclass
@@ -48,7 +39,7 @@ class ImuModel:
 
     def measure(self, state: RobotState) -> tuple[np.ndarray, np.ndarray]:
         """Return (specific_force_base [m/s^2], angular_rate_base [rad/s])."""
-        base_R_world = _rotation_from_quat_xyzw(state.base_quat_xyzw).T
+        base_R_world = rotation_from_quat_xyzw(state.base_quat_xyzw).T
         gravity = np.array([0.0, 0.0, -GRAVITY_M_S2])
         specific_force = base_R_world @ (state.base_lin_acc_m_s2 - gravity)
         angular_rate = base_R_world @ state.base_ang_vel_rad_s

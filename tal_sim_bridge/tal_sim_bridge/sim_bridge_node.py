@@ -33,10 +33,11 @@ from sensor_msgs.msg import Imu, JointState
 from tal_core.heightmap import extract_heightmap
 from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
 from tal_core.robot_description import load_robot_description
+from tal_core.rotations import rotation_from_quat_xyzw, yaw_from_quat_xyzw
 from tal_core.terrain import load_course
 from tal_msgs.msg import ContactState, HeightMap, JointCommand
 
-from .bridge_core import BridgeCore, ImuModel, _rotation_from_quat_xyzw
+from .bridge_core import BridgeCore, ImuModel
 from .effects import ModelEffects
 from .errors import CommandRejectedError
 from .physics import Simulation
@@ -270,7 +271,7 @@ class SimBridgeNode(Node):
         odom.pose.pose.orientation.x, odom.pose.pose.orientation.y = float(quat[0]), float(quat[1])
         odom.pose.pose.orientation.z, odom.pose.pose.orientation.w = float(quat[2]), float(quat[3])
         # ROS convention: the twist is expressed in child_frame_id (base).
-        base_R_world = _rotation_from_quat_xyzw(quat).T
+        base_R_world = rotation_from_quat_xyzw(quat).T
         lin = base_R_world @ state.base_lin_vel_m_s
         ang = base_R_world @ state.base_ang_vel_rad_s
         odom.twist.twist.linear = Vector3(x=lin[0], y=lin[1], z=lin[2])
@@ -295,7 +296,7 @@ class SimBridgeNode(Node):
     def _publish_heightmap(self, stamp, state) -> None:
         p = self.params
         quat = state.base_quat_xyzw
-        yaw = math.atan2(2.0 * (quat[3] * quat[2] + quat[0] * quat[1]), 1.0 - 2.0 * (quat[1] ** 2 + quat[2] ** 2))
+        yaw = yaw_from_quat_xyzw(quat)
         grid = extract_heightmap(self.core.sim.course, (state.base_position_m[0], state.base_position_m[1]), yaw,
                                  rows=p["heightmap_rows"], cols=p["heightmap_cols"],
                                  resolution_m=p["heightmap_resolution_m"])

@@ -35,6 +35,7 @@ from tal_core.errors import InputError
 from tal_core.legs import LEGS, NUM_LEGS, Leg
 from tal_core.robot_description import RobotDescription
 from tal_core.robot_model import RobotModel
+from tal_core.rotations import rotation_from_quat_xyzw
 
 _REACH_FRACTION = 0.4  # default foothold offset limit, as a fraction of the nominal hip-to-foot height
 
@@ -105,10 +106,7 @@ class MeasuredState:
         object.__setattr__(self, "base_quat_xyzw", self.base_quat_xyzw / norm)
 
     def world_R_base(self) -> np.ndarray:
-        x, y, z, w = self.base_quat_xyzw
-        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        return rotation_from_quat_xyzw(self.base_quat_xyzw)
 
 
 @dataclass(frozen=True, eq=False)
