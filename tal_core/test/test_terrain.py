@@ -284,7 +284,7 @@ class TestPrimitives:
         ramp = [b for b in load_course("slope_15deg").primitives() if b.name == "ramp_up"]
         assert len(ramp) == 1
         assert ramp[0].rpy == pytest.approx((0.0, -math.radians(15.0), 0.0))
-        assert ramp[0].half_extents_xyz == pytest.approx((1.0 / COS_15, 2.0, 0.1))
+        assert ramp[0].half_extents_xyz == pytest.approx((1.0 / COS_15, 2.0, MIN_BOX_THICKNESS_M / 2.0))
         world_R_box = rotation_from_rpy(*ramp[0].rpy)
         np.testing.assert_allclose(world_R_box[:, 2], [-SIN_15, 0.0, COS_15], atol=1e-12)  # box z = normal
         assert ramp[0].top_z(2.0, 0.0) == pytest.approx(TAN_15)

@@ -244,7 +244,7 @@ class MotionGenerator:
                 self._external[leg] = False
                 self._pending.pop(leg, None)
         nominal = self._nominal_footholds(phase, measured, hips, terrain_height_fn)
-        positions, velocities, accelerations = self._swing_feet(phase, measured, nominal)
+        positions, velocities, accelerations = self._swing_feet(phase, measured, nominal, terrain_height_fn)
         ground = self._touchdown - np.array([0.0, 0.0, self.foot_radius_m])
         for leg in LEGS:
             if phase.stance[leg]:
@@ -298,8 +298,8 @@ class MotionGenerator:
         z = [terrain_height(height_fn, x, y, z0) for (x, y), z0 in zip(xy, ground_z, strict=True)]
         return np.column_stack([xy, z])
 
-    def _swing_feet(self, phase: GaitPhase, measured: MeasuredState,
-                    nominal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _swing_feet(self, phase: GaitPhase, measured: MeasuredState, nominal: np.ndarray,
+                    terrain_height_fn: HeightFunction | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Start, re-plan and sample the swing trajectories; stance feet rest at their touchdown."""
         lift = np.array([0.0, 0.0, self.foot_radius_m])
         positions, velocities, accelerations = self._touchdown.copy(), np.zeros((4, 3)), np.zeros((4, 3))
@@ -313,8 +313,10 @@ class MotionGenerator:
                 self._liftoff[leg] = measured.foot_positions[leg]
                 self._targets[leg] = nominal[leg]
                 self._external[leg] = False
+                x0, y0, z0 = self._liftoff[leg]
+                surface = terrain_height(terrain_height_fn, x0, y0, z0 - self.foot_radius_m)
                 swing = SwingTrajectory(self._liftoff[leg], nominal[leg] + lift, phase.swing_duration_s[leg],
-                                        phase.gait.step_height_m)
+                                        phase.gait.step_height_m, clear_z=surface + self.foot_radius_m)
                 self._swings[leg] = swing
             pending = self._pending.pop(leg, None)
             if pending is not None and pending[0] == phase.step_count[leg] and tau < swing.duration_s:

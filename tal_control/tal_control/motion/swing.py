@@ -90,12 +90,18 @@ def _checked_point(value: object, name: str) -> np.ndarray:
     return point
 
 
+_MAX_CLEAR_FRACTION = 0.4  # horizontal motion starts at the latest at 40 % of the swing
+
+
 class SwingTrajectory:
     """Desired swing foot motion from ``liftoff_xyz`` to ``touchdown_xyz`` [m] (world frame) in
     ``duration_s`` [s], rising to ``apex_height_m`` [m] above the higher of the two end points."""
 
     def __init__(self, liftoff_xyz: object, touchdown_xyz: object, duration_s: float,
-                 apex_height_m: float) -> None:
+                 apex_height_m: float, clear_z: float | None = None) -> None:
+        """``clear_z`` [m]: world z the foot must reach before it moves horizontally. On soft ground the
+        foot lifts off from below the undeformed surface; dragging it sideways through the ground would
+        load it with the terrain's forces in swing. None: horizontal motion starts at lift-off."""
         if not (math.isfinite(duration_s) and duration_s > 0.0):
             raise MotionConfigError(f"swing trajectory: duration_s must be > 0, got {duration_s!r}")
         if not (math.isfinite(apex_height_m) and apex_height_m >= 0.0):
@@ -106,10 +112,28 @@ class SwingTrajectory:
         self._apex_height = float(apex_height_m)
         self._retarget_count = 0
         half, end = 0.5 * self._duration, self._duration
-        self._xy = _Piecewise([_Quintic(0.0, end, _rest(self._liftoff[:2]), _rest(self._touchdown[:2]))])
         apex = self.apex_z
         self._z = _Piecewise([_Quintic(0.0, half, _rest(self._liftoff[2]), _rest(apex)),
                               _Quintic(half, end, _rest(apex), _rest(self._touchdown[2]))])
+        start = self._time_to_clear(clear_z, half)
+        xy_pieces = [] if start <= 0.0 else [_Quintic(0.0, start, _rest(self._liftoff[:2]), _rest(self._liftoff[:2]))]
+        xy_pieces.append(_Quintic(start, end, _rest(self._liftoff[:2]), _rest(self._touchdown[:2])))
+        self._xy = _Piecewise(xy_pieces)
+
+    def _time_to_clear(self, clear_z: float | None, half: float) -> float:
+        """First time [s] the rising z profile reaches ``clear_z`` (bisection), capped at 40 % of the swing."""
+        if clear_z is None or not math.isfinite(clear_z) or self._liftoff[2] >= clear_z:
+            return 0.0
+        low, high = 0.0, half
+        if float(self._z.evaluate(high)[0][0]) < clear_z:
+            return _MAX_CLEAR_FRACTION * self._duration
+        for _ in range(30):
+            mid = 0.5 * (low + high)
+            if float(self._z.evaluate(mid)[0][0]) < clear_z:
+                low = mid
+            else:
+                high = mid
+        return min(high, _MAX_CLEAR_FRACTION * self._duration)
 
     @property
     def duration_s(self) -> float:
