@@ -125,6 +125,9 @@ class SimBridgeNode(Node):
             "lockstep_timeout_s": declare(self, "lockstep_timeout_s", 2.0,
                                           "[s] wall time to wait for a command before advancing anyway",
                                           low=0.01, high=3600.0),
+            "startup_timeout_s": declare(self, "startup_timeout_s", 30.0,
+                                         "[s] wall time to wait for the very first command (DDS discovery)",
+                                         low=0.01, high=3600.0),
             "max_catch_up_steps": declare(self, "max_catch_up_steps", 20,
                                           "[-] realtime: most physics steps per timer call", low=1, high=1000),
             "sensor_rate_hz": declare(self, "sensor_rate_hz", 1000.0,
@@ -182,11 +185,14 @@ class SimBridgeNode(Node):
             # Controllers may join after the bridge (DDS discovery): re-send the initial state until the
             # first command arrives. Consumers drop the repeated stamp as not newer.
             self._publish_step_outputs(force_all=True, record=False)
-        if time.monotonic() - self._waiting_since > self.params["lockstep_timeout_s"]:
+        # Before the first command, give DDS discovery time (seconds with LOCALHOST discovery).
+        timeout = (self.params["startup_timeout_s"] if self.core.commands.accepted == 0
+                   else self.params["lockstep_timeout_s"])
+        if time.monotonic() - self._waiting_since > timeout:
             self.lockstep_timeouts += 1
             self.get_logger().warn(
                 f"lockstep: no joint_command for tick {self._awaiting_tick_ns * 1e-9:.3f} s within "
-                f"{self.params['lockstep_timeout_s']} s; advancing with the held command "
+                f"{timeout} s; advancing with the held command "
                 f"({self.lockstep_timeouts} timeouts)", throttle_duration_sec=1.0)
             self._advance_control_period()
 
