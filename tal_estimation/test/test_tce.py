@@ -1,0 +1,116 @@
+"""Terrain Compliance Estimator: windowed weighted least squares and contact-state estimation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tal_core.errors import InputError
+from tal_core.legs import Leg
+from tal_core.robot_model import RobotModel
+from tal_estimation.tce import TceSettings, TerrainComplianceEstimator, WindowedKelvinVoigtFit
+
+
+def stance_samples(k: float, d: float, n: int, seed: int = 0, noise_n: float = 2.0):
+    """Synthetic stance: penetration oscillating around the static sinkage, F = k p + d dp/dt + noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.004
+    p = 200.0 / k + 0.3 * 200.0 / k * np.sin(2 * np.pi * 1.5 * t)
+    rate = np.gradient(p, t)
+    force = k * p + d * rate + rng.normal(0.0, noise_n, n)
+    return force, p, rate
+
+
+@pytest.mark.parametrize("k", [3500.0, 8000.0, 10000.0])
+def test_recovers_stiffness_within_one_percent(k) -> None:
+    fit = WindowedKelvinVoigtFit(TceSettings())
+    for f, p, r in zip(*stance_samples(k, 0.0, 400)):
+        fit.add(f, p, r)
+    est = fit.fit()
+    assert est.valid and not est.clamped and not est.stale
+    assert est.stiffness_n_per_m == pytest.approx(k, rel=0.01)
+    assert est.samples == 250 and est.confidence > 0.9
+
+
+def test_estimates_damping_when_asked() -> None:
+    fit = WindowedKelvinVoigtFit(TceSettings(estimate_damping=True))
+    for f, p, r in zip(*stance_samples(8000.0, 400.0, 300, noise_n=0.5)):
+        fit.add(f, p, r)
+    est = fit.fit()
+    assert est.stiffness_n_per_m == pytest.approx(8000.0, rel=0.01)
+    assert est.damping_ns_per_m == pytest.approx(400.0, rel=0.05)
+
+
+def test_too_few_samples_give_no_estimate() -> None:
+    fit = WindowedKelvinVoigtFit(TceSettings(min_samples=50))
+    for f, p, r in list(zip(*stance_samples(3500.0, 0.0, 49))):
+        fit.add(f, p, r)
+    est = fit.fit()
+    assert not est.valid and est.confidence == 0.0 and np.isnan(est.stiffness_n_per_m)
+
+
+def test_degenerate_window_keeps_previous_estimate_with_lower_confidence() -> None:
+    fit = WindowedKelvinVoigtFit(TceSettings(window=100, min_samples=20, estimate_damping=True))
+    for f, p, r in zip(*stance_samples(3500.0, 0.0, 100)):
+        fit.add(f, p, r)
+    first = fit.fit()
+    k_first, confidence_first = first.stiffness_n_per_m, first.confidence
+    for _ in range(100):                 # a window of identical samples: no variation, singular fit
+        fit.add(100.0, 0.03, 0.0)
+    est = fit.fit()
+    assert est.stale and est.stiffness_n_per_m == k_first and est.confidence < confidence_first
+
+
+def test_out_of_range_fit_is_clamped_and_flagged() -> None:
+    settings = TceSettings(stiffness_range_n_per_m=(1000.0, 5000.0))
+    fit = WindowedKelvinVoigtFit(settings)
+    for f, p, r in zip(*stance_samples(8000.0, 0.0, 300)):
+        fit.add(f, p, r)
+    est = fit.fit()
+    assert est.clamped and est.stiffness_n_per_m == 5000.0 and est.confidence <= 0.5
+
+
+def test_non_finite_samples_are_ignored() -> None:
+    fit = WindowedKelvinVoigtFit(TceSettings(min_samples=10))
+    fit.add(float("nan"), 0.01, 0.0)
+    fit.add(100.0, float("inf"), 0.0)
+    assert fit.fit().samples == 0
+
+
+def test_invalid_settings_are_rejected() -> None:
+    with pytest.raises(InputError, match="min_samples"):
+        TceSettings(window=10, min_samples=20)
+    with pytest.raises(InputError, match="weighting"):
+        TceSettings(weighting="exotic")
+
+
+@pytest.fixture(scope="module")
+def model() -> RobotModel:
+    return RobotModel.from_name("hyq")
+
+
+def test_contact_states_recover_forces_and_penetration(model) -> None:
+    """Torques that balance known foot forces at a sunk stance give back those forces and sinkage."""
+    sink = 0.03
+    q = model.neutral_q()
+    q[2] -= sink                                   # feet 3 cm below the surface z = 0
+    v = np.zeros(model.nv)
+    model.update(q, v)
+    forces = np.array([[0, 0, 250.0], [0, 0, 220.0], [0, 0, 0.0], [5.0, 0, 180.0]])
+    tau = np.zeros(12)
+    h = model.nonlinear_effects()
+    to_v = model.canonical_joint_v_indices()
+    for leg in Leg:
+        tau_leg = model.leg_torques_for_foot_force(leg, forces[leg])
+        for j, vi in enumerate(model.leg_joint_v_indices(leg)):
+            tau[int(np.flatnonzero(to_v == vi)[0])] = tau_leg[j] + h[vi]
+    tce = TerrainComplianceEstimator(model)
+    samples = tce.contact_states(q, v, tau, height=lambda x, y: 0.0)
+    for leg in Leg:
+        np.testing.assert_allclose(samples[leg].force_n, forces[leg], atol=1e-6)
+        assert samples[leg].penetration_m == pytest.approx(sink, abs=1e-9)
+    assert [s.in_contact for s in samples] == [True, True, False, True]
+    estimates = tce.update(samples)
+    assert estimates[Leg.LH].samples == 0 and estimates[Leg.LF].samples == 1   # swing legs are not fed
+    with pytest.raises(InputError, match="joint torques"):
+        tce.contact_states(q, v, np.full(12, np.nan), height=lambda x, y: 0.0)
