@@ -15,23 +15,13 @@ import numpy as np
 
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
+from tal_core.state import BaseState
 
 from .motion.gait import GaitParameters
 from .motion.generator import MeasuredState, MotionGenerator, MotionTargets
 from .wbc import StandardWbc, WbcGains, WbcReferences, WbcSettings, WbcSolution
 
 HeightFunction = Callable[[float, float], float]
-
-
-@dataclass(frozen=True)
-class BaseState:
-    """Floating-base state: position [m], orientation (x, y, z, w), linear [m/s] and angular [rad/s]
-    velocity, all in the world frame."""
-
-    position: np.ndarray
-    quat_xyzw: np.ndarray
-    linear_velocity: np.ndarray
-    angular_velocity: np.ndarray
 
 
 @dataclass(frozen=True)

@@ -29,17 +29,21 @@ from sensor_msgs.msg import JointState
 from tal_core.errors import InputError
 from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
 from tal_core.robot_model import RobotModel
-from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap, JointCommand, WbcDiagnostics
+from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid, heightmap_normal
+from tal_msgs.msg import (
+    BodyPoseReference,
+    FootholdArray,
+    GaitState,
+    HeightMap,
+    JointCommand,
+    TerrainImpedance,
+    WbcDiagnostics,
+)
 
 from .locomotion import BaseState, LocomotionController, TickOutput
+from .locomotion import TerrainImpedance as LegImpedance
 from .motion.gait import PRESETS as GAITS
-from .msg_conversions import (
-    base_state_from_odometry,
-    canonical_joint_state,
-    gait_state_message,
-    heightmap_grid,
-    heightmap_normal,
-)
+from .msg_conversions import gait_state_message
 from .tracking_stats import TrackingStats
 from .wbc import WbcGains, WbcSettings
 from .wbc.tasks import orientation_error
@@ -58,7 +62,10 @@ class WbcNode(Node):
         gait = dataclasses.replace(GAITS[p["gait"]], **overrides)
         gains = WbcGains(K_x=p["K_x"], D_x=p["D_x"], K_theta=p["K_theta"], D_theta=p["D_theta"],
                          K_sw=p["K_sw"], D_sw=p["D_sw"], K_st=p["K_st"], D_st=p["D_st"])
-        settings = WbcSettings(friction_coefficient=p["friction_coefficient"],
+        settings = WbcSettings(contact_model=p["contact_model"],
+                               default_stiffness_n_per_m=p["terrain_stiffness_n_per_m"],
+                               default_damping_ns_per_m=p["terrain_damping_ns_per_m"],
+                               friction_coefficient=p["friction_coefficient"],
                                min_normal_force_n=p["min_normal_force_n"],
                                max_normal_force_n=p["max_normal_force_n"], control_period_s=p["control_period_s"])
         self.controller = LocomotionController(self.model, gait, gains, settings)
@@ -89,6 +96,9 @@ class WbcNode(Node):
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
         self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
+        self._impedance: LegImpedance | None = None
+        if p["contact_model"] == "compliant" and p["impedance_source"] == "tce":
+            self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
         if p["watchdog_timeout_s"] > 0.0:
             self.create_timer(p["watchdog_timeout_s"] / 3.0, self._watchdog,
                               clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -126,6 +136,19 @@ class WbcNode(Node):
                                                low=0.0, high=5.0),
             "max_yaw_rate_rad_s": declare(self, "max_yaw_rate_rad_s", 1.0, "[rad/s] cmd_vel clamp", low=0.0,
                                           high=5.0),
+            "contact_model": declare(self, "contact_model", "rigid",
+                                     "rigid (sWBC) or compliant (c3WBC; with impedance_source tce: STANCE)",
+                                     choices=("rigid", "compliant"), read_only=True),
+            "impedance_source": declare(self, "impedance_source", "tce",
+                                        "c3WBC terrain impedance: tce (terrain_impedance topic, fixed values "
+                                        "until estimates are valid) or fixed", choices=("tce", "fixed"),
+                                        read_only=True),
+            "terrain_stiffness_n_per_m": declare(self, "terrain_stiffness_n_per_m", 2e6,
+                                                 "[N/m] c3WBC stiffness when fixed or not yet estimated",
+                                                 low=1.0, high=1e9, read_only=True),
+            "terrain_damping_ns_per_m": declare(self, "terrain_damping_ns_per_m", 400.0,
+                                                "[N s/m] c3WBC damping when fixed or not estimated", low=0.0,
+                                                high=1e6, read_only=True),
             "friction_coefficient": declare(self, "friction_coefficient", s.friction_coefficient,
                                             "[-] mu of the friction pyramids", low=0.01, high=5.0),
             "min_normal_force_n": declare(self, "min_normal_force_n", s.min_normal_force_n,
@@ -212,6 +235,15 @@ class WbcNode(Node):
             return
         self.controller.motion.set_body_pose_reference(*values)
 
+    def _on_impedance(self, msg: TerrainImpedance) -> None:
+        """Per-leg estimates where valid and finite; the fixed values elsewhere."""
+        k = np.array(msg.stiffness_normal, dtype=float)
+        d = np.array(msg.damping_normal, dtype=float)
+        usable = np.array(msg.valid, dtype=bool) & np.isfinite(k) & (k > 0.0)
+        k = np.where(usable, k, self.p["terrain_stiffness_n_per_m"])
+        d = np.where(usable & np.isfinite(d), d, self.p["terrain_damping_ns_per_m"])
+        self._impedance = LegImpedance(stiffness_normal=k, damping_normal=d)
+
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
             self._grid = heightmap_grid(msg)
@@ -250,7 +282,8 @@ class WbcNode(Node):
         height = (lambda x, y: float(grid.height_at(x, y))) if grid is not None else None
         normal = (lambda x, y: heightmap_normal(grid, x, y)) if grid is not None else None
         try:
-            out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self._cmd_vel, height, normal)
+            out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self._cmd_vel, height, normal,
+                                       impedance=self._impedance)
         except InputError as exc:
             self._reject("state", exc)
             self._safe_mode(stamp_ns, str(exc))
@@ -277,7 +310,7 @@ class WbcNode(Node):
         diag.header.stamp = self._joints_stamp_msg(stamp_ns)
         diag.header.frame_id = "world"
         diag.mode = WbcDiagnostics.MODE_SAFE
-        diag.contact_model = "rigid"
+        diag.contact_model = self.p["contact_model"]
         diag.qp_status_text = reason
         diag.rejected_inputs = self.rejected_inputs
         diag.failed_qps = self.controller.wbc.failed_solves
@@ -310,7 +343,7 @@ class WbcNode(Node):
         diag.header.stamp = stamp
         diag.header.frame_id = "world"
         diag.mode = self.mode
-        diag.contact_model = "rigid"
+        diag.contact_model = self.p["contact_model"]
         diag.qp_status = sol.status_val
         diag.qp_status_text = sol.status
         diag.qp_iterations = sol.iterations
@@ -321,6 +354,8 @@ class WbcNode(Node):
             diag.stance[leg] = bool(out.targets.stance[leg])
             f = sol.forces[leg]
             diag.desired_force[leg] = Vector3(x=float(f[0]), y=float(f[1]), z=float(f[2]))
+            if "penetration" in sol.extras:
+                diag.desired_penetration[leg] = float(out.targets.normals[leg] @ sol.extras["penetration"][leg])
         w = sol.desired_wrench
         diag.desired_com_wrench.force = Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2]))
         diag.desired_com_wrench.torque = Vector3(x=float(w[3]), y=float(w[4]), z=float(w[5]))
