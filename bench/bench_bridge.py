@@ -19,11 +19,9 @@ Real-time factor (RTF) = simulated time / wall time. This is a benchmark, never 
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import os
-import platform
 import random
 import resource
 import signal
@@ -36,13 +34,16 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+
 try:
     from tal_control.stand_hold import StandHold
     from tal_core.heightmap import extract_heightmap
     from tal_core.robot_description import load_robot_description
     from tal_core.robot_model import RobotModel
+    from tal_core.rotations import rotation_from_quat_xyzw
     from tal_core.terrain import load_course
-    from tal_sim_bridge.bridge_core import BridgeCore, _rotation_from_quat_xyzw
+    from tal_sim_bridge.bridge_core import BridgeCore
     from tal_sim_bridge.physics import Simulation
 except ImportError as _exc:  # environment problem, not a benchmark result
     raise SystemExit(f"bench_bridge: {_exc}; run it with `make bench` or after `source scripts/env.sh`") from None
@@ -177,7 +178,7 @@ class CoreRig:
         sim, core, step = self.sim, self.core, self.sim.step_count
         state = sim.robot_state()  # the node calls it again after core.step(), which computed one too
         core.imu.measure(state)
-        base_R_world = _rotation_from_quat_xyzw(state.base_quat_xyzw).T  # odom twist in the base frame
+        base_R_world = rotation_from_quat_xyzw(state.base_quat_xyzw).T  # odom twist in the base frame
         _ = base_R_world @ state.base_lin_vel_m_s, base_R_world @ state.base_ang_vel_rad_s
         if step % CONTACT_EVERY == 0:
             core.record_statistics(state, sim.foot_contacts())
@@ -457,31 +458,6 @@ def multiprocess_runs(
 
 
 # -- report ------------------------------------------------------------------------------------------------
-def machine_info() -> dict[str, object]:
-    cpu = "unknown"
-    try:
-        cpu = next(
-            line.split(":", 1)[1].strip()
-            for line in Path("/proc/cpuinfo").read_text().splitlines()
-            if line.startswith("model name")
-        )
-    except (OSError, StopIteration):
-        pass
-    commit = subprocess.run(
-        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
-    return {
-        "date": dt.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "cpus": os.cpu_count(),
-        "cpu_model": cpu,
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "git_commit": commit,
-        "rmw": os.environ.get("RMW_IMPLEMENTATION", "default (rmw_fastrtps_cpp)"),
-        "load_average_1_5_15min": [round(x, 2) for x in os.getloadavg()],
-    }
-
-
 def _others(cpu: dict[str, float]) -> str:
     return f"others used {cpu['other_cpus']:.2f} CPU"
 

@@ -35,7 +35,6 @@ import datetime as dt
 import gc
 import json
 import os
-import platform
 import pstats
 import subprocess
 import sys
@@ -43,6 +42,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
 
 try:
     import osqp
@@ -374,25 +374,6 @@ def pool(rounds: list[dict], group: str, key: str) -> list[float]:
     return [value for r in rounds for value in r[group][key]]
 
 
-def machine() -> dict:
-    cpu = ""
-    try:
-        cpu = next(
-            line.split(":", 1)[1].strip()
-            for line in Path("/proc/cpuinfo").read_text().splitlines()
-            if line.startswith("model name")
-        )
-    except (OSError, StopIteration):
-        pass
-    return {
-        "cpu": cpu or platform.processor(),
-        "cores": os.cpu_count(),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "load_average_1_5_15min": list(os.getloadavg()),
-    }
-
-
 def _cpu_snapshot() -> tuple[float, float, float] | None:
     """(wall [s], busy CPU time of the whole machine [s], CPU time of this process and its children [s])."""
     try:
@@ -609,7 +590,7 @@ def main() -> int:
 
     other_load = _other_cores_busy(cpu_at_start, _cpu_snapshot())
     now = dt.datetime.now().astimezone()
-    print(f"## WBC cycle vs TSID ({now:%Y-%m-%d %H:%M %Z}, {machine()['cpu']}, {os.cpu_count()} cores)\n")
+    print(f"## WBC cycle vs TSID ({now:%Y-%m-%d %H:%M %Z}, {machine_info()['cpu_model']}, {os.cpu_count()} cores)\n")
     print(
         f"{n} states per sequence, {args.rounds} alternating rounds per side, first state of each sequence left out; "
         f"other processes kept {fmt(other_load, 2)} cores busy on average during the run.\n"
@@ -625,7 +606,7 @@ def main() -> int:
         "benchmark": "bench_wbc",
         "date": now.isoformat(timespec="seconds"),
         "machine": {
-            **machine(),
+            **machine_info(),
             "load_average_at_start_1_5_15min": load_at_start,
             "other_processes_cores_busy": other_load,
         },

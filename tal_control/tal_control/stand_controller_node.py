@@ -12,14 +12,13 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
-from tal_core.node_utils import declare, ns_from_stamp, run_node
+from tal_core.node_utils import declare, ns_from_stamp, reaches_tick, run_node, tick_after
 from tal_core.robot_model import RobotModel
 from tal_msgs.msg import JointCommand
 
 from .stand_hold import StandHold
 
 CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
-TICK_TOLERANCE_NS = 100_000  # [ns] stamps are exact multiples of the physics step; absorb rounding
 
 
 class StandControllerNode(Node):
@@ -49,7 +48,7 @@ class StandControllerNode(Node):
         if stamp_ns + CLOCK_RESET_NS < self._next_tick_ns:
             self.get_logger().warn("joint_states time jumped back (simulation restarted): resetting ticks")
             self._next_tick_ns = 0
-        if stamp_ns < self._next_tick_ns - TICK_TOLERANCE_NS:
+        if not reaches_tick(stamp_ns, self._next_tick_ns):
             return
         try:
             q = self._canonical_positions(msg)
@@ -67,7 +66,7 @@ class StandControllerNode(Node):
         self.pub.publish(cmd)
         self._last_command = cmd
         self.commands_sent += 1
-        self._next_tick_ns = ((stamp_ns + TICK_TOLERANCE_NS) // self.period_ns + 1) * self.period_ns
+        self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
 
     def _canonical_positions(self, msg: JointState) -> np.ndarray:
         if len(msg.position) != len(msg.name):

@@ -27,7 +27,15 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
-from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
+from tal_core.node_utils import (
+    TICK_TOLERANCE_NS,
+    declare,
+    ns_from_stamp,
+    reaches_tick,
+    run_node,
+    stamp_from_ns,
+    tick_after,
+)
 from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid, heightmap_normal
 from tal_msgs.msg import (
@@ -48,7 +56,6 @@ from .tracking_stats import TrackingStats
 from .wbc import WbcGains, WbcSettings
 from .wbc.tasks import orientation_error
 
-TICK_TOLERANCE_NS = 100_000
 CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
 
 
@@ -262,7 +269,7 @@ class WbcNode(Node):
         if self._joints is None or self._base is None:
             return
         stamp, q, qd = self._joints
-        if stamp < self._next_tick_ns - TICK_TOLERANCE_NS:
+        if not reaches_tick(stamp, self._next_tick_ns):
             return  # not a control tick
         base_stamp, base = self._base
         age = stamp - base_stamp
@@ -271,7 +278,7 @@ class WbcNode(Node):
             self._deferred_tick_ns = stamp
             return
         self._deferred_tick_ns = None
-        self._next_tick_ns = ((stamp + TICK_TOLERANCE_NS) // self.period_ns + 1) * self.period_ns
+        self._next_tick_ns = tick_after(stamp, self.period_ns)
         if age > self.stale_ns:
             self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")
             return

@@ -18,14 +18,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
-from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
+from tal_core.node_utils import declare, ns_from_stamp, reaches_tick, run_node, stamp_from_ns, tick_after
 from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid
 from tal_msgs.msg import HeightMap, TerrainImpedance
 
 from .tce import TceSettings, TerrainComplianceEstimator
-
-TICK_TOLERANCE_NS = 100_000
 
 
 class TceNode(Node):
@@ -82,9 +80,9 @@ class TceNode(Node):
 
     def _on_joints(self, msg: JointState) -> None:
         stamp = ns_from_stamp(msg.header.stamp)
-        if stamp < self._next_tick_ns - TICK_TOLERANCE_NS or self._base is None or self._grid is None:
+        if not reaches_tick(stamp, self._next_tick_ns) or self._base is None or self._grid is None:
             return
-        self._next_tick_ns = ((stamp + TICK_TOLERANCE_NS) // self.period_ns + 1) * self.period_ns
+        self._next_tick_ns = tick_after(stamp, self.period_ns)
         base_stamp, base = self._base
         if stamp - base_stamp > self.stale_periods * self.period_ns:
             return

@@ -82,7 +82,7 @@ class BridgeCore:
     def step(self) -> RobotState:
         """One physics step with the held command (or joint damping if none arrived yet)."""
         q, qd = self.sim.joint_state()
-        self.sim.step(self.commands.torque(q, qd))
+        self.sim.step(self.commands.torque(q, qd), joint_state=(q, qd))
         return self.sim.robot_state()
 
     def record_statistics(self, state: RobotState, contacts: list[FootContact]) -> None:

@@ -242,9 +242,13 @@ class Simulation:
         states = self.client.getJointStates(self.robot, self.joint_ids)
         return np.array([s[0] for s in states]), np.array([s[1] for s in states])
 
-    def step(self, commanded_torque_nm: np.ndarray) -> None:
-        """Advance one physics step applying the commanded joint torques [N m] through the actuator model."""
-        q, qd = self.joint_state()
+    def step(self, commanded_torque_nm: np.ndarray,
+             joint_state: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Advance one physics step applying the commanded joint torques [N m] through the actuator model.
+
+        ``joint_state`` (q [rad], qd [rad/s]) of this step when the caller already read it.
+        """
+        q, qd = self.joint_state() if joint_state is None else joint_state
         tau_min, tau_max = self.description.torque_limits(q)
         delivered = self.actuators.delivered_torque(np.asarray(commanded_torque_nm, dtype=float), tau_min, tau_max)
         applied = delivered + self.actuators.friction_torque(qd)
