@@ -34,6 +34,18 @@ class TerrainImpedance:
     damping_tangential: np.ndarray | None = None
 
 
+def impedance_from_estimates(stiffness: np.ndarray, damping: np.ndarray, valid: np.ndarray,
+                             fallback_stiffness_n_per_m: float, fallback_damping_ns_per_m: float) -> TerrainImpedance:
+    """Per-leg estimates (4,) where valid, finite and positive; the fallback values elsewhere (STANCE
+    starts with fixed parameters until the TCE has an estimate for a leg)."""
+    k = np.asarray(stiffness, dtype=float)
+    d = np.asarray(damping, dtype=float)
+    usable = np.asarray(valid, dtype=bool) & np.isfinite(k) & (k > 0.0)
+    return TerrainImpedance(
+        stiffness_normal=np.where(usable, k, fallback_stiffness_n_per_m),
+        damping_normal=np.where(usable & np.isfinite(d) & (d >= 0.0), d, fallback_damping_ns_per_m))
+
+
 @dataclass(frozen=True)
 class TickOutput:
     tau: np.ndarray                 # (12,) [N m] canonical joint order

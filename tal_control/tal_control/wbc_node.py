@@ -50,6 +50,7 @@ from tal_msgs.msg import (
 
 from .locomotion import BaseState, LocomotionController, TickOutput
 from .locomotion import TerrainImpedance as LegImpedance
+from .locomotion import impedance_from_estimates
 from .motion.gait import PRESETS as GAITS
 from .msg_conversions import gait_state_message
 from .tracking_stats import TrackingStats
@@ -244,12 +245,9 @@ class WbcNode(Node):
 
     def _on_impedance(self, msg: TerrainImpedance) -> None:
         """Per-leg estimates where valid and finite; the fixed values elsewhere."""
-        k = np.array(msg.stiffness_normal, dtype=float)
-        d = np.array(msg.damping_normal, dtype=float)
-        usable = np.array(msg.valid, dtype=bool) & np.isfinite(k) & (k > 0.0)
-        k = np.where(usable, k, self.p["terrain_stiffness_n_per_m"])
-        d = np.where(usable & np.isfinite(d), d, self.p["terrain_damping_ns_per_m"])
-        self._impedance = LegImpedance(stiffness_normal=k, damping_normal=d)
+        self._impedance = impedance_from_estimates(
+            np.array(msg.stiffness_normal, dtype=float), np.array(msg.damping_normal, dtype=float),
+            np.array(msg.valid, dtype=bool), self.p["terrain_stiffness_n_per_m"], self.p["terrain_damping_ns_per_m"])
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:

@@ -10,23 +10,32 @@ across swings, as in the thesis, so a new touchdown starts from the previous ter
 
 Contact states come from the robot model: the ground reaction force from the leg's actuated dynamics
 (static: J_leg^T F = h_leg - tau_leg), the penetration from the undeformed terrain surface under the foot
-(heightmap) and the foot kinematics with the base state, the rate from the foot velocity.
+(heightmap) and the foot kinematics with the base state, the rate from the foot velocity. Tangential
+(optional): displacement of the foot along the two contact-frame tangents since touchdown, pooled into one
+isotropic tangential window per leg.
+
+All legs' windows live in one (legs, window) ring buffer and are fitted together from eight weighted sums,
+so an update for four legs is a handful of vectorised operations (the thesis ran the TCE at 250 Hz).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
+from tal_core.robot_description import RobotDescription
 from tal_core.robot_model import RobotModel
 
 HeightFunction = Callable[[float, float], float]
 NormalFunction = Callable[[float, float], np.ndarray]
+
+# Index of each weighted sum in KelvinVoigtWindows._sums' last axis.
+_W, _F, _FF, _PP, _PR, _RR, _PF, _RF = range(8)
 
 
 @dataclass(frozen=True)
@@ -36,12 +45,16 @@ class TceSettings:
     window: int = 250                       # samples per leg (1 s at 250 Hz, thesis)
     min_samples: int = 50                   # fewer stance samples: no estimate
     contact_force_threshold_n: float = 30.0  # F_min of the contact status
-    estimate_damping: bool = False          # thesis: damping not estimated (foot velocity noise)
+    # Fitting damping too removes a +-2 % stiffness bias the unmodelled D dp/dt term leaves on soft ground
+    # (measured on T1, results/stance); the thesis did not, because its foot velocity was noisy.
+    estimate_damping: bool = True
+    estimate_tangential: bool = False
     weighting: str = "linear"               # "linear" (w_i grows with recency) or "uniform"
-    min_penetration_m: float = 2e-5         # RMS penetration below this: degenerate window
+    min_penetration_m: float = 2e-5         # weighted RMS penetration below this: degenerate window
+    min_penetration_variation_m: float = 2e-6  # weighted std of p below this: no information on k
     stiffness_range_n_per_m: tuple[float, float] = (100.0, 1e8)
     damping_range_ns_per_m: tuple[float, float] = (0.0, 1e5)
-    max_condition_number: float = 1e10
+    min_relative_determinant: float = 1e-8  # det(P^T W P) / (a c) below this: p and dp/dt collinear
 
     def __post_init__(self) -> None:
         if self.window < 2 or not 1 <= self.min_samples <= self.window:
@@ -49,6 +62,9 @@ class TceSettings:
                              f"1 <= min_samples <= window, window >= 2")
         if self.weighting not in ("linear", "uniform"):
             raise InputError(f"TCE weighting must be 'linear' or 'uniform', got {self.weighting!r}")
+        if not (math.isfinite(self.contact_force_threshold_n) and self.contact_force_threshold_n >= 0.0):
+            raise InputError(f"TCE contact_force_threshold_n must be finite and >= 0, "
+                             f"got {self.contact_force_threshold_n!r}")
         for name in ("stiffness_range_n_per_m", "damping_range_ns_per_m"):
             low, high = getattr(self, name)
             if not (math.isfinite(low) and math.isfinite(high) and 0.0 <= low < high):
@@ -68,78 +84,117 @@ class LegEstimate:
     stale: bool = False                     # the last window could not be fitted: previous estimate kept
 
 
-@dataclass
-class WindowedKelvinVoigtFit:
-    """Sliding window and weighted least squares of F = k p (+ d dp/dt) for one leg and direction."""
+class KelvinVoigtWindows:
+    """Sliding windows and weighted least squares of F = k p (+ d dp/dt) for ``n`` independent channels
+    (legs), fitted together. Degenerate windows keep the previous estimate and lower its confidence."""
 
-    settings: TceSettings
-    _force: np.ndarray = field(init=False)
-    _pen: np.ndarray = field(init=False)
-    _rate: np.ndarray = field(init=False)
-    _next: int = field(default=0, init=False)
-    _count: int = field(default=0, init=False)
-    estimate: LegEstimate = field(default_factory=LegEstimate, init=False)
+    def __init__(self, settings: TceSettings, n: int) -> None:
+        self.settings, self.n = settings, int(n)
+        m = settings.window
+        self._data = np.zeros((self.n, 3, m))          # force, penetration, rate
+        self._next = np.zeros(self.n, dtype=int)
+        self._count = np.zeros(self.n, dtype=int)
+        self._slots = np.arange(m)
+        self._rows = np.arange(self.n)
+        self.estimates = [LegEstimate() for _ in range(self.n)]
 
-    def __post_init__(self) -> None:
-        m = self.settings.window
-        self._force, self._pen, self._rate = np.zeros(m), np.zeros(m), np.zeros(m)
-
-    def add(self, force_n: float, penetration_m: float, rate_m_s: float) -> None:
-        """Append one stance sample; non-finite samples are ignored."""
-        if not (math.isfinite(force_n) and math.isfinite(penetration_m) and math.isfinite(rate_m_s)):
+    def add(self, mask: np.ndarray, force: np.ndarray, penetration: np.ndarray, rate: np.ndarray) -> None:
+        """Append one sample to each channel where ``mask``; non-finite samples are ignored."""
+        sample = np.stack([np.asarray(force, float), np.asarray(penetration, float), np.asarray(rate, float)], 1)
+        take = np.asarray(mask, dtype=bool) & np.all(np.isfinite(sample), axis=1)
+        if not take.any():
             return
-        i = self._next
-        self._force[i], self._pen[i], self._rate[i] = force_n, penetration_m, rate_m_s
-        self._next = (i + 1) % self.settings.window
-        self._count = min(self._count + 1, self.settings.window)
+        rows = self._rows[take]
+        self._data[rows, :, self._next[rows]] = sample[take]
+        self._next[rows] = (self._next[rows] + 1) % self.settings.window
+        self._count[rows] = np.minimum(self._count[rows] + 1, self.settings.window)
 
-    def _ordered(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Window samples oldest first."""
-        n, m = self._count, self.settings.window
-        index = (np.arange(self._next - n, self._next)) % m
-        return self._force[index], self._pen[index], self._rate[index]
+    def weights(self) -> np.ndarray:
+        """(n, window) weight of every ring slot: zero for empty slots, otherwise linear in recency
+        (the newest sample weighs 1, the oldest 1/count) or uniform."""
+        m = self.settings.window
+        age = (self._next[:, None] - 1 - self._slots[None, :]) % m       # 0 = newest
+        count = np.maximum(self._count, 1)[:, None]
+        filled = age < self._count[:, None]
+        if self.settings.weighting == "linear":
+            return np.where(filled, (count - age) / count, 0.0)
+        return filled.astype(float)
 
-    def fit(self) -> LegEstimate:
-        """Refit on the current window; keeps (and flags) the previous estimate when ill-posed."""
-        s, est = self.settings, self.estimate
-        est.samples = self._count
-        if self._count < s.min_samples:
+    def fit(self, mask: np.ndarray | None = None) -> list[LegEstimate]:
+        """Refit the channels where ``mask`` (all when None) and return every channel's estimate."""
+        s = self.settings
+        mask = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+        w = self.weights()
+        force, pen, rate = self._data[:, 0], self._data[:, 1], self._data[:, 2]
+        products = np.stack([np.ones_like(force), force, force * force, pen * pen, pen * rate, rate * rate,
+                             pen * force, rate * force], axis=1)
+        sums = np.einsum("lm,lkm->lk", w, products)
+        for leg in np.flatnonzero(mask):
+            self._fit_channel(int(leg), sums[leg], pen[leg], w[leg])
+        return self.estimates
+
+    def _fit_channel(self, leg: int, sums: np.ndarray, pen: np.ndarray, w: np.ndarray) -> None:
+        s, est = self.settings, self.estimates[leg]
+        count = int(self._count[leg])
+        est.samples = count
+        if count < s.min_samples:
             est.stale = est.valid
             est.confidence = est.confidence * 0.99 if est.valid else 0.0
-            return est
-        force, pen, rate = self._ordered()
-        if float(np.sqrt(np.mean(pen**2))) < s.min_penetration_m:
-            return self._keep_previous()
-        n = len(force)
-        w = np.arange(1, n + 1, dtype=float) / n if s.weighting == "linear" else np.ones(n)
-        P = np.column_stack([pen, rate]) if s.estimate_damping else pen[:, None]
-        PtW = P.T * w
-        normal_matrix = PtW @ P
-        if not np.all(np.isfinite(normal_matrix)) or np.linalg.cond(normal_matrix) > s.max_condition_number:
-            return self._keep_previous()
-        try:
-            params = np.linalg.solve(normal_matrix, PtW @ force)
-        except np.linalg.LinAlgError:
-            return self._keep_previous()
-        residual = force - P @ params
-        total = float(np.sum(w * (force - np.average(force, weights=w)) ** 2))
-        r2 = 1.0 - float(np.sum(w * residual**2)) / total if total > 0.0 else 1.0
-        k = float(params[0])
-        d = float(params[1]) if s.estimate_damping else float("nan")
+            return
+        total_w = sums[_W]
+        mean_p = float(w @ pen) / total_w
+        variance_p = max(sums[_PP] / total_w - mean_p**2, 0.0)
+        if math.sqrt(sums[_PP] / total_w) < s.min_penetration_m or math.sqrt(variance_p) < \
+                s.min_penetration_variation_m:
+            self._keep_previous(est)
+            return
+        a, b, c = sums[_PP], sums[_PR], sums[_RR]
+        g_p, g_r = sums[_PF], sums[_RF]
+        if s.estimate_damping:
+            det = a * c - b * b
+            if not (math.isfinite(det) and det > s.min_relative_determinant * a * c):
+                self._keep_previous(est)
+                return
+            k, d = (c * g_p - b * g_r) / det, (a * g_r - b * g_p) / det
+            explained = k * g_p + d * g_r
+        else:
+            k, d = g_p / a, float("nan")
+            explained = k * g_p
+        total = sums[_FF] - sums[_F] ** 2 / total_w       # weighted total sum of squares of F
+        residual = max(sums[_FF] - explained, 0.0)         # at the LS optimum: F'WF - theta'P'WF
+        r2 = 1.0 - residual / total if total > 0.0 else 1.0
         k_clamped = float(np.clip(k, *s.stiffness_range_n_per_m))
         d_clamped = float(np.clip(d, *s.damping_range_ns_per_m)) if s.estimate_damping else d
         est.clamped = k_clamped != k or (s.estimate_damping and d_clamped != d)
         est.stiffness_n_per_m, est.damping_ns_per_m = k_clamped, d_clamped
-        fill = self._count / s.window
+        fill = count / s.window
         est.confidence = float(np.clip(fill * max(r2, 0.0), 0.0, 1.0)) * (0.5 if est.clamped else 1.0)
         est.valid, est.stale = True, False
-        return est
 
-    def _keep_previous(self) -> LegEstimate:
-        est = self.estimate
+    @staticmethod
+    def _keep_previous(est: LegEstimate) -> None:
         est.stale = True
         est.confidence *= 0.9   # an estimate that cannot be refreshed loses confidence
-        return est
+
+
+class WindowedKelvinVoigtFit:
+    """One channel of ``KelvinVoigtWindows``: the sliding window and fit of a single leg and direction."""
+
+    def __init__(self, settings: TceSettings) -> None:
+        self.settings = settings
+        self._windows = KelvinVoigtWindows(settings, 1)
+
+    @property
+    def estimate(self) -> LegEstimate:
+        return self._windows.estimates[0]
+
+    def add(self, force_n: float, penetration_m: float, rate_m_s: float) -> None:
+        """Append one stance sample; non-finite samples are ignored."""
+        self._windows.add(np.ones(1, bool), np.array([force_n]), np.array([penetration_m]), np.array([rate_m_s]))
+
+    def fit(self) -> LegEstimate:
+        """Refit on the current window; keeps (and flags) the previous estimate when ill-posed."""
+        return self._windows.fit()[0]
 
 
 @dataclass(frozen=True)
@@ -151,52 +206,100 @@ class ContactSample:
     normal: np.ndarray           # (3,) unit terrain normal under the foot
     penetration_m: float         # along the normal, contact frame
     penetration_rate_m_s: float  # along the normal, contact frame
+    foot_position_m: np.ndarray | None = None   # (3,) foot-sphere centre
+    foot_velocity_m_s: np.ndarray | None = None  # (3,)
+
+
+def contact_tangents(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents of the contact frame: t1 along the world x axis projected on the terrain plane
+    (world y when the normal is along x), t2 = n x t1."""
+    reference = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    t1 = reference - (reference @ normal) * normal
+    t1 /= np.linalg.norm(t1)
+    return t1, np.cross(normal, t1)
 
 
 class TerrainComplianceEstimator:
-    """Contact-state estimation plus one windowed fit per leg (normal direction)."""
+    """Contact-state estimation plus one windowed fit per leg for the normal direction (and, optionally,
+    one pooled tangential fit per leg)."""
 
     def __init__(self, model: RobotModel, settings: TceSettings | None = None) -> None:
         self.model = model
         self.settings = settings or TceSettings()
-        self.fits = [WindowedKelvinVoigtFit(self.settings) for _ in range(NUM_LEGS)]
-        self._joint_v = model.canonical_joint_v_indices()
+        self.normal = KelvinVoigtWindows(self.settings, NUM_LEGS)
+        self.tangential = KelvinVoigtWindows(self.settings, NUM_LEGS) if self.settings.estimate_tangential else None
+        self._v_index = [model.leg_joint_v_indices(leg) for leg in range(NUM_LEGS)]
+        self._tau_slice = [RobotDescription.leg_joint_slice(leg) for leg in range(NUM_LEGS)]
+        self._anchor: list[np.ndarray | None] = [None] * NUM_LEGS   # foot position at touchdown (tangential)
+        self._was_in_contact = np.zeros(NUM_LEGS, dtype=bool)
+
+    @property
+    def estimates(self) -> list[LegEstimate]:
+        """Normal-direction estimates per leg (LF, RF, LH, RH)."""
+        return self.normal.estimates
+
+    @property
+    def tangential_estimates(self) -> list[LegEstimate] | None:
+        return None if self.tangential is None else self.tangential.estimates
 
     def contact_states(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, height: HeightFunction,
                        normal: NormalFunction | None = None) -> list[ContactSample]:
         """Contact states from (q, v) (Pinocchio convention) and measured joint torques tau [N m]
         (canonical order). ``height(x, y)`` is the undeformed terrain surface [m] (e.g. a heightmap)."""
         tau = np.asarray(tau, dtype=float)
-        if tau.shape != (len(self._joint_v),) or not np.all(np.isfinite(tau)):
-            raise InputError(f"TCE needs {len(self._joint_v)} finite joint torques, got {tau!r}")
+        if tau.shape != (len(self._tau_slice) * 3,) or not np.all(np.isfinite(tau)):
+            raise InputError(f"TCE needs {len(self._tau_slice) * 3} finite joint torques, got {tau!r}")
         m = self.model
         m.update(q, v)
         h = m.nonlinear_effects()
         feet, velocities = m.foot_positions(), m.foot_velocities()
         radius = m.description.foot_radius_m
+        up = np.array([0.0, 0.0, 1.0])
         samples = []
         for leg in range(NUM_LEGS):
-            v_index = m.leg_joint_v_indices(leg)
-            canonical = [int(np.flatnonzero(self._joint_v == i)[0]) for i in v_index]
-            force = m.foot_force_from_leg_torques(leg, tau[canonical], h[v_index])
+            v_index = self._v_index[leg]
+            force = m.foot_force_from_leg_torques(leg, tau[self._tau_slice[leg]], h[v_index])
             x, y = float(feet[leg, 0]), float(feet[leg, 1])
-            n = np.array([0.0, 0.0, 1.0]) if normal is None else np.asarray(normal(x, y), dtype=float)
+            n = up if normal is None else np.asarray(normal(x, y), dtype=float)
             n = n / np.linalg.norm(n)
-            surface = np.array([x, y, float(height(x, y))])
+            surface_z = float(height(x, y))
             contact_point = feet[leg] - radius * n
-            penetration = float(n @ (surface - contact_point))
+            penetration = float(n @ (np.array([x, y, surface_z]) - contact_point))
             rate = float(-(n @ velocities[leg]))
             in_contact = bool(n @ force >= self.settings.contact_force_threshold_n)
-            samples.append(ContactSample(in_contact, force, n, penetration, rate))
+            samples.append(ContactSample(in_contact, force, n, penetration, rate, feet[leg].copy(),
+                                         velocities[leg].copy()))
         return samples
 
     def update(self, samples: list[ContactSample]) -> list[LegEstimate]:
-        """Feed the stance legs' samples (normal direction) and refit; swing legs keep their estimate."""
-        estimates = []
-        for fit, sample in zip(self.fits, samples):
-            if sample.in_contact:
-                fit.add(float(sample.normal @ sample.force_n), sample.penetration_m, sample.penetration_rate_m_s)
-                estimates.append(fit.fit())
-            else:
-                estimates.append(fit.estimate)
-        return estimates
+        """Feed the stance legs' samples and refit them; swing legs keep their estimate. Returns the
+        normal-direction estimates."""
+        stance = np.array([s.in_contact for s in samples], dtype=bool)
+        force = np.array([float(s.normal @ s.force_n) for s in samples])
+        pen = np.array([s.penetration_m for s in samples])
+        rate = np.array([s.penetration_rate_m_s for s in samples])
+        self.normal.add(stance, force, pen, rate)
+        self.normal.fit(stance)
+        if self.tangential is not None:
+            self._update_tangential(samples, stance)
+        self._was_in_contact = stance
+        return self.normal.estimates
+
+    def _update_tangential(self, samples: list[ContactSample], stance: np.ndarray) -> None:
+        """Two samples per stance leg (t1, t2): force along t against the foot's displacement along t
+        since touchdown (positive when the ground is pushed, like the normal penetration)."""
+        assert self.tangential is not None
+        for axis in range(2):
+            force, disp, rate = np.zeros(NUM_LEGS), np.zeros(NUM_LEGS), np.zeros(NUM_LEGS)
+            for leg, s in enumerate(samples):
+                if not s.in_contact or s.foot_position_m is None or s.foot_velocity_m_s is None:
+                    self._anchor[leg] = None
+                    continue
+                if not self._was_in_contact[leg] or self._anchor[leg] is None:
+                    self._anchor[leg] = s.foot_position_m.copy()
+                t = contact_tangents(s.normal)[axis]
+                force[leg] = float(t @ s.force_n)
+                disp[leg] = -float(t @ (s.foot_position_m - self._anchor[leg]))
+                rate[leg] = -float(t @ s.foot_velocity_m_s)
+            self.tangential.add(stance, force, disp, rate)
+        self.tangential.fit(stance)

@@ -25,14 +25,22 @@ from pathlib import Path
 
 import numpy as np
 
-from tal_control.locomotion import BaseState, LocomotionController, TickOutput
+from tal_control.locomotion import (
+    BaseState,
+    LocomotionController,
+    TerrainImpedance,
+    TickOutput,
+    impedance_from_estimates,
+)
 from tal_control.motion.gait import PRESETS, GaitParameters
+from tal_control.motion.trunk import TrunkOscillation
 from tal_control.wbc import WbcGains, WbcSettings
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
 from tal_core.robot_description import load_robot_description
 from tal_core.robot_model import RobotModel
 from tal_core.terrain import Course, load_course
+from tal_estimation.tce import TceSettings, TerrainComplianceEstimator
 from tal_sim_bridge.bridge_core import BridgeCore
 from tal_sim_bridge.effects import ModelEffects
 from tal_sim_bridge.physics import RobotState, Simulation
@@ -52,6 +60,10 @@ class ClosedLoopConfig:
     yaw rate [rad/s]) sorted by t_start; zero before the first segment. settings/gains: WBC settings and
     gains (None: defaults). effects: model effects of the simulated robot (None: nominal).
     stop_on_fall: end the run at the first fallen sample (the log ends there).
+    impedance_source (c3WBC): "none" (the WBC settings' defaults), "fixed" (terrain_stiffness_n_per_m and
+    terrain_damping_ns_per_m for every leg) or "tce" (STANCE: the online TCE on the ground-truth base
+    state, as the thesis' motion capture, with the fixed values until a leg's estimate is valid).
+    trunk_oscillation: sinusoidal height/roll excitation of the trunk reference (aggressive manoeuvres).
     """
 
     name: str = "run"
@@ -69,6 +81,11 @@ class ClosedLoopConfig:
     control_decimation: int = 4
     stop_on_fall: bool = True
     progress: bool = True
+    impedance_source: str = "none"
+    terrain_stiffness_n_per_m: float = 2e6
+    terrain_damping_ns_per_m: float = 400.0
+    tce: TceSettings | None = None
+    trunk_oscillation: TrunkOscillation | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.duration_s) and self.duration_s > 0.0):
@@ -84,6 +101,13 @@ class ClosedLoopConfig:
         if any(b[0] < a[0] for a, b in zip(commands, commands[1:])):
             raise InputError(f"closed loop '{self.name}': commands must be sorted by t_start")
         object.__setattr__(self, "commands", commands)
+        if self.impedance_source not in ("none", "fixed", "tce"):
+            raise InputError(f"closed loop '{self.name}': impedance_source must be none, fixed or tce, "
+                             f"got {self.impedance_source!r}")
+        for key in ("terrain_stiffness_n_per_m", "terrain_damping_ns_per_m"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"closed loop '{self.name}': {key} must be finite and >= 0, got {value!r}")
         if isinstance(self.gait, str) and self.gait not in PRESETS:
             raise InputError(f"closed loop '{self.name}': unknown gait {self.gait!r} ({sorted(PRESETS)})")
 
@@ -148,6 +172,15 @@ class ClosedLoopLog:
     contact_force: np.ndarray  # (N, 4, 3) [N] true ground reaction forces on the feet
     foot_slip_velocity: np.ndarray  # (N, 4, 3) [m/s] velocity of the foot material point at the contact
     body_contact: np.ndarray  # (N,) bool, a non-foot link touches the ground
+    power: np.ndarray  # (N,) [W] sum over joints of |tau_measured * qd| (mechanical power)
+    terrain_stiffness: np.ndarray  # (N, 4) [N/m] true normal stiffness of the ground under each foot
+    penetration: np.ndarray  # (N, 4) [m] true penetration of each foot sphere along the normal (<0: above)
+    penetration_des: np.ndarray  # (N, 4) [m] c3WBC desired penetration along the normal (0: rigid / swing)
+    impedance_stiffness: np.ndarray  # (N, 4) [N/m] stiffness the c3WBC used (nan: none given)
+    tce_stiffness: np.ndarray  # (N, 4) [N/m] TCE estimate (nan: no TCE / no estimate yet)
+    tce_damping: np.ndarray  # (N, 4) [N s/m]
+    tce_confidence: np.ndarray  # (N, 4) [0, 1]
+    tce_in_contact: np.ndarray  # (N, 4) bool, TCE contact status (estimated force above threshold)
     meta: dict[str, object] = field(default_factory=dict)
 
     @property
@@ -210,6 +243,17 @@ def _foot_slip_velocity(sim: Simulation, contacts: list) -> np.ndarray:
     return slip
 
 
+def _true_penetration(contacts: list, course: Course, radius: float) -> np.ndarray:
+    """Penetration [m] of each foot sphere into the undeformed surface along its normal (< 0: above)."""
+    out = np.zeros(NUM_LEGS)
+    for leg, contact in enumerate(contacts):
+        x, y = float(contact.position_m[0]), float(contact.position_m[1])
+        n = np.asarray(course.normal(x, y), dtype=float).reshape(3)
+        surface = np.array([x, y, float(course.height(x, y))])
+        out[leg] = float(n @ (surface - (contact.position_m - radius * n)))
+    return out
+
+
 def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> ClosedLoopLog:
     """Run ``config`` and return its log; ``hook`` is called every control tick (see TickContext)."""
     description = load_robot_description(config.robot)
@@ -241,6 +285,15 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
     def normal_fn(x: float, y: float) -> np.ndarray:
         return np.asarray(course.normal(x, y), dtype=float).reshape(3)
 
+    if config.trunk_oscillation is not None:
+        controller.motion.set_trunk_oscillation(config.trunk_oscillation)
+    tce = (TerrainComplianceEstimator(RobotModel(description), config.tce)
+           if config.impedance_source == "tce" else None)
+    fixed = TerrainImpedance(np.full(NUM_LEGS, config.terrain_stiffness_n_per_m),
+                             np.full(NUM_LEGS, config.terrain_damping_ns_per_m))
+    radius = description.foot_radius_m
+    nan4 = np.full(NUM_LEGS, np.nan)
+
     recorder = _Recorder()
     n_steps = int(round(config.duration_s / config.physics_dt_s))
     decimation = int(config.control_decimation)
@@ -257,8 +310,24 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                     state.base_position_m, state.base_quat_xyzw, state.base_lin_vel_m_s, state.base_ang_vel_rad_s
                 )
                 cmd = config.command_at(t)
+                impedance = None if config.impedance_source == "none" else fixed
+                tce_k, tce_d, tce_conf, tce_contact = nan4, nan4, np.zeros(NUM_LEGS), np.zeros(NUM_LEGS, bool)
+                if tce is not None:
+                    q = tce.model.make_q(state.base_position_m, state.base_quat_xyzw, state.joint_position_rad)
+                    v = tce.model.make_v(state.base_lin_vel_m_s, state.base_ang_vel_rad_s,
+                                         state.joint_velocity_rad_s, state.base_quat_xyzw)
+                    samples = tce.contact_states(q, v, state.joint_torque_nm, height_fn, normal_fn)
+                    estimates = tce.update(samples)
+                    tce_k = np.array([e.stiffness_n_per_m for e in estimates])
+                    tce_d = np.array([e.damping_ns_per_m for e in estimates])
+                    tce_conf = np.array([e.confidence for e in estimates])
+                    tce_contact = np.array([smp.in_contact for smp in samples])
+                    impedance = impedance_from_estimates(
+                        tce_k, tce_d, np.array([e.valid for e in estimates]),
+                        config.terrain_stiffness_n_per_m, config.terrain_damping_ns_per_m)
                 out = controller.tick(
-                    t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd, height_fn, normal_fn
+                    t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd, height_fn, normal_fn,
+                    impedance=impedance,
                 )
                 tau = out.tau
                 if hook is not None:
@@ -308,6 +377,17 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                     contact_force=np.array([c.force_n for c in contacts]),
                     foot_slip_velocity=_foot_slip_velocity(sim, contacts),
                     body_contact=body,
+                    power=float(np.sum(np.abs(state.joint_torque_nm * state.joint_velocity_rad_s))),
+                    terrain_stiffness=np.array(
+                        [course.properties(c.position_m[0], c.position_m[1]).stiffness_n_per_m for c in contacts]),
+                    penetration=_true_penetration(contacts, course, radius),
+                    penetration_des=np.einsum("lk,lk->l", sol.extras.get("penetration", np.zeros((NUM_LEGS, 3))),
+                                              out.targets.normals),
+                    impedance_stiffness=nan4 if impedance is None else impedance.stiffness_normal,
+                    tce_stiffness=tce_k,
+                    tce_damping=tce_d,
+                    tce_confidence=tce_conf,
+                    tce_in_contact=tce_contact,
                 )
                 if not fell and (height < FALL_HEIGHT_FRACTION * nominal or body):
                     fell, fall_time = True, t
@@ -343,6 +423,8 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
         "wall_time_s": wall,
         "joint_names": list(description.joint_names),
         "friction_coefficient_wbc": settings.friction_coefficient,
+        "contact_model": settings.contact_model,
+        "impedance_source": config.impedance_source,
         "real_time_factor": (n_steps * config.physics_dt_s / wall) if wall > 0 else None,
     }
     return recorder.log(meta)

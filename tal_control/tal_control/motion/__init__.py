@@ -13,11 +13,11 @@ from .footholds import (
 from .gait import CRAWL, PRESETS, STAND, TROT, GaitParameters, GaitPhase, GaitScheduler
 from .generator import MeasuredState, MotionGenerator, MotionParameters, MotionTargets
 from .swing import SwingSample, SwingTrajectory
-from .trunk import FeetMotion, TrunkParameters, TrunkReference, TrunkTarget, rotation_rpy
+from .trunk import FeetMotion, TrunkOscillation, TrunkParameters, TrunkReference, TrunkTarget, rotation_rpy
 
 __all__ = [
     "CRAWL", "DEFAULT_K_FEEDBACK", "PRESETS", "STAND", "TROT", "FeetMotion", "GaitParameters", "GaitPhase",
     "GaitScheduler", "MeasuredState", "MotionGenerator", "MotionParameters", "MotionTargets", "SwingSample",
-    "SwingTrajectory", "TrunkParameters", "TrunkReference", "TrunkTarget", "hip_at_touchdown",
+    "SwingTrajectory", "TrunkOscillation", "TrunkParameters", "TrunkReference", "TrunkTarget", "hip_at_touchdown",
     "nominal_foothold", "raibert_footholds_xy", "rotation_rpy", "terrain_height", "terrain_normal",
 ]

@@ -30,7 +30,7 @@ from tal_control.motion.footholds import (
 )
 from tal_control.motion.gait import STAND, GaitParameters, GaitPhase, GaitScheduler
 from tal_control.motion.swing import SwingTrajectory
-from tal_control.motion.trunk import FeetMotion, TrunkParameters, TrunkReference, TrunkTarget
+from tal_control.motion.trunk import FeetMotion, TrunkOscillation, TrunkParameters, TrunkReference, TrunkTarget
 from tal_core.errors import InputError
 from tal_core.legs import LEGS, NUM_LEGS, Leg
 from tal_core.robot_description import RobotDescription
@@ -173,6 +173,7 @@ class MotionGenerator:
         self._scheduler = GaitScheduler(gait)
         self._trunk: TrunkReference | None = None
         self._pose_override: tuple[float | None, float | None, float | None] | None = None
+        self._oscillation: TrunkOscillation | None = None
         self._swings: list[SwingTrajectory | None] = [None] * NUM_LEGS
         self._external = np.zeros(NUM_LEGS, dtype=bool)
         self._pending: dict[Leg, tuple[int, np.ndarray]] = {}
@@ -196,6 +197,12 @@ class MotionGenerator:
         self._pose_override = (base_height_m, roll, pitch)
         if self._trunk is not None:
             self._trunk.override(base_height_m, roll, pitch)
+
+    def set_trunk_oscillation(self, oscillation: TrunkOscillation | None) -> None:
+        """Add (or, with None, remove) sinusoidal height/roll excitation to the trunk reference."""
+        self._oscillation = oscillation
+        if self._trunk is not None:
+            self._trunk.oscillation = oscillation
 
     def clear_body_pose_reference(self) -> None:
         self._pose_override = None
@@ -270,6 +277,7 @@ class MotionGenerator:
         rpy = (math.atan2(R[2, 1], R[2, 2]), -math.asin(max(-1.0, min(1.0, R[2, 0]))),
                math.atan2(R[1, 0], R[0, 0]))
         self._trunk = TrunkReference(self.trunk_params, measured.com, rpy)
+        self._trunk.oscillation = self._oscillation
         if self._pose_override is not None:
             self._trunk.override(*self._pose_override)
 

@@ -96,6 +96,39 @@ class TrunkTarget:
     stance_ground_height_m: float
 
 
+@dataclass(frozen=True)
+class TrunkOscillation:
+    """Sinusoids added to the trunk's height [m] and roll [rad] references (thesis' aggressive trunk
+    manoeuvres: 0.05 m at 1.8 Hz, 0.5 rad at 1.5 Hz), with their exact rates and accelerations, starting
+    at ``start_time_s`` [s] from zero phase (so the reference is continuous). They bypass the reference's
+    smoothing filters: the point is to excite the contacts."""
+
+    height_amplitude_m: float = 0.0
+    height_frequency_hz: float = 0.0
+    roll_amplitude_rad: float = 0.0
+    roll_frequency_hz: float = 0.0
+    start_time_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        for key, value in vars(self).items():
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"trunk oscillation: {key} must be finite and >= 0, got {value!r}")
+
+    def offsets(self, t_s: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """((dz, dz/dt, d2z/dt2) [m, m/s, m/s^2], (roll, rate, acceleration) [rad, rad/s, rad/s^2]) at t_s."""
+        tau = max(float(t_s) - self.start_time_s, 0.0)
+
+        def sine(amplitude: float, frequency: float) -> tuple[float, float, float]:
+            w = 2.0 * math.pi * frequency
+            return (amplitude * math.sin(w * tau), amplitude * w * math.cos(w * tau),
+                    -amplitude * w * w * math.sin(w * tau))
+
+        if t_s < self.start_time_s:
+            return (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+        return sine(self.height_amplitude_m, self.height_frequency_hz), sine(self.roll_amplitude_rad,
+                                                                               self.roll_frequency_hz)
+
+
 def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """world_R_base = Rz(yaw) Ry(pitch) Rx(roll)."""
     cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
@@ -252,6 +285,7 @@ class TrunkReference:
         omega, max_rate = params.attitude_bandwidth_rad_s, params.max_attitude_rate_rad_s
         self._roll, self._pitch = (_Follower(angle, omega, max_rate) for angle in rpy[:2])
         self._override: tuple[float | None, float | None, float | None] = (None, None, None)
+        self.oscillation: TrunkOscillation | None = None
         self._shift = _ComShift()
         self._last_shift = np.zeros(2)
         self._t_prev: float | None = None
@@ -298,22 +332,24 @@ class TrunkReference:
         self._roll.step(0.0 if roll is None else roll, dt)
         self._pitch.step(self._terrain_pitch(footholds_ground) if pitch is None else pitch, dt)
 
-        rpy = np.array([self._roll.value, self._pitch.value, self._yaw])
+        (dz, dz_rate, dz_accel), (d_roll, d_roll_rate, d_roll_accel) = (
+            self.oscillation.offsets(t_s) if self.oscillation is not None else ((0.0,) * 3, (0.0,) * 3))
+        rpy = np.array([self._roll.value + d_roll, self._pitch.value, self._yaw])
         world_R_base = rotation_rpy(*rpy)
-        rates = np.array([self._roll.rate, self._pitch.rate, self._yaw_rate])
-        accels = np.array([self._roll.accel, self._pitch.accel, self._yaw_accel])
+        rates = np.array([self._roll.rate + d_roll_rate, self._pitch.rate, self._yaw_rate])
+        accels = np.array([self._roll.accel + d_roll_accel, self._pitch.accel, self._yaw_accel])
         omega, domega = _euler_rates_to_world(rpy, rates, accels)
         shift, d_shift, dd_shift = self._shift.update(
             float(t_s), dt, phase, feet, (self._xy, self._v_xy, self._a_xy), self._yaw,
             (p.com_shift_lateral_gain, p.com_shift_longitudinal_gain))
         self._last_shift = shift
         offset_world = world_R_base @ self._offset
-        base_z = self._height.value
+        base_z = self._height.value + dz
         com = _xyz(self._xy + shift, base_z + offset_world[2])
         return TrunkTarget(
             com_position=com,
-            com_velocity=_xyz(self._v_xy + d_shift, self._height.rate),
-            com_acceleration=_xyz(self._a_xy + dd_shift, self._height.accel),
+            com_velocity=_xyz(self._v_xy + d_shift, self._height.rate + dz_rate),
+            com_acceleration=_xyz(self._a_xy + dd_shift, self._height.accel + dz_accel),
             base_position=com - offset_world,
             world_R_base=world_R_base,
             rpy=rpy,
