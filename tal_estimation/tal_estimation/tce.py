@@ -243,15 +243,23 @@ class TerrainComplianceEstimator:
         return None if self.tangential is None else self.tangential.estimates
 
     def contact_states(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, height: HeightFunction,
-                       normal: NormalFunction | None = None) -> list[ContactSample]:
+                       normal: NormalFunction | None = None, vdot: np.ndarray | None = None) -> list[ContactSample]:
         """Contact states from (q, v) (Pinocchio convention) and measured joint torques tau [N m]
-        (canonical order). ``height(x, y)`` is the undeformed terrain surface [m] (e.g. a heightmap)."""
+        (canonical order). ``height(x, y)`` is the undeformed terrain surface [m] (e.g. a heightmap).
+        ``vdot``: generalised accelerations (e.g. finite differences of v); with it the force comes from the
+        full leg dynamics J_leg^T F = M_leg vdot + h_leg - tau_leg (touchdown impacts), without it the static
+        part only."""
         tau = np.asarray(tau, dtype=float)
         if tau.shape != (len(self._tau_slice) * 3,) or not np.all(np.isfinite(tau)):
             raise InputError(f"TCE needs {len(self._tau_slice) * 3} finite joint torques, got {tau!r}")
         m = self.model
         m.update(q, v)
         h = m.nonlinear_effects()
+        if vdot is not None:
+            vdot = np.asarray(vdot, dtype=float)
+            if vdot.shape != (m.nv,) or not np.all(np.isfinite(vdot)):
+                raise InputError(f"TCE vdot must be {m.nv} finite values, got shape {vdot.shape}")
+            h = h + m.mass_matrix() @ vdot
         feet, velocities = m.foot_positions(), m.foot_velocities()
         radius = m.description.foot_radius_m
         up = np.array([0.0, 0.0, 1.0])

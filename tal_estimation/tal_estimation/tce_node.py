@@ -44,8 +44,11 @@ class TceNode(Node):
             contact_force_threshold_n=declare(self, "contact_force_threshold_n", 30.0,
                                               "[N] normal force above which a foot is in contact", low=0.0,
                                               high=1e4, read_only=True),
-            estimate_damping=declare(self, "estimate_damping", False, "fit damping too (thesis: no)",
-                                     read_only=True))
+            estimate_damping=declare(self, "estimate_damping", True,
+                                     "fit damping too (thesis: no; removes the stiffness bias on soft ground)",
+                                     read_only=True),
+            estimate_tangential=declare(self, "estimate_tangential", False,
+                                        "also fit a tangential stiffness per leg (pooled t1/t2)", read_only=True))
         self.model = RobotModel.from_name(robot)
         self.tce = TerrainComplianceEstimator(self.model, settings)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
@@ -53,6 +56,7 @@ class TceNode(Node):
         self._next_tick_ns = 0
         self._base: tuple[int, object] | None = None
         self._grid = None
+        self._v_prev: tuple[int, np.ndarray] | None = None   # (stamp [ns], v): finite-difference accelerations
         self.rejected_inputs = 0
         self.samples_outside_map = 0
         self.ticks = 0
@@ -94,7 +98,12 @@ class TceNode(Node):
             q = self.model.make_q(base.position, base.quat_xyzw, q_joints)
             v = self.model.make_v(base.linear_velocity, base.angular_velocity, qd_joints, base.quat_xyzw)
             grid = self._grid
-            samples = self.tce.contact_states(q, v, tau, height=lambda x, y: float(grid.height_at(x, y)))
+            vdot = None
+            if self._v_prev is not None and 0 < stamp - self._v_prev[0] <= 1.5 * self.period_ns:
+                vdot = (v - self._v_prev[1]) / ((stamp - self._v_prev[0]) * 1e-9)
+            self._v_prev = (stamp, v)
+            samples = self.tce.contact_states(q, v, tau, height=lambda x, y: float(grid.height_at(x, y)),
+                                              vdot=vdot)
         except (InputError, ValueError) as exc:
             self._reject("joint_states", exc)
             return
@@ -112,8 +121,9 @@ class TceNode(Node):
         for leg, (sample, est) in enumerate(zip(usable, estimates)):
             out.stiffness_normal[leg] = est.stiffness_n_per_m
             out.damping_normal[leg] = est.damping_ns_per_m
-            out.stiffness_tangential[leg] = float("nan")
-            out.damping_tangential[leg] = float("nan")
+            tangential = self.tce.tangential_estimates
+            out.stiffness_tangential[leg] = tangential[leg].stiffness_n_per_m if tangential else float("nan")
+            out.damping_tangential[leg] = tangential[leg].damping_ns_per_m if tangential else float("nan")
             n = sample.normal
             out.normal[leg] = Vector3(x=float(n[0]), y=float(n[1]), z=float(n[2]))
             out.confidence[leg] = est.confidence

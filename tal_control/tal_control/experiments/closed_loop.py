@@ -293,6 +293,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                              np.full(NUM_LEGS, config.terrain_damping_ns_per_m))
     radius = description.foot_radius_m
     nan4 = np.full(NUM_LEGS, np.nan)
+    v_prev: np.ndarray | None = None   # the TCE's previous v (finite-difference accelerations)
 
     recorder = _Recorder()
     n_steps = int(round(config.duration_s / config.physics_dt_s))
@@ -316,7 +317,9 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                     q = tce.model.make_q(state.base_position_m, state.base_quat_xyzw, state.joint_position_rad)
                     v = tce.model.make_v(state.base_lin_vel_m_s, state.base_ang_vel_rad_s,
                                          state.joint_velocity_rad_s, state.base_quat_xyzw)
-                    samples = tce.contact_states(q, v, state.joint_torque_nm, height_fn, normal_fn)
+                    vdot = None if v_prev is None else (v - v_prev) / (config.physics_dt_s * decimation)
+                    v_prev = v
+                    samples = tce.contact_states(q, v, state.joint_torque_nm, height_fn, normal_fn, vdot=vdot)
                     estimates = tce.update(samples)
                     tce_k = np.array([e.stiffness_n_per_m for e in estimates])
                     tce_d = np.array([e.damping_ns_per_m for e in estimates])

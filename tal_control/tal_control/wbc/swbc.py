@@ -60,10 +60,17 @@ class WbcSettings:
     penetration_regularisation: float = 1.0          # weight on ||eps||^2 (eps in m; wrench error in N)
     default_stiffness_n_per_m: float = 2e6           # used when the references carry no impedance
     default_damping_ns_per_m: float = 400.0
+    # Normal penetration of the last two cycles: "desired" (the thesis: the QP's own previous solutions) or
+    # "measured" (the foot's sinking since its touchdown sample and its normal velocity). With "desired" the
+    # model integrates open loop and drifts from the real sinking wherever the terrain model is off (a fresh
+    # TCE estimate, damping-dominated touchdowns); "measured" keeps F = K eps + D deps/dt anchored to it.
+    penetration_history: str = "desired"
 
     def __post_init__(self) -> None:
         if self.contact_model not in ("rigid", "compliant"):
             raise InputError(f"contact_model must be 'rigid' or 'compliant', got {self.contact_model!r}")
+        if self.penetration_history not in ("desired", "measured"):
+            raise InputError(f"penetration_history must be 'desired' or 'measured', got {self.penetration_history!r}")
 
 
 @dataclass
@@ -104,6 +111,7 @@ class StandardWbc:
         # Desired penetrations of the previous two cycles (world frame, per leg) for the finite differences.
         self._eps_prev = np.zeros((NUM_LEGS, 3))
         self._eps_prev2 = np.zeros((NUM_LEGS, 3))
+        self._eps_offset = np.zeros((NUM_LEGS, 3))   # 2 eps_{k-1} - eps_{k-2} of the stance legs [m]
         self._was_stance = np.zeros(NUM_LEGS, dtype=bool)
         self.joint_v = model.canonical_joint_v_indices()          # canonical joint k -> v index
         pin_model = model.model
@@ -156,9 +164,11 @@ class StandardWbc:
             forces = x[lay.force].reshape(NUM_LEGS, 3)
             tau_v = self._torques(qdd, forces)
             if self.compliant:
-                # The QP's variable is eps / dt^2 (better scaled for OSQP than metres): convert back.
+                # The QP's variable is the penetration acceleration u = d2eps/dt2 [m/s^2] (scaled like qdd):
+                # eps_k = dt^2 u + 2 eps_{k-1} - eps_{k-2}.
                 dt2 = self.settings.control_period_s ** 2
-                eps = np.where(refs.stance[:, None], dt2 * x[lay.penetration].reshape(NUM_LEGS, 3), 0.0)
+                eps = np.where(refs.stance[:, None],
+                               dt2 * x[lay.penetration].reshape(NUM_LEGS, 3) + self._eps_offset, 0.0)
                 self._eps_prev2, self._eps_prev = self._eps_prev, eps
             result = WbcSolution(tau=tau_v, qdd=qdd, forces=forces, slacks=x[lay.slack].reshape(NUM_LEGS, 3),
                                  desired_wrench=wrench_d, status=info.status, status_val=int(info.status_val),
@@ -251,7 +261,7 @@ class StandardWbc:
         self._P_static[sl["force"], sl["force"]] = s.force_regularisation * eye_f
         self._P_static[sl["slack"], sl["slack"]] = s.slack_weight * eye_f
         if self.compliant:
-            # Variable z = eps / dt^2: the weight on ||eps||^2 becomes weight * dt^4 on ||z||^2.
+            # Variable u = d2eps/dt2: eps = dt^2 u + offset, so the weight on ||eps||^2 is weight * dt^4 on ||u||^2.
             self._P_static[lay.penetration, lay.penetration] = (s.penetration_regularisation
                                                                 * s.control_period_s**4 * eye_f)
             self._model_rows = lay.compliant_rows.start + np.arange(lay.n_force)
@@ -287,6 +297,11 @@ class StandardWbc:
             P[sl["force"], sl["force"]] += J_joints @ np.diag(r_tau) @ J_joints.T
         q_cost = np.zeros(lay.n_vars)
         q_cost[sl["force"]] = -A_F.T @ self._Q @ wrench_d
+        if self.compliant:
+            # w ||eps||^2 with eps = dt^2 u + offset: the linear term w dt^2 offset on u.
+            dt = self.settings.control_period_s
+            q_cost[self.layout.penetration] = (self.settings.penetration_regularisation * dt**2
+                                               * self._eps_offset.ravel())
         return P, q_cost, wrench_d
 
     def _constraints(self, q: np.ndarray, v: np.ndarray, refs: WbcReferences):
@@ -348,9 +363,24 @@ class StandardWbc:
         A = self._A
         dt = s.control_period_s
         touchdown = refs.stance & ~self._was_stance
-        self._eps_prev[touchdown] = 0.0      # a fresh contact starts undeformed
-        self._eps_prev2[touchdown] = 0.0
+        if touchdown.any():
+            # A fresh contact starts undeformed but with the foot's measured normal velocity (eps_dot = -n.v):
+            # starting from rest would make the model demand a force the moving foot does not produce.
+            velocities = self.model.foot_velocities()
+            for leg in np.flatnonzero(touchdown):
+                n = refs.normals[leg] / np.linalg.norm(refs.normals[leg])
+                self._eps_prev[leg] = 0.0
+                self._eps_prev2[leg] = float(n @ velocities[leg]) * n * dt   # eps_{k-2} = eps_{k-1} - eps_dot dt
         self._was_stance = refs.stance.copy()
+        if s.penetration_history == "measured":
+            feet, velocities = self.model.foot_positions(), self.model.foot_velocities()
+            for leg in np.flatnonzero(refs.stance):
+                n = refs.normals[leg] / np.linalg.norm(refs.normals[leg])
+                sink = float(n @ (refs.touchdown_position[leg] - feet[leg]))   # [m] along -n since touchdown
+                rate = -float(n @ velocities[leg])                             # [m/s]
+                for history, value in ((self._eps_prev, sink), (self._eps_prev2, sink - rate * dt)):
+                    history[leg] += (value - float(n @ history[leg])) * n       # replace the normal part
+        self._eps_offset = np.where(refs.stance[:, None], 2.0 * self._eps_prev - self._eps_prev2, 0.0)
         def per_leg(value: np.ndarray | None, default: float | np.ndarray) -> np.ndarray:
             return np.broadcast_to(default, (NUM_LEGS,)) if value is None else value
 
@@ -373,16 +403,17 @@ class StandardWbc:
             if refs.stance[leg]:
                 K = contact_R.T @ np.diag([k_n[leg], k_t[leg], k_t[leg]]) @ contact_R
                 D = contact_R.T @ np.diag([d_n[leg], d_t[leg], d_t[leg]]) @ contact_R
-                # F - (K + D/dt) eps_k = -D eps_{k-1}/dt, with the variable z = eps_k / dt^2
+                # F = K eps_k + D (eps_k - eps_{k-1})/dt with eps_k = dt^2 u + offset (u: the variable)
+                offset = self._eps_offset[leg]
                 A[model_rows, eps_cols] = -(K + D / dt) * dt**2
-                lower[model_rows] = upper[model_rows] = -D @ self._eps_prev[leg] / dt
-                # J qdd + z = -dJ v + (2 eps_{k-1} - eps_{k-2})/dt^2   (replaces the rigid stance row)
+                lower[model_rows] = upper[model_rows] = (K + D / dt) @ offset - D @ self._eps_prev[leg] / dt
+                # J qdd + u = -dJ v   (the foot follows the penetration; replaces the rigid stance row)
                 A[task_low:task_low + 3, eps_cols] = eye3
                 A[task_high:task_high + 3, eps_cols] = eye3
-                rhs = target[rows] - self._stance_task_acceleration(refs, leg) + \
-                    (2.0 * self._eps_prev[leg] - self._eps_prev2[leg]) / dt**2
+                rhs = target[rows] - self._stance_task_acceleration(refs, leg)
                 lower[task_low:task_low + 3] = upper[task_low:task_low + 3] = rhs
-                lower[bound_rows] = np.array([0.0, -INF, -INF])   # normal penetration >= 0
+                # normal penetration >= 0:  n.u >= -n.offset / dt^2
+                lower[bound_rows] = np.array([-float(n @ offset) / dt**2, -INF, -INF])
                 upper[bound_rows] = INF
             else:
                 A[model_rows, eps_cols] = 0.0
