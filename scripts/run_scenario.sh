@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # `make run SCENARIO=...`: run one scenario of the full node graph and print its summary.
 # Scenarios:
-#   trot            (default) HyQ trots forward at 0.3 m/s on rigid ground for 20 s of sim time (lockstep):
+#   stance          (default) STANCE: HyQ crawls at 0.1 m/s over the transition course (rigid, T1 soft, T2, T3,
+#                   rigid; 2 m strips) for 90 s of sim time: sim_bridge (81x81 heightmap) + wbc (c3WBC) + tce
+#                   (ground-truth base, as the thesis' motion capture) + cmd_vel_script; prints the report
+#   trot            HyQ trots forward at 0.3 m/s on rigid ground for 20 s of sim time (lockstep):
 #                   sim_bridge + wbc (sWBC) + cmd_vel_script; prints tracking errors and whether it fell
 #   crawl           the same with a crawl at 0.1 m/s
 #   stand           HyQ stands 10 s in lockstep (joint PD hold), first on rigid ground, then on T1 soft
@@ -9,7 +12,7 @@
 # Results: runs/<timestamp>/<part>/ (one log per node, summary.json) and runs/<timestamp>/report.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-SCENARIO="${1:-trot}"
+SCENARIO="${1:-stance}"
 RUN_ROOT="$ROOT/runs/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
 # A private DDS domain per run, so concurrent runs and tests do not see each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
@@ -27,6 +30,26 @@ walk() {
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
     python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
         --title "HyQ $gait at $speed m/s, rigid ground" --output "$RUN_ROOT/report.md"
+}
+
+stance() {
+    local speed="${SPEED_M_S:-0.1}" duration="${DURATION_S:-90.0}"
+    local dir="$RUN_ROOT"
+    echo "[run] stance: STANCE (c3WBC + TCE), HyQ crawls at $speed m/s over rigid -> T1 -> T2 -> T3 -> rigid" \
+         "for $duration s of sim time (lockstep)"
+    bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge \
+        -s "sim_bridge.course:=stance_course" -s "sim_bridge.duration_s:=$duration" \
+        -s "sim_bridge.initial_x_m:=0.5" \
+        -s "sim_bridge.heightmap_rows:=81" -s "sim_bridge.heightmap_cols:=81" \
+        -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
+        -s "wbc.gait:=crawl" -s "wbc.contact_model:=compliant" -s "wbc.impedance_source:=tce" \
+        -s "wbc.summary_path:=$dir/wbc_summary.json" \
+        -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
+        -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
+        tal_sim_bridge/sim_bridge tal_control/wbc tal_estimation/tce tal_control/cmd_vel_script \
+        || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
+    python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
+        --tce "$dir/tce_summary.json" --title "STANCE: HyQ crawl at $speed m/s, rigid -> T1 -> T2 -> T3 -> rigid" --output "$RUN_ROOT/report.md"
 }
 
 stand() {
@@ -47,10 +70,11 @@ stand() {
 }
 
 case "$SCENARIO" in
+    stance) stance ;;
     trot) walk trot 0.3 ;;
     crawl) walk crawl 0.1 ;;
     stand) stand lockstep ;;
     stand_realtime) stand realtime ;;
-    *) echo "unknown SCENARIO '$SCENARIO'; known: trot, crawl, stand, stand_realtime" >&2; exit 2 ;;
+    *) echo "unknown SCENARIO '$SCENARIO'; known: stance, trot, crawl, stand, stand_realtime" >&2; exit 2 ;;
 esac
 echo "[run] report: $RUN_ROOT/report.md"

@@ -1,6 +1,8 @@
 """Summary of a locomotion run of the graph (``make run``): the bridge's and the wbc's end-of-run JSON.
 
-Usage: python -m tal_control.run_report --bridge bridge.json --wbc wbc.json [--output report.md]
+Usage: python -m tal_control.run_report --bridge bridge.json --wbc wbc.json [--tce tce.json] [--output report.md]
+With ``--tce`` the report lists the TCE's final per-leg stiffness estimates and plots their history
+(``tce_estimates.png`` next to the report).
 """
 
 from __future__ import annotations
@@ -36,10 +38,47 @@ def format_report(bridge: dict, wbc: dict, title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def format_tce(tce: dict) -> str:
+    """Final per-leg estimates of the tce node's summary as a markdown table."""
+    lines = ["", "## TCE (final estimates)", "", "| leg | stiffness [N/m] | damping [N s/m] | confidence | samples |",
+             "|---|---|---|---|---|"]
+    for leg, e in tce["final"].items():
+        k, d = e["stiffness_n_per_m"], e["damping_ns_per_m"]
+        lines.append(f"| {leg} | {'n/a' if k is None else f'{k:.0f}'} | {'n/a' if d is None else f'{d:.0f}'} | "
+                     f"{e['confidence']:.2f} | {e['samples']} |")
+    lines.append(f"\nTCE ticks {tce['ticks']}, rejected inputs {tce['rejected_inputs']}, "
+                 f"samples outside the heightmap {tce['samples_outside_map']}.")
+    return "\n".join(lines) + "\n"
+
+
+def plot_tce(tce: dict, path: Path) -> None:
+    """Estimated stiffness per leg over sim time (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    rows = np.array([[np.nan if v is None else v for v in row] for row in tce["history"]], dtype=float)
+    if rows.size == 0:
+        return
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for i, leg in enumerate(tce["final"]):
+        ax.semilogy(rows[:, 0], rows[:, 1 + i], label=leg)
+    ax.set_xlabel("sim time [s]")
+    ax.set_ylabel("estimated stiffness [N/m]")
+    ax.set_title("TCE estimates")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bridge", type=Path, required=True, help="summary.json of sim_bridge")
     parser.add_argument("--wbc", type=Path, required=True, help="summary.json of wbc")
+    parser.add_argument("--tce", type=Path, help="summary.json of tce (optional)")
     parser.add_argument("--title", default="Locomotion run")
     parser.add_argument("--output", type=Path)
     args = parser.parse_args(argv)
@@ -47,6 +86,13 @@ def main(argv: list[str] | None = None) -> int:
         if not path.is_file():
             parser.error(f"{path}: no summary (did the node finish cleanly?)")
     report = format_report(json.loads(args.bridge.read_text()), json.loads(args.wbc.read_text()), args.title)
+    if args.tce is not None:
+        if not args.tce.is_file():
+            parser.error(f"{args.tce}: no summary (did the tce node finish cleanly?)")
+        tce = json.loads(args.tce.read_text())
+        report += format_tce(tce)
+        if args.output:
+            plot_tce(tce, args.output.parent / "tce_estimates.png")
     print(report)
     if args.output:
         args.output.write_text(report)

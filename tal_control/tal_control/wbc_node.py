@@ -48,9 +48,8 @@ from tal_msgs.msg import (
     WbcDiagnostics,
 )
 
-from .locomotion import BaseState, LocomotionController, TickOutput
+from .locomotion import BaseState, LocomotionController, TickOutput, impedance_from_estimates
 from .locomotion import TerrainImpedance as LegImpedance
-from .locomotion import impedance_from_estimates
 from .motion.gait import PRESETS as GAITS
 from .msg_conversions import gait_state_message
 from .tracking_stats import TrackingStats

@@ -122,7 +122,6 @@ class KelvinVoigtWindows:
 
     def fit(self, mask: np.ndarray | None = None) -> list[LegEstimate]:
         """Refit the channels where ``mask`` (all when None) and return every channel's estimate."""
-        s = self.settings
         mask = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
         w = self.weights()
         force, pen, rate = self._data[:, 0], self._data[:, 1], self._data[:, 2]

@@ -9,7 +9,9 @@ older than ``stale_state_periods``; feet outside the heightmap give no sample (c
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import Vector3
@@ -18,6 +20,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
+from tal_core.legs import LEGS
 from tal_core.node_utils import declare, ns_from_stamp, reaches_tick, run_node, stamp_from_ns, tick_after
 from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid
@@ -60,6 +63,9 @@ class TceNode(Node):
         self.rejected_inputs = 0
         self.samples_outside_map = 0
         self.ticks = 0
+        self.summary_path = declare(self, "summary_path", "", "JSON file for the end-of-run summary (final "
+                                    "estimates, 10 Hz estimate history); empty: none", read_only=True)
+        self.history: list[list[float]] = []    # [t [s], k x4 [N/m], valid x4] every HISTORY_DECIMATION ticks
         self.pub = self.create_publisher(TerrainImpedance, "terrain_impedance", 10)
         topic = "ground_truth/odom" if base_source == "ground_truth" else "state_estimate"
         self.create_subscription(JointState, "joint_states", self._on_joints, 10)
@@ -130,7 +136,36 @@ class TceNode(Node):
             out.samples[leg] = est.samples
             out.valid[leg] = est.valid
         self.pub.publish(out)
+        if self.ticks % HISTORY_DECIMATION == 0:
+            self.history.append([stamp * 1e-9] + [e.stiffness_n_per_m for e in estimates]
+                                + [float(e.valid) for e in estimates])
         self.ticks += 1
+
+    def summary(self) -> dict:
+        """Final per-leg estimates, counters and the estimate history (NaN as null)."""
+        def clean(value: float) -> float | None:
+            return value if math.isfinite(value) else None
+
+        estimates = self.tce.estimates
+        return {
+            "ticks": self.ticks, "rejected_inputs": self.rejected_inputs,
+            "samples_outside_map": self.samples_outside_map,
+            "final": {leg.name: {"stiffness_n_per_m": clean(e.stiffness_n_per_m),
+                                 "damping_ns_per_m": clean(e.damping_ns_per_m), "confidence": e.confidence,
+                                 "valid": e.valid, "samples": e.samples} for leg, e in zip(LEGS, estimates)},
+            "history_columns": ["t_s"] + [f"k_{leg.name}" for leg in LEGS] + [f"valid_{leg.name}" for leg in LEGS],
+            "history": [[clean(v) for v in row] for row in self.history],
+        }
+
+    def destroy_node(self) -> None:
+        if self.summary_path:
+            Path(self.summary_path).parent.mkdir(parents=True, exist_ok=True)
+            Path(self.summary_path).write_text(json.dumps(self.summary()) + "\n")
+        super().destroy_node()
+
+
+HISTORY_DECIMATION = 25
+"""Ticks between two rows of the summary's estimate history (10 Hz at 250 Hz)."""
 
 
 def main(args: list[str] | None = None) -> int:

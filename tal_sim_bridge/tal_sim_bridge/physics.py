@@ -34,6 +34,10 @@ from .errors import BridgeConfigError
 
 GRAVITY_M_S2 = 9.81
 FOOT_CONTACT_STIFFNESS = 1e12  # [N/m] in series with the ground: leaves the ground's stiffness intact
+SOFT_BOX_STIFFNESS_N_PER_M = 1e5
+"""[N/m] ground boxes softer than this are soft terrain (T1..T3): their collision boxes overlap neighbours."""
+SOFT_BOX_OVERLAP_M = 0.1
+"""[m] how far a soft box's collision shape reaches under the neighbouring boxes, per side."""
 SHIN_LINK_SUFFIX = "lowerleg"
 
 
@@ -160,7 +164,15 @@ class Simulation:
     def _build_course(self) -> list[int]:
         bodies = []
         for box in self.course.primitives():
-            shape = self.client.createCollisionShape(pybullet.GEOM_BOX, halfExtents=list(box.half_extents_xyz))
+            half = list(box.half_extents_xyz)
+            if box.stiffness_n_per_m < SOFT_BOX_STIFFNESS_N_PER_M and not any(box.rpy):
+                # A foot sunk into soft ground near the patch's side is closer to that side face than to the
+                # top, and Bullet pushes a penetrating sphere out through the nearest face. Extending soft boxes
+                # under their neighbours keeps the top face the nearest (the thesis overlapped its terrains for
+                # the same reason); the overlap strip is stiffer, like theirs.
+                half[0] += SOFT_BOX_OVERLAP_M
+                half[1] += SOFT_BOX_OVERLAP_M
+            shape = self.client.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
             visual = self.client.createVisualShape(pybullet.GEOM_BOX, halfExtents=list(box.half_extents_xyz),
                                                    rgbaColor=_terrain_colour(box.stiffness_n_per_m))
             body = self.client.createMultiBody(

@@ -45,6 +45,9 @@ from tal_sim_bridge.bridge_core import BridgeCore
 from tal_sim_bridge.effects import ModelEffects
 from tal_sim_bridge.physics import RobotState, Simulation
 
+BOUNDARY_MARGIN_M = 0.01
+"""[m] beyond the foot radius: a foot this close to a patch boundary has no single true stiffness."""
+
 FALL_HEIGHT_FRACTION = 0.6
 """A trunk lower than this fraction of the nominal height above the terrain counts as a fall."""
 
@@ -173,7 +176,7 @@ class ClosedLoopLog:
     foot_slip_velocity: np.ndarray  # (N, 4, 3) [m/s] velocity of the foot material point at the contact
     body_contact: np.ndarray  # (N,) bool, a non-foot link touches the ground
     power: np.ndarray  # (N,) [W] sum over joints of |tau_measured * qd| (mechanical power)
-    terrain_stiffness: np.ndarray  # (N, 4) [N/m] true normal stiffness of the ground under each foot
+    terrain_stiffness: np.ndarray  # (N, 4) [N/m] true normal stiffness under each foot (nan: at a boundary)
     penetration: np.ndarray  # (N, 4) [m] true penetration of each foot sphere along the normal (<0: above)
     penetration_des: np.ndarray  # (N, 4) [m] c3WBC desired penetration along the normal (0: rigid / swing)
     impedance_stiffness: np.ndarray  # (N, 4) [N/m] stiffness the c3WBC used (nan: none given)
@@ -241,6 +244,16 @@ def _foot_slip_velocity(sim: Simulation, contacts: list) -> np.ndarray:
         omega = np.array(sim.client.getLinkState(sim.robot, link, computeLinkVelocity=1)[7])
         slip[leg] = contact.velocity_m_s + np.cross(omega, -radius * contact.normal)
     return slip
+
+
+def _stiffness_under_feet(course: Course, contacts: list, reach_m: float) -> np.ndarray:
+    """True normal stiffness [N/m] under each foot; NaN where ground of another stiffness lies within
+    ``reach_m`` (the sphere may touch the neighbouring patch's side: a mixed contact)."""
+    offsets = np.array([[0.0, 0.0], [reach_m, 0.0], [-reach_m, 0.0], [0.0, reach_m], [0.0, -reach_m]])
+    xy = np.array([c.position_m[:2] for c in contacts])[:, None, :] + offsets[None]
+    k = np.asarray(course.properties_array(xy[..., 0].ravel(), xy[..., 1].ravel()).stiffness_n_per_m)
+    k = k.reshape(len(contacts), len(offsets))
+    return np.where(np.all(k == k[:, :1], axis=1), k[:, 0], np.nan)
 
 
 def _true_penetration(contacts: list, course: Course, radius: float) -> np.ndarray:
@@ -381,8 +394,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                     foot_slip_velocity=_foot_slip_velocity(sim, contacts),
                     body_contact=body,
                     power=float(np.sum(np.abs(state.joint_torque_nm * state.joint_velocity_rad_s))),
-                    terrain_stiffness=np.array(
-                        [course.properties(c.position_m[0], c.position_m[1]).stiffness_n_per_m for c in contacts]),
+                    terrain_stiffness=_stiffness_under_feet(course, contacts, radius + BOUNDARY_MARGIN_M),
                     penetration=_true_penetration(contacts, course, radius),
                     penetration_des=np.einsum("lk,lk->l", sol.extras.get("penetration", np.zeros((NUM_LEGS, 3))),
                                               out.targets.normals),

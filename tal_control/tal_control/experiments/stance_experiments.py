@@ -161,8 +161,10 @@ def grf_error(log: ClosedLoopLog, leg: int = LF, settle_s: float = SETTLE_S) -> 
     mask = (log.stance[:-1, leg] & log.stance[1:, leg] & log.foot_contact[1:, leg] & (log.t[:-1] >= settle_s))
     if not mask.any():
         return {"mae_n": float("nan"), "max_n": float("nan"), "samples": 0}
-    error = np.abs(actual[mask] - optimal[mask])
+    signed = actual[mask] - optimal[mask]
+    error = np.abs(signed)
     return {"mae_n": float(np.mean(error)), "max_n": float(np.max(error)), "samples": int(mask.sum()),
+            "bias_n": float(np.mean(signed)), "std_n": float(np.std(signed)),
             "mean_force_n": float(np.mean(actual[mask]))}
 
 
@@ -185,7 +187,8 @@ def grf_analysis(logs: dict[str, ClosedLoopLog], out: Path) -> dict:
     for log, kind, color in ((log_s, "swbc", "C0"), (log_w, "stance", "C2")):
         window = (log.t >= 6.0) & (log.t <= 10.0)
         axes[1].plot(log.t[window], log.contact_force[window, LF, 2], color=color, label=f"{LABELS[kind]} actual")
-        axes[1].plot(log.t[window], log.wbc_forces[window, LF, 2], color=color, ls="--", label=f"{LABELS[kind]} optimal")
+        axes[1].plot(log.t[window], log.wbc_forces[window, LF, 2], color=color, ls="--",
+                     label=f"{LABELS[kind]} optimal")
     axes[1].set_xlabel("t [s]")
     axes[1].set_ylabel("LF normal force [N]")
     axes[1].set_title("T1: actual vs optimal")
@@ -339,10 +342,13 @@ def energy_analysis(logs: dict[str, ClosedLoopLog], out: Path) -> dict:
 
 # -- report --------------------------------------------------------------------------------------------------
 def markdown(grf: dict, tce: dict, lateral: dict, aggressive: dict, ramp: dict, energy: dict) -> str:
-    rows = [[t] + [grf[t][k]["mae_n"] for k in CONTROLLERS] + [LABELS[grf[t]["best"]]] for t in ("T1", "T2", "T4")]
+    rows = [[t] + [grf[t][k]["mae_n"] for k in CONTROLLERS] + [LABELS[grf[t]["best"]]]
+            + [f"{grf[t][k]['bias_n']:+.2f} / {grf[t][k]['std_n']:.2f}" for k in CONTROLLERS]
+            for t in ("T1", "T2", "T4")]
     text = ["# STANCE experiments (crawl; ground-truth base state for the TCE, as the thesis' motion capture)\n",
             "## 1. GRF tracking: LF normal force MAE [N], 0.05 m/s\n",
-            _table(["terrain"] + [LABELS[k] for k in CONTROLLERS] + ["best"], rows), "\n",
+            _table(["terrain"] + [LABELS[k] for k in CONTROLLERS] + ["best"]
+                   + [f"{LABELS[k]} bias / std" for k in CONTROLLERS], rows), "\n",
             "## 2. TCE accuracy, transition course rigid -> T1 -> T2 -> T3 -> rigid (0.1 m/s)\n",
             "Samples whose whole 250-sample window lies on the terrain.\n"]
     tce_rows = []
