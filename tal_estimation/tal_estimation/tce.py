@@ -172,7 +172,7 @@ class KelvinVoigtWindows:
 
     @staticmethod
     def _keep_previous(est: LegEstimate) -> None:
-        est.stale = True
+        est.stale = est.valid   # stale: a previous estimate is being kept
         est.confidence *= 0.9   # an estimate that cannot be refreshed loses confidence
 
 

@@ -8,7 +8,13 @@ import pytest
 from tal_core.errors import InputError
 from tal_core.legs import Leg
 from tal_core.robot_model import RobotModel
-from tal_estimation.tce import TceSettings, TerrainComplianceEstimator, WindowedKelvinVoigtFit
+from tal_estimation.tce import (
+    ContactSample,
+    KelvinVoigtWindows,
+    TceSettings,
+    TerrainComplianceEstimator,
+    WindowedKelvinVoigtFit,
+)
 
 
 def stance_samples(k: float, d: float, n: int, seed: int = 0, noise_n: float = 2.0):
@@ -114,3 +120,89 @@ def test_contact_states_recover_forces_and_penetration(model) -> None:
     assert estimates[Leg.LH].samples == 0 and estimates[Leg.LF].samples == 1   # swing legs are not fed
     with pytest.raises(InputError, match="joint torques"):
         tce.contact_states(q, v, np.full(12, np.nan), height=lambda x, y: 0.0)
+
+
+def test_batched_windows_match_single_channel_fits() -> None:
+    """All legs fitted together give the same estimates as one window per leg, samples fed per leg."""
+    settings = TceSettings(window=120, min_samples=30)
+    batched = KelvinVoigtWindows(settings, 4)
+    singles = [WindowedKelvinVoigtFit(settings) for _ in range(4)]
+    data = [stance_samples(k, 400.0, 300, seed=leg) for leg, k in enumerate((3500.0, 8000.0, 10000.0, 2e5))]
+    rng = np.random.default_rng(3)
+    for i in range(300):
+        mask = rng.random(4) < 0.7                       # legs in stance at different times
+        force = np.array([d[0][i] for d in data])
+        pen = np.array([d[1][i] for d in data])
+        rate = np.array([d[2][i] for d in data])
+        batched.add(mask, force, pen, rate)
+        for leg in np.flatnonzero(mask):
+            singles[leg].add(force[leg], pen[leg], rate[leg])
+    for leg, estimate in enumerate(batched.fit()):
+        single = singles[leg].fit()
+        assert estimate.samples == single.samples
+        assert estimate.stiffness_n_per_m == pytest.approx(single.stiffness_n_per_m, rel=1e-9)
+        assert estimate.damping_ns_per_m == pytest.approx(single.damping_ns_per_m, rel=1e-9)
+        assert estimate.confidence == pytest.approx(single.confidence, rel=1e-9)
+
+
+def test_linear_weights_favour_recent_samples() -> None:
+    """After a switch from T1 to T2 half a window ago, linear weights sit closer to T2 than uniform ones."""
+    estimates = {}
+    for weighting in ("linear", "uniform"):
+        fit = WindowedKelvinVoigtFit(TceSettings(window=200, weighting=weighting, estimate_damping=False))
+        for k, seed in ((3500.0, 1), (8000.0, 2)):
+            for f, p, r in zip(*stance_samples(k, 0.0, 100, seed=seed, noise_n=0.0)):
+                fit.add(f, p, r)
+        estimates[weighting] = fit.fit().stiffness_n_per_m
+    assert 3500.0 < estimates["uniform"] < estimates["linear"] < 8000.0
+
+
+def test_constant_penetration_window_gives_no_new_estimate() -> None:
+    fit = WindowedKelvinVoigtFit(TceSettings(window=100, min_samples=20, estimate_damping=False))
+    for _ in range(100):
+        fit.add(105.0, 0.03, 0.0)                  # standing still: no variation, k not identifiable
+    est = fit.fit()
+    assert not est.valid and est.stale is False and est.confidence == 0.0
+
+
+def test_contact_states_use_the_inertial_term_when_given_accelerations(model) -> None:
+    """With vdot the force comes from J^T F = M vdot + h - tau: torques that include M vdot give F back."""
+    q = model.neutral_q()
+    q[2] -= 0.02
+    v = np.zeros(model.nv)
+    model.update(q, v)
+    vdot = np.zeros(model.nv)
+    vdot[6:] = np.linspace(-3.0, 3.0, model.nv - 6)   # joint accelerations [rad/s^2]
+    force = np.array([0.0, 0.0, 200.0])
+    inertial = model.mass_matrix() @ vdot + model.nonlinear_effects()
+    to_v = model.canonical_joint_v_indices()
+    tau = np.zeros(12)
+    for leg in Leg:
+        tau_leg = model.leg_torques_for_foot_force(leg, force)
+        for j, vi in enumerate(model.leg_joint_v_indices(leg)):
+            tau[int(np.flatnonzero(to_v == vi)[0])] = tau_leg[j] + inertial[vi]
+    tce = TerrainComplianceEstimator(model)
+    with_inertia = tce.contact_states(q, v, tau, height=lambda x, y: 0.0, vdot=vdot)
+    static = tce.contact_states(q, v, tau, height=lambda x, y: 0.0)
+    for leg in Leg:
+        np.testing.assert_allclose(with_inertia[leg].force_n, force, atol=1e-6)
+    assert max(np.linalg.norm(s.force_n - force) for s in static) > 1.0
+    with pytest.raises(InputError, match="vdot"):
+        tce.contact_states(q, v, tau, height=lambda x, y: 0.0, vdot=np.full(model.nv, np.nan))
+
+
+def test_tangential_windows_fit_a_lateral_spring(model) -> None:
+    """A stance foot displaced along x against F_x = -k_t dx gives k_t back from the pooled window."""
+    tce = TerrainComplianceEstimator(model, TceSettings(estimate_tangential=True, estimate_damping=False,
+                                                        min_samples=20))
+    up = np.array([0.0, 0.0, 1.0])
+    anchor = np.array([0.4, 0.2, 0.0])
+    for i in range(200):
+        dx = 0.004 * np.sin(0.1 * i)
+        foot = anchor + np.array([dx, 0.5 * dx, 0.0])
+        forces = np.array([-2.0e4 * dx, -2.0e4 * 0.5 * dx, 300.0])
+        sample = ContactSample(True, forces, up, 0.01 + 1e-3 * np.cos(0.1 * i), 0.0, foot, np.zeros(3))
+        tce.update([sample] * 4)
+    tangential = tce.tangential_estimates
+    assert tangential is not None and tangential[0].valid
+    assert tangential[0].stiffness_n_per_m == pytest.approx(2.0e4, rel=0.02)

@@ -289,3 +289,23 @@ def test_close_removes_the_prepared_urdf(description: RobotDescription, tmp_path
     sim.close()
     sim.close()  # idempotent
     assert list(tmp_path.glob("tal_robot_*.urdf")) == []
+
+
+def test_soft_boxes_reach_under_their_neighbours(description: RobotDescription) -> None:
+    """The T1 strip's collision box extends SOFT_BOX_OVERLAP_M past its patch on every side (a foot sunk
+    next to the patch side must not be pushed out through it); rigid boxes keep their size."""
+    from tal_sim_bridge.physics import SOFT_BOX_OVERLAP_M
+
+    course = load_course("stance_course")
+    sim = Simulation(description, course, time_step_s=1e-3)
+    try:
+        boxes = course.primitives()
+        for box, body in zip(boxes, sim.ground_bodies):
+            half = np.array(sim.client.getCollisionShapeData(body, -1)[0][3]) / 2.0
+            expected = np.array(box.half_extents_xyz)
+            if box.stiffness_n_per_m < 1e5:
+                expected[:2] += SOFT_BOX_OVERLAP_M
+            np.testing.assert_allclose(half, expected, atol=1e-9)
+        assert any(b.stiffness_n_per_m < 1e5 for b in boxes)
+    finally:
+        sim.close()
