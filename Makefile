@@ -16,10 +16,11 @@ test: bootstrap
 	@$(ENV) && python -m pytest $(PYTEST_ARGS)
 
 bench: bootstrap
-	@$(ENV) && python bench/bench_bridge.py && python bench/bench_wbc.py
+	@$(ENV) && python bench/bench_bridge.py && python bench/bench_wbc.py && python bench/bench_stance.py
 
 experiments: bootstrap
-	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc
+	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc \
+		&& python -m tal_control.experiments.stance_experiments --out results/stance
 
 lint: bootstrap
 	@$(ENV) && ruff check . && ruff format --check .

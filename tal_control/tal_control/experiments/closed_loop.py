@@ -43,10 +43,11 @@ from tal_core.terrain import Course, load_course
 from tal_estimation.tce import TceSettings, TerrainComplianceEstimator
 from tal_sim_bridge.bridge_core import BridgeCore
 from tal_sim_bridge.effects import ModelEffects
-from tal_sim_bridge.physics import RobotState, Simulation
+from tal_sim_bridge.physics import SOFT_BOX_OVERLAP_M, RobotState, Simulation
 
-BOUNDARY_MARGIN_M = 0.01
-"""[m] beyond the foot radius: a foot this close to a patch boundary has no single true stiffness."""
+BOUNDARY_MARGIN_M = SOFT_BOX_OVERLAP_M + 0.01
+"""[m] beyond the foot radius: a foot this close to a patch boundary has no single true stiffness (soft
+collision boxes reach SOFT_BOX_OVERLAP_M under their neighbours, so the strip there is a mixed ground)."""
 
 FALL_HEIGHT_FRACTION = 0.6
 """A trunk lower than this fraction of the nominal height above the terrain counts as a fall."""
