@@ -209,6 +209,28 @@ class ContactSample:
     foot_velocity_m_s: np.ndarray | None = None  # (3,)
 
 
+def foot_penetration(foot_centre_m: np.ndarray, radius_m: float, surface_z_m: float, normal: np.ndarray) -> float:
+    """Penetration [m] of a foot sphere into the undeformed surface along the unit normal (< 0: above it):
+    the surface point under the foot centre minus the sphere's lowest point along -normal, projected on it."""
+    surface = np.array([foot_centre_m[0], foot_centre_m[1], surface_z_m])
+    return float(normal @ (surface - (foot_centre_m - radius_m * normal)))
+
+
+class FiniteDifferenceAcceleration:
+    """Generalised accelerations vdot = (v_k - v_{k-1}) / dt from consecutive ticks; None after a gap longer
+    than ``max_gap_s`` [s] (a skipped or out-of-order tick) or on the first call."""
+
+    def __init__(self, max_gap_s: float) -> None:
+        self.max_gap_s = float(max_gap_s)
+        self._previous: tuple[float, np.ndarray] | None = None
+
+    def update(self, t_s: float, v: np.ndarray) -> np.ndarray | None:
+        previous, self._previous = self._previous, (float(t_s), np.array(v, dtype=float))
+        if previous is None or not 0.0 < t_s - previous[0] <= self.max_gap_s:
+            return None
+        return (self._previous[1] - previous[1]) / (t_s - previous[0])
+
+
 def contact_tangents(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit tangents of the contact frame: t1 along the world x axis projected on the terrain plane
     (world y when the normal is along x), t2 = n x t1."""
@@ -269,9 +291,7 @@ class TerrainComplianceEstimator:
             x, y = float(feet[leg, 0]), float(feet[leg, 1])
             n = up if normal is None else np.asarray(normal(x, y), dtype=float)
             n = n / np.linalg.norm(n)
-            surface_z = float(height(x, y))
-            contact_point = feet[leg] - radius * n
-            penetration = float(n @ (np.array([x, y, surface_z]) - contact_point))
+            penetration = foot_penetration(feet[leg], radius, float(height(x, y)), n)
             rate = float(-(n @ velocities[leg]))
             in_contact = bool(n @ force >= self.settings.contact_force_threshold_n)
             samples.append(ContactSample(in_contact, force, n, penetration, rate, feet[leg].copy(),

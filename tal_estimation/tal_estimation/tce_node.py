@@ -26,7 +26,7 @@ from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid
 from tal_msgs.msg import HeightMap, TerrainImpedance
 
-from .tce import TceSettings, TerrainComplianceEstimator
+from .tce import FiniteDifferenceAcceleration, TceSettings, TerrainComplianceEstimator
 
 
 class TceNode(Node):
@@ -59,7 +59,7 @@ class TceNode(Node):
         self._next_tick_ns = 0
         self._base: tuple[int, object] | None = None
         self._grid = None
-        self._v_prev: tuple[int, np.ndarray] | None = None   # (stamp [ns], v): finite-difference accelerations
+        self._accelerations = FiniteDifferenceAcceleration(max_gap_s=1.5 * period)
         self.rejected_inputs = 0
         self.samples_outside_map = 0
         self.ticks = 0
@@ -104,12 +104,8 @@ class TceNode(Node):
             q = self.model.make_q(base.position, base.quat_xyzw, q_joints)
             v = self.model.make_v(base.linear_velocity, base.angular_velocity, qd_joints, base.quat_xyzw)
             grid = self._grid
-            vdot = None
-            if self._v_prev is not None and 0 < stamp - self._v_prev[0] <= 1.5 * self.period_ns:
-                vdot = (v - self._v_prev[1]) / ((stamp - self._v_prev[0]) * 1e-9)
-            self._v_prev = (stamp, v)
             samples = self.tce.contact_states(q, v, tau, height=lambda x, y: float(grid.height_at(x, y)),
-                                              vdot=vdot)
+                                              vdot=self._accelerations.update(stamp * 1e-9, v))
         except (InputError, ValueError) as exc:
             self._reject("joint_states", exc)
             return
@@ -124,10 +120,10 @@ class TceNode(Node):
         out = TerrainImpedance()
         out.header.stamp = stamp_from_ns(stamp)
         out.header.frame_id = "world"
+        tangential = self.tce.tangential_estimates
         for leg, (sample, est) in enumerate(zip(usable, estimates)):
             out.stiffness_normal[leg] = est.stiffness_n_per_m
             out.damping_normal[leg] = est.damping_ns_per_m
-            tangential = self.tce.tangential_estimates
             out.stiffness_tangential[leg] = tangential[leg].stiffness_n_per_m if tangential else float("nan")
             out.damping_tangential[leg] = tangential[leg].damping_ns_per_m if tangential else float("nan")
             n = sample.normal

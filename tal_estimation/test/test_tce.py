@@ -10,6 +10,7 @@ from tal_core.legs import Leg
 from tal_core.robot_model import RobotModel
 from tal_estimation.tce import (
     ContactSample,
+    FiniteDifferenceAcceleration,
     KelvinVoigtWindows,
     TceSettings,
     TerrainComplianceEstimator,
@@ -206,3 +207,11 @@ def test_tangential_windows_fit_a_lateral_spring(model) -> None:
     tangential = tce.tangential_estimates
     assert tangential is not None and tangential[0].valid
     assert tangential[0].stiffness_n_per_m == pytest.approx(2.0e4, rel=0.02)
+
+
+def test_finite_difference_accelerations_skip_gaps() -> None:
+    acc = FiniteDifferenceAcceleration(max_gap_s=0.006)
+    assert acc.update(0.0, np.zeros(3)) is None
+    np.testing.assert_allclose(acc.update(0.004, np.array([0.004, 0.0, -0.008])), [1.0, 0.0, -2.0])
+    assert acc.update(0.020, np.ones(3)) is None          # a skipped tick: no difference across the gap
+    assert acc.update(0.010, np.ones(3)) is None          # out of order

@@ -40,7 +40,12 @@ from tal_core.legs import NUM_LEGS
 from tal_core.robot_description import load_robot_description
 from tal_core.robot_model import RobotModel
 from tal_core.terrain import Course, load_course
-from tal_estimation.tce import TceSettings, TerrainComplianceEstimator
+from tal_estimation.tce import (
+    FiniteDifferenceAcceleration,
+    TceSettings,
+    TerrainComplianceEstimator,
+    foot_penetration,
+)
 from tal_sim_bridge.bridge_core import BridgeCore
 from tal_sim_bridge.effects import ModelEffects
 from tal_sim_bridge.physics import SOFT_BOX_OVERLAP_M, RobotState, Simulation
@@ -263,8 +268,7 @@ def _true_penetration(contacts: list, course: Course, radius: float) -> np.ndarr
     for leg, contact in enumerate(contacts):
         x, y = float(contact.position_m[0]), float(contact.position_m[1])
         n = np.asarray(course.normal(x, y), dtype=float).reshape(3)
-        surface = np.array([x, y, float(course.height(x, y))])
-        out[leg] = float(n @ (surface - (contact.position_m - radius * n)))
+        out[leg] = foot_penetration(contact.position_m, radius, float(course.height(x, y)), n)
     return out
 
 
@@ -307,7 +311,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                              np.full(NUM_LEGS, config.terrain_damping_ns_per_m))
     radius = description.foot_radius_m
     nan4 = np.full(NUM_LEGS, np.nan)
-    v_prev: np.ndarray | None = None   # the TCE's previous v (finite-difference accelerations)
+    tce_accelerations = FiniteDifferenceAcceleration(max_gap_s=1.5 * config.physics_dt_s * config.control_decimation)
 
     recorder = _Recorder()
     n_steps = int(round(config.duration_s / config.physics_dt_s))
@@ -331,9 +335,8 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                     q = tce.model.make_q(state.base_position_m, state.base_quat_xyzw, state.joint_position_rad)
                     v = tce.model.make_v(state.base_lin_vel_m_s, state.base_ang_vel_rad_s,
                                          state.joint_velocity_rad_s, state.base_quat_xyzw)
-                    vdot = None if v_prev is None else (v - v_prev) / (config.physics_dt_s * decimation)
-                    v_prev = v
-                    samples = tce.contact_states(q, v, state.joint_torque_nm, height_fn, normal_fn, vdot=vdot)
+                    samples = tce.contact_states(q, v, state.joint_torque_nm, height_fn, normal_fn,
+                                                 vdot=tce_accelerations.update(t, v))
                     estimates = tce.update(samples)
                     tce_k = np.array([e.stiffness_n_per_m for e in estimates])
                     tce_d = np.array([e.damping_ns_per_m for e in estimates])

@@ -211,7 +211,7 @@ def settled_mask(log: ClosedLoopLog, leg: int, window: int) -> np.ndarray:
     return out
 
 
-def tce_accuracy(log: ClosedLoopLog, window: int, out: Path, plot_name: str, title: str) -> dict:
+def tce_accuracy(log: ClosedLoopLog, window: int) -> dict:
     """Per leg and terrain: mean, std and % error of the estimate over settled stance samples."""
     result: dict[str, dict] = {}
     for leg in LEGS:
@@ -227,6 +227,11 @@ def tce_accuracy(log: ClosedLoopLog, window: int, out: Path, plot_name: str, tit
                                     "error_percent": float(100.0 * abs(np.mean(values) - k_true) / k_true),
                                     "samples": int(mask.sum())}
         result[leg.name] = per_terrain
+    return result
+
+
+def plot_estimates(log: ClosedLoopLog, path: Path, title: str) -> None:
+    """Per leg: the TCE estimate over time against the true stiffness under the foot (log scale)."""
     fig, axes = plt.subplots(4, 1, figsize=(11, 10), sharex=True)
     for leg, ax in zip(LEGS, axes):
         ax.semilogy(log.t, log.terrain_stiffness[:, leg], "k--", lw=1.2, label="true")
@@ -237,9 +242,8 @@ def tce_accuracy(log: ClosedLoopLog, window: int, out: Path, plot_name: str, tit
     axes[0].set_title(title)
     axes[-1].set_xlabel("t [s]")
     fig.tight_layout()
-    fig.savefig(out / plot_name, dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    return result
 
 
 # -- 3. aggressive manoeuvres ------------------------------------------------------------------------------
@@ -386,8 +390,7 @@ def lateral_analysis(log: ClosedLoopLog, out: Path) -> dict:
         k_est = float(log.tce_stiffness[-1, leg])
         result[leg.name] = {"terrain": TERRAIN_BY_STIFFNESS.get(k_true, "?"), "true_n_per_m": k_true,
                             "estimate_n_per_m": k_est, "error_percent": 100.0 * abs(k_est - k_true) / k_true}
-    tce_accuracy(log, TceSettings().window, out, "lateral_transition.png",
-                 "Lateral transition: left feet on T1, right feet rigid")
+    plot_estimates(log, out / "lateral_transition.png", "Lateral transition: left feet on T1, right feet rigid")
     return result
 
 
@@ -403,8 +406,9 @@ def main(argv: list[str] | None = None) -> int:
     runs = plan(out, args.quick)
     logs = execute(runs, max(1, args.jobs))
     grf = grf_analysis(logs, out)
-    tce = tce_accuracy(logs["tce_transition"], TceSettings().window, out, "tce_transition.png",
-                       "TCE on the transition course (rigid, T1, T2, T3, rigid), STANCE crawl 0.1 m/s")
+    tce = tce_accuracy(logs["tce_transition"], TceSettings().window)
+    plot_estimates(logs["tce_transition"], out / "tce_transition.png",
+                   "TCE on the transition course (rigid, T1, T2, T3, rigid), STANCE crawl 0.1 m/s")
     lateral = lateral_analysis(logs["lateral"], out)
     aggressive = aggressive_analysis(logs, out)
     ramp = ramp_analysis(logs, out)

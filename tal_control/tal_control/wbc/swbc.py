@@ -363,19 +363,19 @@ class StandardWbc:
         A = self._A
         dt = s.control_period_s
         touchdown = refs.stance & ~self._was_stance
-        if touchdown.any():
+        velocities = self.model.foot_velocities()
+        normals = refs.normals / np.linalg.norm(refs.normals, axis=1, keepdims=True)
+        for leg in np.flatnonzero(touchdown):
             # A fresh contact starts undeformed but with the foot's measured normal velocity (eps_dot = -n.v):
             # starting from rest would make the model demand a force the moving foot does not produce.
-            velocities = self.model.foot_velocities()
-            for leg in np.flatnonzero(touchdown):
-                n = refs.normals[leg] / np.linalg.norm(refs.normals[leg])
-                self._eps_prev[leg] = 0.0
-                self._eps_prev2[leg] = float(n @ velocities[leg]) * n * dt   # eps_{k-2} = eps_{k-1} - eps_dot dt
+            n = normals[leg]
+            self._eps_prev[leg] = 0.0
+            self._eps_prev2[leg] = float(n @ velocities[leg]) * n * dt   # eps_{k-2} = eps_{k-1} - eps_dot dt
         self._was_stance = refs.stance.copy()
         if s.penetration_history == "measured":
-            feet, velocities = self.model.foot_positions(), self.model.foot_velocities()
+            feet = self.model.foot_positions()
             for leg in np.flatnonzero(refs.stance):
-                n = refs.normals[leg] / np.linalg.norm(refs.normals[leg])
+                n = normals[leg]
                 sink = float(n @ (refs.touchdown_position[leg] - feet[leg]))   # [m] along -n since touchdown
                 rate = -float(n @ velocities[leg])                             # [m/s]
                 for history, value in ((self._eps_prev, sink), (self._eps_prev2, sink - rate * dt)):
@@ -392,7 +392,7 @@ class StandardWbc:
         for leg in range(NUM_LEGS):
             rows = slice(3 * leg, 3 * leg + 3)
             eps_cols = lay.leg_cols(lay.penetration, leg)
-            n = refs.normals[leg] / np.linalg.norm(refs.normals[leg])
+            n = normals[leg]
             t1, t2 = tangent_basis(n)
             contact_R = np.vstack([n, t1, t2])         # rows: contact-frame axes in world coordinates
             model_rows = self._model_rows[rows]
