@@ -81,6 +81,7 @@ class SimBridgeNode(Node):
         self.duration_steps = (round(p["duration_s"] * p["physics_rate_hz"]) if p["duration_s"] > 0 else None)
         self.finished = False
         self.lockstep_timeouts = 0
+        self.initial_state_repeats = 0  # re-sends of the initial state while waiting for a controller
         self.realtime_overruns = 0
         self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
 
@@ -185,6 +186,7 @@ class SimBridgeNode(Node):
             # Controllers may join after the bridge (DDS discovery): re-send the initial state until the
             # first command arrives. Consumers drop the repeated stamp as not newer.
             self._publish_step_outputs(force_all=True, record=False)
+            self.initial_state_repeats += 1
         # Before the first command, give DDS discovery time (seconds with LOCALHOST discovery).
         timeout = (self.params["startup_timeout_s"] if self.core.commands.accepted == 0
                    else self.params["lockstep_timeout_s"])
@@ -329,6 +331,7 @@ class SimBridgeNode(Node):
     def summary(self) -> dict[str, object]:
         summary = self.core.summary(time.monotonic() - self._wall_start)
         summary.update(mode=self.mode, lockstep_timeouts=self.lockstep_timeouts,
+                       initial_state_repeats=self.initial_state_repeats,
                        realtime_overruns=self.realtime_overruns)
         return summary
 
