@@ -17,18 +17,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-NS_PER_S = 1_000_000_000
-TICK_TOLERANCE_NS = 100_000  # [ns] stamps are exact multiples of the physics step; absorb rounding
-
-
-def reaches_tick(stamp_ns: int, next_tick_ns: int) -> bool:
-    """True when a sample stamped ``stamp_ns`` is at (or past) the control tick ``next_tick_ns``."""
-    return stamp_ns >= next_tick_ns - TICK_TOLERANCE_NS
-
-
-def tick_after(stamp_ns: int, period_ns: int) -> int:
-    """The next control tick [ns] after the one at ``stamp_ns``, on the sim-time grid k * period_ns."""
-    return ((stamp_ns + TICK_TOLERANCE_NS) // period_ns + 1) * period_ns
+from tal_core.ticks import NS_PER_S, TICK_TOLERANCE_NS, reaches_tick, tick_after  # noqa: F401 (re-exported)
 
 
 def stamp_from_ns(nanoseconds: int) -> Time:

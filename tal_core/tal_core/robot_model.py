@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
@@ -39,6 +40,18 @@ _BASE_PLACEMENT_TOLERANCE = 1e-9  # [m] / [-] the base frame must coincide with 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 
 
+@dataclass(frozen=True)
+class FootDynamics:
+    """What leg odometry and contact-force estimation need at one (q, v), world frame: foot positions
+    (4, 3) [m], foot Jacobians (12, nv), foot velocities (4, 3) [m/s], h (nv,) and optionally M (nv, nv)."""
+
+    foot_positions: np.ndarray
+    foot_jacobians: np.ndarray
+    foot_velocities: np.ndarray
+    nonlinear_effects: np.ndarray
+    mass_matrix: np.ndarray | None
+
+
 class RobotModel:
     """Rigid-body model of a floating-base quadruped (Pinocchio) with tal's leg and frame conventions."""
 
@@ -47,6 +60,7 @@ class RobotModel:
         self.model: pin.Model = pin.buildModelFromUrdf(str(description.urdf_path), pin.JointModelFreeFlyer())
         self.data: pin.Data = self.model.createData()
         self._scratch_data: pin.Data = self.model.createData()  # for queries that must not touch the cache
+        self._feet_data: pin.Data = self.model.createData()  # for foot_dynamics (leaves the cache alone)
         self.nq: int = self.model.nq
         self.nv: int = self.model.nv
         self.total_mass_kg: float = float(pin.computeTotalMass(self.model))
@@ -210,6 +224,24 @@ class RobotModel:
         )
         self._hip_positions = None  # computed on first request: few consumers need it every tick
         self._updated = True
+
+    def foot_dynamics(self, q: ArrayLike, v: ArrayLike, with_mass_matrix: bool = False) -> FootDynamics:
+        """Foot kinematics and h (optionally M) for (q, v), about 4x cheaper than ``update`` (no CoM, no
+        dJ v, no full-model terms) and independent of its cache."""
+        q = self._checked_q(q)
+        v = _checked_vector(v, self.nv, "v")
+        model, data = self.model, self._feet_data
+        pin.computeJointJacobians(model, data, q)
+        pin.updateFramePlacements(model, data)
+        nle = pin.nonLinearEffects(model, data, q, v).copy()
+        mass = None
+        if with_mass_matrix:
+            upper = pin.crba(model, data, q)
+            mass = np.where(self._upper_triangle, upper, upper.T)
+        feet = self._foot_frame_ids
+        jacobians = np.vstack([pin.getFrameJacobian(model, data, fid, _LWA)[:3] for fid in feet])
+        positions = np.array([data.oMf[fid].translation for fid in feet])
+        return FootDynamics(positions, jacobians, (jacobians @ v).reshape(NUM_LEGS, 3), nle, mass)
 
     # ------------------------------------------------------------------------------------------------
     # Accessors (valid after update; arrays are replaced, never modified, by the next update)

@@ -21,3 +21,60 @@ def yaw_from_quat_xyzw(quat: np.ndarray) -> float:
     """Heading [rad] (rotation about world z) of a unit quaternion (x, y, z, w)."""
     x, y, z, w = quat
     return float(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
+
+
+def skew(vector: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrix S(v) with S(v) w = v x w."""
+    x, y, z = vector
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def so3_exp(rotation_vector: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector [rad] (axis times angle), Rodrigues' formula."""
+    angle = float(np.linalg.norm(rotation_vector))
+    k = skew(rotation_vector)
+    if angle < 1e-8:
+        return np.eye(3) + k + 0.5 * (k @ k)
+    return np.eye(3) + (np.sin(angle) / angle) * k + ((1.0 - np.cos(angle)) / angle**2) * (k @ k)
+
+
+def so3_log(rotation: np.ndarray) -> np.ndarray:
+    """Rotation vector [rad] of a rotation matrix (inverse of ``so3_exp`` for angles below pi)."""
+    cos_angle = float(np.clip(0.5 * (np.trace(rotation) - 1.0), -1.0, 1.0))
+    angle = float(np.arccos(cos_angle))
+    axis_sin = 0.5 * np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
+                               rotation[1, 0] - rotation[0, 1]])
+    if angle < 1e-6:
+        return axis_sin
+    if np.pi - angle < 1e-4:  # near pi the antisymmetric part vanishes: take the axis from R + I
+        column = int(np.argmax(np.diag(rotation)))
+        axis = (rotation[:, column] + np.eye(3)[column]) / np.sqrt(2.0 * (1.0 + rotation[column, column]))
+        return angle * axis
+    return angle / np.sin(angle) * axis_sin
+
+
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation matrix closest to ``matrix`` in the Frobenius norm (polar decomposition)."""
+    u, _, vt = np.linalg.svd(matrix)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def quat_xyzw_from_rotation(rotation: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), w >= 0, of a rotation matrix (Shepperd's method)."""
+    m = rotation
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0.0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        quat = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s])
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        quat = np.array([0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s])
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        quat = np.array([(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s])
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        quat = np.array([(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s])
+    quat /= np.linalg.norm(quat)
+    return quat if quat[3] >= 0.0 else -quat

@@ -143,6 +143,8 @@ class TickContext:
 
 
 TickHook = Callable[[TickContext], "np.ndarray | None"]
+StepHook = Callable[[float, RobotState, BridgeCore], None]
+"""Called after every physics step with (sim time [s], the new ground-truth state, the bridge core)."""
 
 
 @dataclass
@@ -272,8 +274,10 @@ def _true_penetration(contacts: list, course: Course, radius: float) -> np.ndarr
     return out
 
 
-def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> ClosedLoopLog:
-    """Run ``config`` and return its log; ``hook`` is called every control tick (see TickContext)."""
+def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
+                    step_hook: StepHook | None = None) -> ClosedLoopLog:
+    """Run ``config`` and return its log; ``hook`` is called every control tick (see TickContext),
+    ``step_hook`` after every physics step (e.g. to record the 1 kHz sensors)."""
     description = load_robot_description(config.robot)
     model = RobotModel(description)
     gait = PRESETS[config.gait] if isinstance(config.gait, str) else config.gait
@@ -415,7 +419,9 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None) -> C
                         sys.stderr.write(f"[{config.name}] FELL at t={t:.2f} s ({fall_reason})\n")
                     if config.stop_on_fall:
                         break
-            core.step()
+            stepped = core.step()
+            if step_hook is not None:
+                step_hook((k + 1) * config.physics_dt_s, stepped, core)
             if config.progress and (k + 1) % steps_per_second == 0:
                 st = sim.robot_state()
                 elapsed = time.perf_counter() - wall_start

@@ -1,0 +1,181 @@
+"""Leg odometry: the base velocity from the stance feet (thesis eq. lo), rigid or terrain aware.
+
+For every leg, with the joint positions q, joint velocities qd, measured torques tau, the base attitude
+world_R_base and the base angular velocity w (world frame):
+
+* ground reaction force (thesis eq. grf): J_leg^T F = h_leg (+ M_leg vdot) - tau_leg, world frame;
+* the foot's velocity relative to a base origin that does not translate, world frame:
+  v_rel = w x (world_R_base r_foot) + world_R_base J_leg(q) qd;
+* the base velocity this leg reads: v_base = v_foot - v_rel, where v_foot is the foot's own velocity.
+
+``rigid`` (the thesis): v_foot = 0, binary contact alpha = ||F|| > threshold, v = mean over the legs in
+contact. ``terrain_aware`` (beyond the thesis, its future-work item): the stance foot sinks into and
+rises with a Kelvin-Voigt ground F_n = K p + D dp/dt whose K and D come from the TCE. Given the measured
+normal force the penetration obeys D dp/dt = F_n - K p, integrated exactly per interval (stable for any
+K/D) from p = 0 at touchdown, so v_foot = -(dp/dt) n; the legs are averaged with a continuous contact
+probability (a smoothstep of the normal force) instead of the binary threshold, so the loading
+and unloading phases neither chatter nor vanish. A leg without a valid impedance is treated as rigid.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from tal_core.errors import InputError
+from tal_core.legs import NUM_LEGS
+from tal_core.robot_model import RobotModel
+from tal_core.rotations import quat_xyzw_from_rotation
+
+LEG_ODOMETRY_MODES = ("rigid", "terrain_aware")
+
+
+@dataclass(frozen=True)
+class LegOdometrySettings:
+    """mode: rigid | terrain_aware. contact_threshold_weight_fraction [-]: contact force threshold as a
+    fraction of the robot's weight (robot agnostic; 0.1 -> 85 N for HyQ). probability_width_fraction [-]:
+    half-width of the contact probability ramp (smoothstep), as a fraction of the threshold.
+    swing_probability [-]: below it a leg is in swing (its penetration state resets). use_leg_inertia:
+    include M_leg vdot in the force (vdot from the IMU and finite differences; terrain_aware only, the
+    thesis uses the static form)."""
+
+    mode: str = "rigid"
+    contact_threshold_weight_fraction: float = 0.1
+    probability_width_fraction: float = 0.5
+    swing_probability: float = 1e-6
+    use_leg_inertia: bool = True
+
+    def __post_init__(self) -> None:
+        if self.mode not in LEG_ODOMETRY_MODES:
+            raise InputError(f"leg odometry mode must be one of {LEG_ODOMETRY_MODES}, got {self.mode!r}")
+        for name in ("contact_threshold_weight_fraction", "probability_width_fraction", "swing_probability"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 < value < 1.0):
+                raise InputError(f"LegOdometrySettings.{name} must be in (0, 1), got {value!r}")
+
+
+@dataclass(frozen=True)
+class LegImpedance:
+    """Per-leg Kelvin-Voigt ground along the contact normal: stiffness [N/m], damping [N s/m], unit normal
+    (world frame), valid flags. Shapes (4,), (4,), (4, 3), (4,)."""
+
+    stiffness_n_per_m: np.ndarray
+    damping_ns_per_m: np.ndarray
+    normal: np.ndarray
+    valid: np.ndarray
+
+
+@dataclass(frozen=True)
+class LegOdometryOutput:
+    """base_velocity [m/s] world frame (NaN when no leg supports); weight_sum [-] (number of supporting
+    legs, fractional when terrain aware); per leg: force [N] world, contact flag, probability [0, 1],
+    leg_velocity [m/s] world (the base velocity this leg reads), foot_velocity [m/s] world (modelled),
+    penetration [m] (terrain aware; 0 otherwise)."""
+
+    base_velocity: np.ndarray
+    weight_sum: float
+    force: np.ndarray
+    in_contact: np.ndarray
+    probability: np.ndarray
+    leg_velocity: np.ndarray
+    foot_velocity: np.ndarray
+    penetration: np.ndarray
+
+
+class LegOdometry:
+    """Base velocity from the legs; robot agnostic (everything from the RobotModel's URDF + YAML)."""
+
+    def __init__(self, model: RobotModel, settings: LegOdometrySettings | None = None,
+                 gravity_m_s2: float = 9.81) -> None:
+        self.model = model
+        self.settings = settings or LegOdometrySettings()
+        self.threshold_n = self.settings.contact_threshold_weight_fraction * model.total_mass_kg * gravity_m_s2
+        self._width_n = self.settings.probability_width_fraction * self.threshold_n
+        self._v_index = [model.leg_joint_v_indices(leg) for leg in range(NUM_LEGS)]
+        self._tau_index = [np.arange(3 * leg, 3 * leg + 3) for leg in range(NUM_LEGS)]
+        self._origin = np.zeros(3)
+        self.penetration = np.zeros(NUM_LEGS)
+        self._previous_v: np.ndarray | None = None
+        self._penetration_rate = np.zeros(NUM_LEGS)
+
+    def _forces(self, jacobians: np.ndarray, h: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """(4, 3) ground reaction forces [N] world: J_leg^T F = h_leg - tau_leg for all legs in one batched
+        solve; a singular (stretched) leg falls back to the least-squares force."""
+        blocks = np.stack([jacobians[3 * leg:3 * leg + 3, self._v_index[leg]].T for leg in range(NUM_LEGS)])
+        rhs = np.stack([h[self._v_index[leg]] - tau[self._tau_index[leg]] for leg in range(NUM_LEGS)])
+        try:
+            return np.linalg.solve(blocks, rhs[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            return np.stack([np.linalg.lstsq(blocks[leg], rhs[leg], rcond=None)[0] for leg in range(NUM_LEGS)])
+
+    def contact_probability(self, normal_force_n: np.ndarray) -> np.ndarray:
+        """Smoothstep from 0 at threshold - width to 1 at threshold + width: exactly zero for a swinging
+        foot, whose large velocity would otherwise leak into the average even with a tiny weight."""
+        x = np.clip((normal_force_n - self.threshold_n + self._width_n) / (2.0 * self._width_n), 0.0, 1.0)
+        return x * x * (3.0 - 2.0 * x)
+
+    def reset(self) -> None:
+        self.penetration[:] = 0.0
+        self._penetration_rate[:] = 0.0
+        self._previous_v = None
+
+    def update(self, dt: float, world_R_base: np.ndarray, angular_velocity_world: np.ndarray,
+               joint_positions: np.ndarray, joint_velocities: np.ndarray, joint_torques: np.ndarray,
+               base_acceleration_world: np.ndarray | None = None,
+               impedance: LegImpedance | None = None) -> LegOdometryOutput:
+        """One odometry sample. Joint arrays in canonical order [rad, rad/s, N m]; ``dt`` [s] since the
+        previous sample (for the penetration integration and finite differences)."""
+        m, s = self.model, self.settings
+        quat = quat_xyzw_from_rotation(world_R_base)
+        q = m.make_q(self._origin, quat, joint_positions)
+        v = m.make_v(self._origin, angular_velocity_world, joint_velocities, quat)
+        terrain_aware = s.mode == "terrain_aware"
+        inertia = terrain_aware and s.use_leg_inertia
+        feet = m.foot_dynamics(q, v, with_mass_matrix=inertia)
+        h = feet.nonlinear_effects
+        if inertia:
+            if self._previous_v is not None and base_acceleration_world is not None and dt > 0.0:
+                vdot = (v - self._previous_v) / dt
+                vdot[0:3] = world_R_base.T @ base_acceleration_world  # the IMU's, not a difference of zeros
+                h = h + feet.mass_matrix @ vdot
+            self._previous_v = v
+        relative = feet.foot_velocities
+        force = self._forces(feet.foot_jacobians, h, np.asarray(joint_torques, dtype=float))
+        foot_velocity = np.zeros((NUM_LEGS, 3))
+        if terrain_aware:
+            normals = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1)) if impedance is None else impedance.normal
+            normal_force = np.maximum(np.einsum("lk,lk->l", force, normals), 0.0)
+            probability = self.contact_probability(normal_force)
+            weights = probability
+            in_contact = probability > 0.5
+            self._integrate_penetration(dt, normal_force, probability, impedance)
+            if impedance is not None:
+                foot_velocity = -self._penetration_rate[:, None] * normals
+        else:
+            norm = np.linalg.norm(force, axis=1)
+            in_contact = norm > self.threshold_n
+            probability = in_contact.astype(float)
+            weights = probability
+        leg_velocity = foot_velocity - relative
+        weight_sum = float(weights.sum())
+        base_velocity = (weights @ leg_velocity) / weight_sum if weight_sum > 1e-6 else np.full(3, np.nan)
+        return LegOdometryOutput(base_velocity, weight_sum, force, in_contact, probability, leg_velocity,
+                                 foot_velocity, self.penetration.copy())
+
+    def _integrate_penetration(self, dt: float, normal_force: np.ndarray, probability: np.ndarray,
+                               impedance: LegImpedance | None) -> None:
+        """p(t + dt) of D dp/dt + K p = F_n with F_n held over dt (exact); dp/dt at the end of the step."""
+        rate = np.zeros(NUM_LEGS)
+        swing = probability < self.settings.swing_probability
+        self.penetration[swing] = 0.0
+        if impedance is not None and dt > 0.0:
+            for leg in range(NUM_LEGS):
+                k, d = float(impedance.stiffness_n_per_m[leg]), float(impedance.damping_ns_per_m[leg])
+                if swing[leg] or not impedance.valid[leg] or not (k > 0.0 and d > 0.0):
+                    continue
+                static = normal_force[leg] / k
+                self.penetration[leg] = static + (self.penetration[leg] - static) * math.exp(-k * dt / d)
+                rate[leg] = (normal_force[leg] - k * self.penetration[leg]) / d
+        self._penetration_rate = rate

@@ -1,0 +1,256 @@
+"""The proprioceptive state estimator of the thesis (state-estimation chapter): attitude observer (NLO +
+XKF), leg odometry and a linear time-varying Kalman filter on base position and velocity (filterpy).
+
+One ``update`` is one estimator tick (333 Hz by default). Its IMU input is the mean of the IMU samples
+since the previous tick (specific force [m/s^2] and angular rate [rad/s], IMU frame; the 1 kHz samples
+are pre-integrated, which for the linear parts is the same as integrating them one by one); its joint
+input is the joint state of the tick. The KF (thesis eq. kf):
+
+    x = (p, v) world frame,   x+ = F x + B u,  u = world_R_base f + g   (g = (0, 0, -9.81))
+    z = v_leg_odometry,       H = [0 I],       R = sigma_lo^2 / (supporting legs) I
+
+Position is not observable (only velocity is measured), so it drifts; that drift on soft ground is what
+the thesis studies. Nothing here imports rclpy: the node and the offline replay use the same class.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from tal_core.errors import InputError
+from tal_core.legs import NUM_LEGS
+from tal_core.robot_model import RobotModel
+from tal_core.rotations import quat_xyzw_from_rotation, rotation_from_quat_xyzw
+
+from .attitude import AttitudeEstimator, AttitudeSettings
+from .leg_odometry import LegImpedance, LegOdometry, LegOdometryOutput, LegOdometrySettings
+
+GRAVITY_WORLD = np.array([0.0, 0.0, -9.81])
+KNOWN_ATTITUDE_STD_RAD = 0.01  # [rad] uncertainty of an initial attitude that is given (e.g. ground truth)
+
+
+class EstimatorInputError(InputError):
+    """A sample the estimator cannot use; ``reason`` is a short key for diagnostics counters."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class StateEstimatorSettings:
+    """Noise figures (SI) and limits of the position/velocity filter, plus the parts' settings.
+
+    accel_noise_m_s2: std of the acceleration input per tick (IMU noise and unmodelled motion).
+    leg_velocity_noise_m_s: std of one leg's velocity reading. min_support [-]: below this weight sum of
+    supporting legs there is no velocity update (flight). max_gap_periods: a larger gap between ticks
+    re-initialises the velocity filter. accel_range_m_s2, gyro_range_rad_s: saturation limits of the IMU
+    (a sample at or beyond them is rejected).
+    """
+
+    period_s: float = 0.003
+    accel_noise_m_s2: float = 0.5
+    leg_velocity_noise_m_s: float = 0.05
+    initial_position_std_m: float = 0.01
+    initial_velocity_std_m_s: float = 0.1
+    min_support: float = 0.5
+    max_gap_periods: int = 10
+    accel_range_m_s2: float = 160.0
+    gyro_range_rad_s: float = 8.7
+    attitude: AttitudeSettings = field(default_factory=AttitudeSettings)
+    leg_odometry: LegOdometrySettings = field(default_factory=LegOdometrySettings)
+
+    def __post_init__(self) -> None:
+        for name in ("period_s", "accel_noise_m_s2", "leg_velocity_noise_m_s", "initial_position_std_m",
+                     "initial_velocity_std_m_s", "min_support", "accel_range_m_s2", "gyro_range_rad_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise InputError(f"StateEstimatorSettings.{name} must be finite and > 0, got {value!r}")
+        if int(self.max_gap_periods) < 1:
+            raise InputError(f"StateEstimatorSettings.max_gap_periods must be >= 1, got {self.max_gap_periods!r}")
+
+
+@dataclass(frozen=True)
+class StateEstimate:
+    """One tick's estimate. World frame unless noted; quaternion (x, y, z, w) is world_R_base.
+
+    position_covariance (3, 3) [m^2], velocity_covariance (3, 3) [m^2/s^2] world; attitude_covariance
+    (3, 3) [rad^2] about the world axes; angular_velocity_base [rad/s] is the bias-corrected gyro.
+    """
+
+    t_s: float
+    position: np.ndarray
+    quat_xyzw: np.ndarray
+    linear_velocity: np.ndarray
+    angular_velocity_base: np.ndarray
+    position_covariance: np.ndarray
+    velocity_covariance: np.ndarray
+    attitude_covariance: np.ndarray
+    gyro_bias: np.ndarray
+    legs: LegOdometryOutput
+
+    @property
+    def world_R_base(self) -> np.ndarray:
+        return rotation_from_quat_xyzw(self.quat_xyzw)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for 3-vectors (np.cross costs ~25 us of axis bookkeeping per call)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _checked(value: np.ndarray, size: int, name: str, reason: str) -> np.ndarray:
+    array = np.asarray(value, dtype=float)
+    if array.shape != (size,):
+        raise EstimatorInputError(reason, f"{name} must have {size} values, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise EstimatorInputError(reason, f"{name} has NaN or inf: {array}")
+    return array
+
+
+class StateEstimator:
+    """Attitude observer + leg odometry + LTV Kalman filter; robot agnostic (URDF + robot YAML)."""
+
+    def __init__(self, model: RobotModel, settings: StateEstimatorSettings | None = None,
+                 magnetic_field_world: np.ndarray | None = None) -> None:
+        self.model = model
+        self.settings = settings or StateEstimatorSettings()
+        self.legs = LegOdometry(model, self.settings.leg_odometry)
+        self._magnetic_field_world = magnetic_field_world
+        imu = model.description
+        self._base_R_imu = rotation_from_quat_xyzw(np.asarray(imu.base_quat_imu_xyzw, float))
+        self._imu_position = np.asarray(imu.imu_position_base_m, float)
+        self._previous_gyro_base: np.ndarray | None = None
+        self.attitude: AttitudeEstimator | None = None
+        self.kf: KalmanFilter | None = None
+        self.t_s: float | None = None
+        self.reinitialisations = 0
+        self._model_dt = -1.0
+        self._measurement_noise = np.eye(3) * self.settings.leg_velocity_noise_m_s**2
+
+    # -- initialisation -----------------------------------------------------------------------------------
+    def initialise(self, t_s: float, position: np.ndarray, world_R_base: np.ndarray | None = None,
+                   velocity: np.ndarray | None = None, attitude_std_rad: float | None = None) -> None:
+        """Start (or restart) at ``position`` [m] world, optional attitude (with its uncertainty
+        ``attitude_std_rad``; default: known to 0.01 rad if given, unknown otherwise) and velocity [m/s]."""
+        s = self.settings
+        if attitude_std_rad is None and world_R_base is not None:
+            attitude_std_rad = KNOWN_ATTITUDE_STD_RAD
+        self.attitude = AttitudeEstimator(s.attitude, world_R_base, self._magnetic_field_world, attitude_std_rad)
+        kf = KalmanFilter(dim_x=6, dim_z=3, dim_u=3)
+        kf.x = np.concatenate([_checked(position, 3, "initial position", "initial"),
+                               np.zeros(3) if velocity is None else _checked(velocity, 3, "initial velocity",
+                                                                             "initial")]).reshape(6, 1)
+        kf.P = np.diag([s.initial_position_std_m**2] * 3 + [s.initial_velocity_std_m_s**2] * 3)
+        kf.H = np.hstack([np.zeros((3, 3)), np.eye(3)])
+        self.kf = kf
+        self._model_dt = -1.0
+        self.legs.reset()
+        self._previous_gyro_base = None
+        self.t_s = float(t_s)
+
+    def initialise_standing(self, t_s: float, joint_positions: np.ndarray, xy: tuple[float, float] = (0.0, 0.0),
+                            ground_height_m: float = 0.0, world_R_base: np.ndarray | None = None) -> None:
+        """Start with the base above ``xy`` at the height its legs reach down to the ground (all feet on
+        flat ground at ``ground_height_m``), level unless ``world_R_base`` is given."""
+        rotation = np.eye(3) if world_R_base is None else world_R_base
+        q = self.model.make_q(np.zeros(3), quat_xyzw_from_rotation(rotation),
+                              _checked(joint_positions, len(self.model.description.joint_names),
+                                       "joint positions", "joints"))
+        self.model.update(q, np.zeros(self.model.nv))
+        feet = self.model.foot_positions()
+        height = ground_height_m + self.model.description.foot_radius_m - float(np.mean(feet[:, 2]))
+        self.initialise(t_s, np.array([xy[0], xy[1], height]), world_R_base)
+
+    @property
+    def initialised(self) -> bool:
+        return self.kf is not None
+
+    # -- one tick -----------------------------------------------------------------------------------------
+    def check_imu(self, specific_force: np.ndarray, angular_rate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Validated (specific force, angular rate) of one IMU sample; EstimatorInputError otherwise."""
+        s = self.settings
+        f = _checked(specific_force, 3, "specific force", "imu_nan")
+        w = _checked(angular_rate, 3, "angular rate", "imu_nan")
+        if np.max(np.abs(f)) >= s.accel_range_m_s2 or np.max(np.abs(w)) >= s.gyro_range_rad_s:
+            raise EstimatorInputError("imu_saturated", f"IMU sample at or beyond its range "
+                                      f"(|f| max {np.max(np.abs(f)):.1f} m/s^2, |w| max {np.max(np.abs(w)):.2f} rad/s)")
+        return f, w
+
+    def update(self, t_s: float, specific_force: np.ndarray, angular_rate: np.ndarray,
+               joint_positions: np.ndarray, joint_velocities: np.ndarray, joint_torques: np.ndarray,
+               impedance: LegImpedance | None = None, magnetic_field: np.ndarray | None = None) -> StateEstimate:
+        """One tick at ``t_s`` [s] with IMU means since the previous tick (IMU frame) and the joint state
+        of the tick (canonical order). Raises EstimatorInputError (reason key) for unusable input;
+        a gap of more than ``max_gap_periods`` re-initialises the velocity filter (counted)."""
+        if self.kf is None or self.attitude is None or self.t_s is None:
+            raise EstimatorInputError("not_initialised", "state estimator: call initialise() first")
+        s = self.settings
+        n = len(self.model.description.joint_names)
+        q = _checked(joint_positions, n, "joint positions", "joints")
+        qd = _checked(joint_velocities, n, "joint velocities", "joints")
+        tau = _checked(joint_torques, n, "joint torques", "joints")
+        f_imu, w_imu = self.check_imu(specific_force, angular_rate)
+        if not math.isfinite(t_s) or t_s <= self.t_s:
+            raise EstimatorInputError("out_of_order", f"tick at {t_s:.6f} s is not after the previous one "
+                                      f"({self.t_s:.6f} s)")
+        dt = t_s - self.t_s
+        if dt > s.max_gap_periods * s.period_s:
+            self._reinitialise_velocity()
+            dt = s.period_s
+        self.t_s = float(t_s)
+
+        gyro = self._base_R_imu @ w_imu
+        f_base = self._base_R_imu @ f_imu
+        if self._previous_gyro_base is not None:  # lever arm of an IMU away from the base origin
+            alpha = (gyro - self._previous_gyro_base) / dt
+            f_base = f_base - _cross(alpha, self._imu_position) - _cross(gyro, _cross(gyro, self._imu_position))
+        self._previous_gyro_base = gyro
+        mag = None if magnetic_field is None else self._base_R_imu @ _checked(magnetic_field, 3, "magnetic field",
+                                                                               "mag_nan")
+        self.attitude.update(dt, f_base, gyro, mag)
+        world_R_base = self.attitude.world_R_base
+        omega_base = gyro - self.attitude.gyro_bias
+        acceleration = world_R_base @ f_base + GRAVITY_WORLD
+
+        kf = self.kf
+        if abs(dt - self._model_dt) > 1e-9:  # the discrete model only changes with the interval
+            self._model_dt = dt
+            kf.F = np.kron([[1.0, dt], [0.0, 1.0]], np.eye(3))
+            kf.B = np.kron([[0.5 * dt * dt], [dt]], np.eye(3))
+            kf.Q = np.kron([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]], np.eye(3)) * s.accel_noise_m_s2**2
+        kf.predict(u=acceleration.reshape(3, 1))
+        legs = self.legs.update(dt, world_R_base, world_R_base @ omega_base, q, qd, tau,
+                                base_acceleration_world=acceleration, impedance=impedance)
+        if legs.weight_sum >= s.min_support:
+            kf.update(legs.base_velocity.reshape(3, 1), R=self._measurement_noise / legs.weight_sum)
+        x = kf.x.ravel()
+        p = kf.P
+        attitude_cov = world_R_base @ self.attitude.attitude_covariance @ world_R_base.T
+        return StateEstimate(self.t_s, x[:3].copy(), quat_xyzw_from_rotation(world_R_base), x[3:].copy(),
+                             omega_base, p[:3, :3].copy(), p[3:, 3:].copy(), attitude_cov,
+                             self.attitude.gyro_bias.copy(), legs)
+
+    def _reinitialise_velocity(self) -> None:
+        """After a gap: keep position and attitude, forget the velocity and the leg states."""
+        assert self.kf is not None
+        s = self.settings
+        self.kf.x[3:] = 0.0
+        self.kf.P[3:, :] = 0.0
+        self.kf.P[:, 3:] = 0.0
+        self.kf.P[3:, 3:] = np.eye(3) * s.initial_velocity_std_m_s**2
+        self.legs.reset()
+        self._previous_gyro_base = None
+        self.reinitialisations += 1
+
+
+def legs_from_impedance_arrays(stiffness: np.ndarray, damping: np.ndarray, valid: np.ndarray,
+                               normal: np.ndarray | None = None) -> LegImpedance:
+    """LegImpedance from per-leg arrays (normal defaults to world z)."""
+    normals = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1)) if normal is None else np.asarray(normal, float)
+    return LegImpedance(np.asarray(stiffness, float), np.asarray(damping, float), normals,
+                        np.asarray(valid, bool) & np.isfinite(stiffness) & np.isfinite(damping))
