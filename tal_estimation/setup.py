@@ -25,6 +25,7 @@ setup(
     entry_points={
         "console_scripts": [
             "tce = tal_estimation.tce_node:main",
+            "state_estimator = tal_estimation.state_estimator_node:main",
         ],
     },
 )

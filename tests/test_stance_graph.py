@@ -22,7 +22,8 @@ def test_tce_feeds_the_compliant_wbc_on_t2(context, spin_until) -> None:
         Parameter("course", value="flat_t2"), Parameter("duration_s", value=5.0),
         Parameter("heightmap_rows", value=81), Parameter("heightmap_cols", value=81)])
     wbc = WbcNode(context=context, parameter_overrides=[
-        Parameter("gait", value="crawl"), Parameter("contact_model", value="compliant")])
+        Parameter("gait", value="crawl"), Parameter("contact_model", value="compliant"),
+        Parameter("state_source", value="ground_truth")])
     tce = TceNode(context=context)
     script = CmdVelScriptNode(context=context, parameter_overrides=[
         Parameter("profile", value=[0.0, 0.0, 0.0, 0.0, 1.0, 0.05, 0.0, 0.0])])

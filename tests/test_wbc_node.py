@@ -3,6 +3,8 @@ state, and rejects bad input without crashing."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import rclpy
@@ -15,6 +17,7 @@ from tal_control.cmd_vel_script_node import CmdVelScriptNode
 from tal_control.wbc_node import WbcNode
 from tal_core.node_utils import stamp_from_ns
 from tal_core.robot_model import RobotModel
+from tal_estimation.state_estimator_node import StateEstimatorNode
 from tal_msgs.msg import GaitState, JointCommand, WbcDiagnostics
 from tal_sim_bridge.sim_bridge_node import SimBridgeNode
 
@@ -24,9 +27,13 @@ pytestmark = pytest.mark.ros
 
 
 @pytest.mark.slow
-def test_graph_trots_forward_with_gait_state_and_diagnostics_at_250_hz(context, spin_until) -> None:
+def test_graph_trots_forward_on_the_state_estimate_with_gait_state_and_diagnostics_at_250_hz(
+        context, spin_until, tmp_path) -> None:
+    """The default graph: the wbc closes the loop on the state_estimator's estimate (not ground truth)."""
     bridge = SimBridgeNode(context=context, parameter_overrides=[Parameter("duration_s", value=3.0)])
     wbc = WbcNode(context=context)
+    estimator = StateEstimatorNode(context=context, parameter_overrides=[
+        Parameter("summary_path", value=str(tmp_path / "estimator.json"))])
     script = CmdVelScriptNode(context=context, parameter_overrides=[
         Parameter("profile", value=[0.0, 0.0, 0.0, 0.0, 0.5, 0.3, 0.0, 0.0])])
     probe = rclpy.create_node("probe", context=context)
@@ -43,7 +50,7 @@ def test_graph_trots_forward_with_gait_state_and_diagnostics_at_250_hz(context, 
     probe.create_subscription(GaitState, "gait_state", on_gait, 1000)
     probe.create_subscription(WbcDiagnostics, "wbc/diagnostics", on_diag, 1000)
     executor = SingleThreadedExecutor(context=context)
-    nodes = (bridge, wbc, script, probe)
+    nodes = (bridge, wbc, estimator, script, probe)
     for node in nodes:
         executor.add_node(node)
     start = bridge.core.sim.robot_state().base_position_m.copy()
@@ -66,6 +73,11 @@ def test_graph_trots_forward_with_gait_state_and_diagnostics_at_250_hz(context, 
     assert sum(f.z for f in diag.desired_force) == pytest.approx(86.77 * 9.81, rel=0.3)
     gait = last["gait"]
     assert gait.gait == "trot" and max(gait.step_count) >= 3
+    # The estimator ran at 333 Hz in sim time, clean, and tracked the truth while the robot walked on it.
+    report = json.loads((tmp_path / "estimator.json").read_text())
+    assert 990 <= report["ticks"] <= 1001 and report["rejected"] == {} and report["restarts"] == 0
+    assert max(abs(v) for v in report["final_drift_m"]) < 0.05
+    assert max(report["velocity_rmse_m_s"]) < 0.1
 
 
 class FakeRobot:
@@ -106,7 +118,8 @@ class FakeRobot:
 
 
 def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context, spin_until) -> None:
-    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand")])
+    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand"),
+                                                        Parameter("state_source", value="ground_truth")])
     robot = FakeRobot(context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(wbc)
@@ -140,7 +153,8 @@ def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context, spin_un
 
 
 def test_nan_and_unknown_joints_are_rejected_and_counted(context, spin_until) -> None:
-    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand")])
+    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand"),
+                                                        Parameter("state_source", value="ground_truth")])
     robot = FakeRobot(context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(wbc)

@@ -80,6 +80,7 @@ class WbcNode(Node):
         self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
         self.period_ns = round(p["control_period_s"] * 1e9)
         self.stale_ns = p["stale_state_periods"] * self.period_ns
+        self.estimate_period_ns = round(p["estimate_period_s"] * 1e9)
         self._next_tick_ns = 0
         self._deferred_tick_ns: int | None = None
         self._last_command: JointCommand | None = None
@@ -124,9 +125,14 @@ class WbcNode(Node):
                                    read_only=True),
             "step_height_m": declare(self, "step_height_m", 0.0, "[m] 0 = gait preset", low=0.0, high=0.4,
                                      read_only=True),
-            "state_source": declare(self, "state_source", "ground_truth",
-                                    "base state topic: ground_truth (ground_truth/odom) or estimate",
+            "state_source": declare(self, "state_source", "estimate",
+                                    "base state topic: estimate (state_estimate, the state_estimator node) or "
+                                    "ground_truth (ground_truth/odom)",
                                     choices=("ground_truth", "estimate"), read_only=True),
+            "estimate_period_s": declare(self, "estimate_period_s", 0.003,
+                                         "[s] tick of the state_estimator: a control tick waits for the estimate "
+                                         "of the latest estimator tick at or before it", low=0.0005, high=0.1,
+                                         read_only=True),
             "control_period_s": declare(self, "control_period_s", 0.004, "[s] control tick", low=0.0005,
                                         high=0.1, read_only=True),
             "stale_state_periods": declare(self, "stale_state_periods", 3,
@@ -256,10 +262,11 @@ class WbcNode(Node):
 
     # -- the tick -----------------------------------------------------------------------------------------
     def _maybe_tick(self) -> None:
-        """Compute the tick once its joint state and a base state of the same stamp have arrived.
+        """Compute the tick once its joint state and the base state expected for it have arrived (ground
+        truth: the same stamp; estimate: the estimator's latest tick at or before it).
 
-        With ground truth the base state of the tick is on its way (the bridge publishes both each step),
-        so a tick whose base state has not arrived yet is deferred; it is decided, with whatever base
+        That base state is on its way (the bridge publishes both each step, the estimator answers the
+        bridge's samples), so a tick whose base state has not arrived yet is deferred; it is decided, with whatever base
         state is there, when the next tick's joint state arrives (the robot driver moved on). Safe mode
         follows when that base state is older than ``stale_state_periods``.
         """
@@ -271,7 +278,7 @@ class WbcNode(Node):
         base_stamp, base = self._base
         age = stamp - base_stamp
         deferred_before = self._deferred_tick_ns is not None and stamp > self._deferred_tick_ns
-        if self.p["state_source"] == "ground_truth" and age > TICK_TOLERANCE_NS and not deferred_before:
+        if base_stamp < self._expected_base_stamp(stamp) - TICK_TOLERANCE_NS and not deferred_before:
             self._deferred_tick_ns = stamp
             return
         self._deferred_tick_ns = None
@@ -280,6 +287,14 @@ class WbcNode(Node):
             self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")
             return
         self._tick(stamp, base, q, qd)
+
+    def _expected_base_stamp(self, stamp_ns: int) -> int:
+        """The stamp of the newest base state the source publishes at or before ``stamp_ns``: ground truth
+        comes with every physics step, the estimate on the estimator's tick grid."""
+        if self.p["state_source"] == "ground_truth":
+            return stamp_ns
+        period = self.estimate_period_ns
+        return ((stamp_ns + TICK_TOLERANCE_NS) // period) * period
 
     def _tick(self, stamp_ns: int, base: BaseState, q: np.ndarray, qd: np.ndarray) -> None:
         grid = self._grid

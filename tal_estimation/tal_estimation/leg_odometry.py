@@ -72,7 +72,7 @@ class LegOdometryOutput:
     """base_velocity [m/s] world frame (NaN when no leg supports); weight_sum [-] (number of supporting
     legs, fractional when terrain aware); per leg: force [N] world, contact flag, probability [0, 1],
     leg_velocity [m/s] world (the base velocity this leg reads), foot_velocity [m/s] world (modelled),
-    penetration [m] (terrain aware; 0 otherwise)."""
+    penetration [m] (terrain aware; 0 otherwise), foot_offset [m] foot centre minus base origin, world."""
 
     base_velocity: np.ndarray
     weight_sum: float
@@ -82,6 +82,7 @@ class LegOdometryOutput:
     leg_velocity: np.ndarray
     foot_velocity: np.ndarray
     penetration: np.ndarray
+    foot_offset: np.ndarray
 
 
 class LegOdometry:
@@ -162,7 +163,7 @@ class LegOdometry:
         weight_sum = float(weights.sum())
         base_velocity = (weights @ leg_velocity) / weight_sum if weight_sum > 1e-6 else np.full(3, np.nan)
         return LegOdometryOutput(base_velocity, weight_sum, force, in_contact, probability, leg_velocity,
-                                 foot_velocity, self.penetration.copy())
+                                 foot_velocity, self.penetration.copy(), feet.foot_positions)
 
     def _integrate_penetration(self, dt: float, normal_force: np.ndarray, probability: np.ndarray,
                                impedance: LegImpedance | None) -> None:

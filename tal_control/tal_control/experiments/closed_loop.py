@@ -40,6 +40,7 @@ from tal_core.legs import NUM_LEGS
 from tal_core.robot_description import load_robot_description
 from tal_core.robot_model import RobotModel
 from tal_core.terrain import Course, load_course
+from tal_estimation.state_estimator import StateEstimator, StateEstimatorSettings
 from tal_estimation.tce import (
     FiniteDifferenceAcceleration,
     TceSettings,
@@ -73,6 +74,10 @@ class ClosedLoopConfig:
     terrain_damping_ns_per_m for every leg) or "tce" (STANCE: the online TCE on the ground-truth base
     state, as the thesis' motion capture, with the fixed values until a leg's estimate is valid).
     trunk_oscillation: sinusoidal height/roll excitation of the trunk reference (aggressive manoeuvres).
+    state_estimator: None -> the controller runs on the ground-truth base state; settings -> on the
+    proprioceptive estimate (IMU with ``imu_noise`` = (gyro [rad/s], accel [m/s^2]) white-noise std per
+    physics step, joint states, measured torques), ticking on its own grid and initialised at the true
+    start pose, exactly as the state_estimator node does it.
     """
 
     name: str = "run"
@@ -95,6 +100,8 @@ class ClosedLoopConfig:
     terrain_damping_ns_per_m: float = 400.0
     tce: TceSettings | None = None
     trunk_oscillation: TrunkOscillation | None = None
+    state_estimator: StateEstimatorSettings | None = None
+    imu_noise: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.duration_s) and self.duration_s > 0.0):
@@ -317,6 +324,8 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
     nan4 = np.full(NUM_LEGS, np.nan)
     tce_accelerations = FiniteDifferenceAcceleration(max_gap_s=1.5 * config.physics_dt_s * config.control_decimation)
 
+    estimated = _EstimatorInTheLoop(config, description, sim) if config.state_estimator is not None else None
+
     recorder = _Recorder()
     n_steps = int(round(config.duration_s / config.physics_dt_s))
     decimation = int(config.control_decimation)
@@ -331,7 +340,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                 state = sim.robot_state()
                 base = BaseState(
                     state.base_position_m, state.base_quat_xyzw, state.base_lin_vel_m_s, state.base_ang_vel_rad_s
-                )
+                ) if estimated is None else estimated.base
                 cmd = config.command_at(t)
                 impedance = None if config.impedance_source == "none" else fixed
                 tce_k, tce_d, tce_conf, tce_contact = nan4, nan4, np.zeros(NUM_LEGS), np.zeros(NUM_LEGS, bool)
@@ -420,6 +429,8 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                     if config.stop_on_fall:
                         break
             stepped = core.step()
+            if estimated is not None:
+                estimated.add((k + 1) * config.physics_dt_s, stepped)
             if step_hook is not None:
                 step_hook((k + 1) * config.physics_dt_s, stepped, core)
             if config.progress and (k + 1) % steps_per_second == 0:
@@ -453,6 +464,43 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
         "real_time_factor": (n_steps * config.physics_dt_s / wall) if wall > 0 else None,
     }
     return recorder.log(meta)
+
+
+class _EstimatorInTheLoop:
+    """The state estimator fed by the simulated IMU and joints every physics step, ticking on its grid."""
+
+    def __init__(self, config: ClosedLoopConfig, description, sim: Simulation) -> None:
+        assert config.state_estimator is not None
+        from tal_sim_bridge.bridge_core import ImuModel
+
+        self.estimator = StateEstimator(RobotModel(description), config.state_estimator)
+        self.imu = ImuModel(sim.effects, gyro_noise_std_rad_s=config.imu_noise[0],
+                            accel_noise_std_m_s2=config.imu_noise[1])
+        state = sim.robot_state()
+        world_R_base = _rotation(state.base_quat_xyzw)
+        self.estimator.initialise(0.0, state.base_position_m, world_R_base)
+        self.period_steps = max(1, round(config.state_estimator.period_s / config.physics_dt_s))
+        self.base = BaseState(state.base_position_m, state.base_quat_xyzw, np.zeros(3), np.zeros(3))
+        self._f, self._w, self._n, self._steps = np.zeros(3), np.zeros(3), 0, 0
+
+    def add(self, t_s: float, state: RobotState) -> None:
+        f, w = self.imu.measure(state)
+        self._f += f
+        self._w += w
+        self._n += 1
+        self._steps += 1
+        if self._steps % self.period_steps:
+            return
+        e = self.estimator.update(t_s, self._f / self._n, self._w / self._n, state.joint_position_rad,
+                                  state.joint_velocity_rad_s, state.joint_torque_nm)
+        self._f, self._w, self._n = np.zeros(3), np.zeros(3), 0
+        self.base = BaseState(e.position, e.quat_xyzw, e.linear_velocity, e.world_R_base @ e.angular_velocity_base)
+
+
+def _rotation(quat_xyzw: np.ndarray) -> np.ndarray:
+    from tal_core.rotations import rotation_from_quat_xyzw
+
+    return rotation_from_quat_xyzw(np.asarray(quat_xyzw, float))
 
 
 # -- metrics on a log ---------------------------------------------------------------------------------

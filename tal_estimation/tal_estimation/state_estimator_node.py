@@ -1,0 +1,398 @@
+"""Node ``state_estimator``: attitude observer + leg odometry + Kalman filter at 333 Hz (sim time).
+
+Subscribes: ``joint_states`` (positions, velocities, measured torques), ``imu`` (1 kHz, specific force and
+angular rate), ``terrain_impedance`` (leg_odometry terrain_aware), ``imu/mag`` (use_magnetometer),
+``ground_truth/odom`` (only with initial_pose_source ground_truth, for the first pose, or with
+summary_path, to report the drift at shutdown; never fed into the filter).
+Publishes: ``state_estimate`` (nav_msgs/Odometry, pose in world, twist in base, covariances) and
+``contact_estimate`` (tal_msgs/ContactState) at the ticks k * period_s, and ``state_estimator/diagnostics``
+(diagnostic_msgs/DiagnosticArray, counters) once per second of sim time.
+
+A tick at stamp J runs once the joint state of J and the IMU sample of J have arrived (in any order); its
+IMU input is the mean of the IMU samples in (previous tick, J], so lockstep runs are deterministic. Bad
+input (NaN, saturated IMU, missing/unknown joints, stamps going backwards) is rejected and counted by
+reason; a gap of more than max_gap_periods re-initialises the velocity filter; a clock that jumps back by
+more than 0.5 s (restarted simulation) restarts the estimator.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, Vector3
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, JointState, MagneticField
+
+from tal_core.errors import InputError
+from tal_core.node_utils import declare, ns_from_stamp, reaches_tick, run_node, stamp_from_ns, tick_after
+from tal_core.robot_model import RobotModel
+from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state
+from tal_core.rotations import quat_xyzw_from_rotation, rotation_from_quat_xyzw
+from tal_msgs.msg import ContactState, TerrainImpedance
+
+from .attitude import AttitudeSettings
+from .leg_odometry import LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
+from .state_estimator import EstimatorInputError, StateEstimate, StateEstimator, StateEstimatorSettings
+
+CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
+GYRO_VARIANCE_RAD2_S2 = 1e-4  # [rad^2/s^2] reported variance of the bias-corrected angular rate
+
+
+class StateEstimatorNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__("state_estimator", **kwargs)
+        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True)
+        period = declare(self, "period_s", 0.003, "[s] estimator tick (333 Hz)", low=0.0005, high=0.1,
+                         read_only=True)
+        mode = declare(self, "leg_odometry", "rigid", "rigid (thesis: force threshold, static feet) or "
+                       "terrain_aware (continuous contact weight, feet sink per terrain_impedance)",
+                       choices=LEG_ODOMETRY_MODES, read_only=True)
+        fraction = declare(self, "contact_threshold_weight_fraction", 0.1,
+                           "[-] contact force threshold as a fraction of the robot's weight", low=0.001, high=0.99,
+                           read_only=True)
+        self.init_source = declare(self, "initial_pose_source", "ground_truth",
+                                   "ground_truth (first ground_truth/odom message aligns the world frame, as a "
+                                   "motion-capture start) or standing (level, feet on z = 0 under initial_xy_m)",
+                                   choices=("ground_truth", "standing"), read_only=True)
+        self.initial_xy = declare(self, "initial_xy_m", [0.0, 0.0], "[m] world x, y of the base when standing",
+                                  read_only=True)
+        use_mag = declare(self, "use_magnetometer", False, "fuse imu/mag (heading) in the attitude observer",
+                          read_only=True)
+        field = declare(self, "magnetic_field_world", [2.3e-5, 0.0, -4.1e-5],
+                        "[T] Earth's field in the world frame (for use_magnetometer)", read_only=True)
+        settings = StateEstimatorSettings(
+            period_s=period,
+            accel_noise_m_s2=declare(self, "accel_noise_m_s2", 0.5, "[m/s^2] KF acceleration input std",
+                                     low=1e-6, high=100.0, read_only=True),
+            leg_velocity_noise_m_s=declare(self, "leg_velocity_noise_m_s", 0.05, "[m/s] one leg's velocity std",
+                                           low=1e-6, high=100.0, read_only=True),
+            max_gap_periods=declare(self, "max_gap_periods", 10, "[-] a larger gap re-initialises the velocity",
+                                    low=1, high=100000, read_only=True),
+            accel_range_m_s2=declare(self, "accel_range_m_s2", 392.0, "[m/s^2] IMU accelerometer range "
+                                     "(samples at or beyond it are rejected as saturated)", low=1.0, high=1e4,
+                                     read_only=True),
+            gyro_range_rad_s=declare(self, "gyro_range_rad_s", 34.9, "[rad/s] IMU gyro range", low=0.1,
+                                     high=1e3, read_only=True),
+            attitude=AttitudeSettings(
+                k_p=declare(self, "attitude_k_p", 1.0, "[rad/s] NLO injection gain", low=1e-6, high=100.0,
+                            read_only=True),
+                k_i=declare(self, "attitude_k_i", 0.3, "[1/s^2] NLO gyro-bias gain", low=1e-6, high=100.0,
+                            read_only=True)),
+            leg_odometry=LegOdometrySettings(mode=mode, contact_threshold_weight_fraction=fraction))
+        self.summary_path = declare(self, "summary_path", "", "JSON written at shutdown (counters, drift "
+                                    "against ground truth when available); empty: none", read_only=True)
+        if len(self.initial_xy) != 2 or len(field) != 3:
+            raise ValueError("initial_xy_m needs 2 values and magnetic_field_world 3")
+        self.model = RobotModel.from_name(robot)
+        self.estimator = StateEstimator(self.model, settings, np.array(field, float) if use_mag else None)
+        self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
+        self.period_ns = round(period * 1e9)
+        self.rejections: Counter[str] = Counter()
+        self.held_imu_ticks = 0
+        self._last_imu_mean: tuple[np.ndarray, np.ndarray] | None = None
+        self.duplicates = 0  # repeated samples (the driver re-sends its first state until it is answered)
+        self._last_output: tuple[Odometry, ContactState | None] | None = None
+        self.ticks = 0
+        self.restarts = 0
+        self._next_tick_ns = 0
+        self._last_tick_ns: int | None = None
+        self._imu: list[tuple[int, np.ndarray, np.ndarray]] = []   # samples after the last tick
+        self._last_imu_ns: int | None = None
+        self._pending: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # joints of the next tick
+        self._impedance: LegImpedance | None = None
+        self._mag: np.ndarray | None = None
+        self._initial_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self._truth: tuple[int, object] | None = None
+        self._errors: list[list[float]] = []   # [t, dx, dy, dz, dvx, dvy, dvz] against ground truth
+        self._start_offset: np.ndarray | None = None
+
+        self.pub_state = self.create_publisher(Odometry, "state_estimate", 10)
+        self.pub_contact = self.create_publisher(ContactState, "contact_estimate", 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "state_estimator/diagnostics", 10)
+        self.create_subscription(JointState, "joint_states", self._on_joints, 50)
+        self.create_subscription(Imu, "imu", self._on_imu, 50)
+        if mode == "terrain_aware":
+            self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
+        if use_mag:
+            self.create_subscription(MagneticField, "imu/mag", self._on_mag, 10)
+        if self.init_source == "ground_truth" or self.summary_path:
+            self.create_subscription(Odometry, "ground_truth/odom", self._on_truth, 10)
+        self.get_logger().info(f"state_estimator ready: robot '{robot}', {1.0 / period:.0f} Hz, leg odometry "
+                               f"{mode}, initial pose from {self.init_source}")
+
+    # -- rejections -----------------------------------------------------------------------------------------
+    def _reject(self, reason: str, message: str) -> None:
+        self.rejections[reason] += 1
+        self.get_logger().warn(f"rejected ({reason}, {self.rejections[reason]} so far): {message}",
+                               throttle_duration_sec=1.0)
+
+    # -- inputs ---------------------------------------------------------------------------------------------
+    def _on_truth(self, msg: Odometry) -> None:
+        try:
+            base = base_state_from_odometry(msg)
+        except InputError as exc:
+            self._reject("ground_truth", str(exc))
+            return
+        self._truth = (ns_from_stamp(msg.header.stamp), base)
+        if self._initial_pose is None:
+            self._initial_pose = (base.position, rotation_from_quat_xyzw(base.quat_xyzw))
+            self._try_tick()
+
+    def _on_mag(self, msg: MagneticField) -> None:
+        field = np.array([msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z])
+        if np.all(np.isfinite(field)) and np.linalg.norm(field) > 0.0:
+            self._mag = field
+        else:
+            self._reject("mag", "magnetic field has NaN/inf or is zero")
+
+    def _on_impedance(self, msg: TerrainImpedance) -> None:
+        k = np.array(msg.stiffness_normal, float)
+        d = np.array(msg.damping_normal, float)
+        normals = np.array([[n.x, n.y, n.z] for n in msg.normal], float)
+        norms = np.linalg.norm(normals, axis=1)
+        if not np.all(np.isfinite(normals)) or np.any(norms < 0.5):
+            self._reject("terrain_impedance", "normals must be finite unit vectors")
+            return
+        valid = np.array(msg.valid, bool) & np.isfinite(k) & np.isfinite(d) & (k > 0) & (d > 0)
+        self._impedance = LegImpedance(k, d, normals / norms[:, None], valid)
+
+    def _on_imu(self, msg: Imu) -> None:
+        stamp = ns_from_stamp(msg.header.stamp)
+        f = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+        w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+        try:
+            f, w = self.estimator.check_imu(f, w)
+        except EstimatorInputError as exc:
+            self._reject(exc.reason, str(exc))
+            return
+        if self._last_imu_ns is not None and stamp == self._last_imu_ns:
+            self.duplicates += 1  # the driver repeats its first sample until a controller answers
+            return
+        if self._last_imu_ns is not None and stamp < self._last_imu_ns:
+            if stamp + CLOCK_RESET_NS < self._last_imu_ns:
+                self._restart(stamp)
+            else:
+                self._reject("imu_out_of_order", f"imu stamp {stamp * 1e-9:.6f} s is not after "
+                             f"{self._last_imu_ns * 1e-9:.6f} s")
+                return
+        self._last_imu_ns = stamp
+        self._imu.append((stamp, f, w))
+        self._try_tick()
+
+    def _on_joints(self, msg: JointState) -> None:
+        stamp = ns_from_stamp(msg.header.stamp)
+        if self._last_tick_ns is not None and stamp + CLOCK_RESET_NS < self._last_tick_ns:
+            self._restart(stamp)
+        if stamp == self._last_tick_ns and self._last_output is not None:
+            # A repeated sample (the driver waits for its first command; our answer may have gone out
+            # before DDS matched the controller): publish the same estimate again.
+            self.duplicates += 1
+            for publisher, msg in zip((self.pub_state, self.pub_contact), self._last_output):
+                if msg is not None:
+                    publisher.publish(msg)
+            return
+        if not reaches_tick(stamp, self._next_tick_ns):
+            return
+        try:
+            q, qd = canonical_joint_state(msg, self.joint_index)
+            if len(msg.effort) != len(msg.name):
+                raise InputError(f"joint_states has {len(msg.name)} names and {len(msg.effort)} efforts")
+            tau = np.full(len(self.joint_index), np.nan)
+            for name, effort in zip(msg.name, msg.effort):
+                tau[self.joint_index[name]] = effort
+            if not np.all(np.isfinite(tau)):
+                raise InputError("joint_states efforts have NaN/inf")
+        except InputError as exc:
+            self._reject("joints", str(exc))
+            return
+        if self._pending is not None and self._pending[0] < stamp:
+            self._tick(*self._pending)  # its IMU sample never came: run it with what arrived
+        self._pending = (stamp, q, qd, tau)
+        self._try_tick()
+
+    def _restart(self, stamp_ns: int) -> None:
+        self.get_logger().warn(f"time jumped back to {stamp_ns * 1e-9:.3f} s: restarting the estimator")
+        self.restarts += 1
+        self.estimator = StateEstimator(self.model, self.estimator.settings, self.estimator._magnetic_field_world)
+        self._next_tick_ns = 0
+        self._last_tick_ns = None
+        self._imu.clear()
+        self._last_imu_ns = None
+        self._pending = None
+        self._last_output = None
+        if self.init_source == "ground_truth":
+            self._initial_pose = None
+
+    # -- the tick -------------------------------------------------------------------------------------------
+    def _try_tick(self) -> None:
+        if self._pending is None or self._last_imu_ns is None:
+            return
+        if self._last_imu_ns >= self._pending[0]:
+            self._tick(*self._pending)
+
+    def _tick(self, stamp: int, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> None:
+        est = self.estimator
+        if not est.initialised:
+            if self.init_source == "ground_truth" and self._initial_pose is None:
+                return  # no pose yet: the tick stays pending until ground_truth/odom arrives
+            self._pending = None
+            self._next_tick_ns = tick_after(stamp, self.period_ns)
+            self._imu = [s for s in self._imu if s[0] > stamp]
+            if self._initial_pose is not None and self.init_source == "ground_truth":
+                position, rotation = self._initial_pose
+                est.initialise(stamp * 1e-9, position, rotation)
+            else:
+                est.initialise_standing(stamp * 1e-9, q, (float(self.initial_xy[0]), float(self.initial_xy[1])))
+            self._last_tick_ns = stamp
+            self._publish_initial(stamp)
+            return
+        self._pending = None
+        self._next_tick_ns = tick_after(stamp, self.period_ns)
+        samples = [s for s in self._imu if s[0] <= stamp]
+        self._imu = [s for s in self._imu if s[0] > stamp]
+        if samples:
+            f = np.mean([s[1] for s in samples], axis=0)
+            w = np.mean([s[2] for s in samples], axis=0)
+            self._last_imu_mean = (f, w)
+        elif self._last_imu_mean is not None:
+            self.held_imu_ticks += 1  # every sample of the interval was rejected: hold the last mean
+            f, w = self._last_imu_mean
+        else:
+            self._reject("no_imu", f"no IMU sample for the tick at {stamp * 1e-9:.6f} s")
+            return
+        try:
+            estimate = est.update(stamp * 1e-9, f, w, q, qd, tau, impedance=self._impedance, magnetic_field=self._mag)
+        except EstimatorInputError as exc:
+            self._reject(exc.reason, str(exc))
+            return
+        self._last_tick_ns = stamp
+        self._publish(stamp, estimate)
+        self._compare_with_truth(stamp, estimate)
+        self.ticks += 1
+        if self.ticks % max(1, round(1e9 / self.period_ns)) == 0:
+            self._publish_diagnostics(stamp)
+
+    # -- outputs --------------------------------------------------------------------------------------------
+    def _publish_initial(self, stamp: int) -> None:
+        """The initial state (at rest), so a controller can compute its first tick."""
+        est = self.estimator
+        assert est.kf is not None and est.attitude is not None
+        x = est.kf.x.ravel()
+        odom = self._odometry(stamp, x[:3], est.attitude.world_R_base, x[3:], np.zeros(3), est.kf.P[:3, :3],
+                              est.kf.P[3:, 3:], est.attitude.attitude_covariance)
+        self.pub_state.publish(odom)
+        self._last_output = (odom, None)
+
+    def _odometry(self, stamp: int, position: np.ndarray, world_R_base: np.ndarray, velocity: np.ndarray,
+                  angular_velocity_base: np.ndarray, position_cov: np.ndarray, velocity_cov: np.ndarray,
+                  attitude_cov: np.ndarray) -> Odometry:
+        """nav_msgs/Odometry: pose in world, twist in base (ROS convention), covariances."""
+        odom = Odometry()
+        odom.header.stamp = stamp_from_ns(stamp)
+        odom.header.frame_id = "world"
+        odom.child_frame_id = "base"
+        p = odom.pose.pose
+        p.position.x, p.position.y, p.position.z = (float(v) for v in position)
+        quat = quat_xyzw_from_rotation(world_R_base)
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (float(v) for v in quat)
+        pose_cov = np.zeros((6, 6))
+        pose_cov[:3, :3] = position_cov
+        pose_cov[3:, 3:] = attitude_cov
+        odom.pose.covariance = pose_cov.ravel().tolist()
+        t = odom.twist.twist
+        t.linear.x, t.linear.y, t.linear.z = (float(v) for v in world_R_base.T @ velocity)
+        t.angular.x, t.angular.y, t.angular.z = (float(v) for v in angular_velocity_base)
+        twist_cov = np.zeros((6, 6))
+        twist_cov[:3, :3] = world_R_base.T @ velocity_cov @ world_R_base
+        twist_cov[3:, 3:] = np.eye(3) * GYRO_VARIANCE_RAD2_S2
+        odom.twist.covariance = twist_cov.ravel().tolist()
+        return odom
+
+    def _publish(self, stamp: int, e: StateEstimate) -> None:
+        header_stamp = stamp_from_ns(stamp)
+        odom = self._odometry(stamp, e.position, e.world_R_base, e.linear_velocity, e.angular_velocity_base,
+                              e.position_covariance, e.velocity_covariance, e.attitude_covariance)
+        self.pub_state.publish(odom)
+        self._publish_contacts(header_stamp, e, odom)
+
+    def _publish_contacts(self, header_stamp, e: StateEstimate, odom: Odometry) -> None:
+        legs = e.legs
+        contact = ContactState()
+        contact.header.stamp = header_stamp
+        contact.header.frame_id = "world"
+        normals = self._impedance.normal if self._impedance is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
+        for leg in range(4):
+            contact.in_contact[leg] = bool(legs.in_contact[leg])
+            contact.probability[leg] = float(legs.probability[leg])
+            contact.force[leg] = Vector3(x=float(legs.force[leg, 0]), y=float(legs.force[leg, 1]),
+                                         z=float(legs.force[leg, 2]))
+            foot = e.position + legs.foot_offset[leg]
+            contact.foot_position[leg] = Point(x=float(foot[0]), y=float(foot[1]), z=float(foot[2]))
+            foot_velocity = e.linear_velocity - legs.leg_velocity[leg] + legs.foot_velocity[leg]
+            contact.foot_velocity[leg] = Vector3(x=float(foot_velocity[0]), y=float(foot_velocity[1]),
+                                                 z=float(foot_velocity[2]))
+            n = normals[leg]
+            contact.normal[leg] = Vector3(x=float(n[0]), y=float(n[1]), z=float(n[2]))
+            aware = self.estimator.settings.leg_odometry.mode == "terrain_aware"
+            contact.penetration[leg] = float(legs.penetration[leg]) if aware else math.nan
+            contact.penetration_rate[leg] = float(-(legs.foot_velocity[leg] @ n)) if aware else math.nan
+        self.pub_contact.publish(contact)
+        self._last_output = (odom, contact)
+
+    def _publish_diagnostics(self, stamp: int) -> None:
+        status = DiagnosticStatus(name="state_estimator", hardware_id="tal")
+        rejected = sum(self.rejections.values())
+        status.level = DiagnosticStatus.OK if rejected == 0 else DiagnosticStatus.WARN
+        status.message = "ok" if rejected == 0 else f"{rejected} inputs rejected"
+        values = {"ticks": self.ticks, "restarts": self.restarts, "held_imu_ticks": self.held_imu_ticks,
+                  "reinitialisations": self.estimator.reinitialisations, **{f"rejected_{k}": v for k, v in
+                                                                           sorted(self.rejections.items())}}
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = stamp_from_ns(stamp)
+        self.pub_diag.publish(msg)
+
+    def _compare_with_truth(self, stamp: int, e: StateEstimate) -> None:
+        if not self.summary_path or self._truth is None or abs(self._truth[0] - stamp) > self.period_ns:
+            return
+        truth = self._truth[1]
+        if self._start_offset is None:
+            self._start_offset = e.position - truth.position
+        dp = e.position - truth.position - self._start_offset
+        dv = e.linear_velocity - truth.linear_velocity
+        self._errors.append([stamp * 1e-9, *dp, *dv])
+
+    def summary(self) -> dict:
+        """Counters and, when ground truth was seen, drift [m] and velocity RMSE [m/s] per axis."""
+        out: dict = {"ticks": self.ticks, "restarts": self.restarts, "held_imu_ticks": self.held_imu_ticks,
+                     "duplicates": self.duplicates,
+                     "reinitialisations": self.estimator.reinitialisations,
+                     "rejected": dict(self.rejections),
+                     "leg_odometry": self.estimator.settings.leg_odometry.mode}
+        if self._errors:
+            err = np.array(self._errors)
+            out["final_drift_m"] = np.round(err[-1, 1:4], 4).tolist()
+            out["rms_drift_m"] = np.round(np.sqrt(np.mean(err[:, 1:4] ** 2, axis=0)), 4).tolist()
+            out["velocity_rmse_m_s"] = np.round(np.sqrt(np.mean(err[:, 4:7] ** 2, axis=0)), 4).tolist()
+            out["compared_s"] = round(float(err[-1, 0] - err[0, 0]), 3)
+        return out
+
+    def destroy_node(self) -> None:
+        if self.summary_path:
+            Path(self.summary_path).parent.mkdir(parents=True, exist_ok=True)
+            Path(self.summary_path).write_text(json.dumps(self.summary(), indent=2) + "\n")
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(lambda: StateEstimatorNode(), args, name="state_estimator")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
