@@ -47,8 +47,8 @@ class StateEstimatorSettings:
 
     accel_noise_m_s2: std of the acceleration input per tick (IMU noise and unmodelled motion).
     leg_velocity_noise_m_s: std of one leg's velocity reading. motion_compensation_tau_s: time constant of
-    the low-pass filter of the motion-compensated gravity direction given to the attitude observer. min_support [-]: below this weight sum of
-    supporting legs there is no velocity update (flight). max_gap_periods: a larger gap between ticks
+    the low-pass filter of the motion-compensated gravity direction given to the attitude observer.
+    min_support [-]: below this weight sum of supporting legs there is no velocity update (flight). max_gap_periods: a larger gap between ticks
     re-initialises the velocity filter. accel_range_m_s2, gyro_range_rad_s: saturation limits of the IMU
     (a sample at or beyond them is rejected; defaults: a +-40 g, +-2000 deg/s MEMS IMU, since touchdown
     impacts on rigid ground reach 20-30 g at the trunk in simulation).
