@@ -16,7 +16,8 @@ test: bootstrap
 	@$(ENV) && python -m pytest $(PYTEST_ARGS)
 
 bench: bootstrap
-	@$(ENV) && python bench/bench_bridge.py && python bench/bench_wbc.py && python bench/bench_stance.py
+	@$(ENV) && python bench/bench_bridge.py && python bench/bench_wbc.py && python bench/bench_stance.py \
+		&& python bench/bench_estimator.py
 
 experiments: bootstrap
 	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc \

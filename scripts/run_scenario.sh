@@ -2,10 +2,12 @@
 # `make run SCENARIO=...`: run one scenario of the full node graph and print its summary.
 # Scenarios:
 #   stance          (default) STANCE: HyQ crawls at 0.1 m/s over the transition course (rigid, T1 soft, T2, T3,
-#                   rigid; 2 m strips) for 90 s of sim time: sim_bridge (81x81 heightmap) + wbc (c3WBC) + tce
-#                   (ground-truth base, as the thesis' motion capture) + cmd_vel_script; prints the report
+#                   rigid; 2 m strips) for 90 s of sim time: sim_bridge (81x81 heightmap) + state_estimator
+#                   (terrain-aware leg odometry) + wbc (c3WBC on the estimate) + tce (ground-truth base, as
+#                   the thesis' motion capture) + cmd_vel_script; prints the report
 #   trot            HyQ trots forward at 0.3 m/s on rigid ground for 20 s of sim time (lockstep):
-#                   sim_bridge + wbc (sWBC) + cmd_vel_script; prints tracking errors and whether it fell
+#                   sim_bridge + state_estimator + wbc (sWBC on the estimate) + cmd_vel_script; prints
+#                   tracking errors, estimator drift and whether it fell
 #   crawl           the same with a crawl at 0.1 m/s
 #   stand           HyQ stands 10 s in lockstep (joint PD hold), first on rigid ground, then on T1 soft
 #   stand_realtime  the same, following the wall clock
@@ -25,11 +27,13 @@ walk() {
         -s "sim_bridge.course:=flat_rigid" -s "sim_bridge.duration_s:=$duration" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" \
+        -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
-        tal_sim_bridge/sim_bridge tal_control/wbc tal_control/cmd_vel_script \
+        tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc tal_control/cmd_vel_script \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
     python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
-        --title "HyQ $gait at $speed m/s, rigid ground" --output "$RUN_ROOT/report.md"
+        --estimator "$dir/estimator_summary.json" \
+        --title "HyQ $gait at $speed m/s, rigid ground, control on the state estimate" --output "$RUN_ROOT/report.md"
 }
 
 stance() {
@@ -45,11 +49,14 @@ stance() {
         -s "wbc.gait:=crawl" -s "wbc.contact_model:=compliant" -s "wbc.impedance_source:=tce" \
         -s "wbc.summary_path:=$dir/wbc_summary.json" \
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
+        -s "state_estimator.leg_odometry:=terrain_aware" \
+        -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
-        tal_sim_bridge/sim_bridge tal_control/wbc tal_estimation/tce tal_control/cmd_vel_script \
+        tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc tal_estimation/tce \
+        tal_control/cmd_vel_script \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
     python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
-        --tce "$dir/tce_summary.json" --title "STANCE: HyQ crawl at $speed m/s, rigid -> T1 -> T2 -> T3 -> rigid" --output "$RUN_ROOT/report.md"
+        --tce "$dir/tce_summary.json" --estimator "$dir/estimator_summary.json" --title "STANCE: HyQ crawl at $speed m/s, rigid -> T1 -> T2 -> T3 -> rigid" --output "$RUN_ROOT/report.md"
 }
 
 stand() {

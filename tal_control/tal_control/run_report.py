@@ -1,6 +1,7 @@
 """Summary of a locomotion run of the graph (``make run``): the bridge's and the wbc's end-of-run JSON.
 
-Usage: python -m tal_control.run_report --bridge bridge.json --wbc wbc.json [--tce tce.json] [--output report.md]
+Usage: python -m tal_control.run_report --bridge bridge.json --wbc wbc.json [--tce tce.json]
+    [--estimator estimator.json] [--output report.md]
 With ``--tce`` the report lists the TCE's final per-leg stiffness estimates and plots their history
 (``tce_estimates.png`` next to the report).
 """
@@ -51,6 +52,20 @@ def format_tce(tce: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def format_estimator(estimator: dict) -> str:
+    """The state_estimator node's summary: drift and velocity error against ground truth, counters."""
+    lines = ["", f"## State estimator ({estimator.get('leg_odometry', '?')} leg odometry)", ""]
+    if "final_drift_m" in estimator:
+        lines += ["| | x | y | z |", "|---|---|---|---|"]
+        for key, label in (("final_drift_m", "final drift [m]"), ("rms_drift_m", "RMS drift [m]"),
+                           ("velocity_rmse_m_s", "velocity RMSE [m/s]")):
+            lines.append(f"| {label} | " + " | ".join(f"{v:+.4f}" for v in estimator[key]) + " |")
+        lines.append(f"\nCompared with ground truth over {estimator['compared_s']:.1f} s.")
+    lines.append(f"Ticks {estimator['ticks']}, rejected inputs {estimator['rejected'] or 'none'}, restarts "
+                 f"{estimator['restarts']}, velocity re-initialisations {estimator['reinitialisations']}.")
+    return "\n".join(lines) + "\n"
+
+
 def plot_tce(tce: dict, path: Path) -> None:
     """Estimated stiffness per leg over sim time (log scale)."""
     import matplotlib
@@ -79,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bridge", type=Path, required=True, help="summary.json of sim_bridge")
     parser.add_argument("--wbc", type=Path, required=True, help="summary.json of wbc")
     parser.add_argument("--tce", type=Path, help="summary.json of tce (optional)")
+    parser.add_argument("--estimator", type=Path, help="summary.json of state_estimator (optional)")
     parser.add_argument("--title", default="Locomotion run")
     parser.add_argument("--output", type=Path)
     args = parser.parse_args(argv)
@@ -93,6 +109,10 @@ def main(argv: list[str] | None = None) -> int:
         report += format_tce(tce)
         if args.output:
             plot_tce(tce, args.output.parent / "tce_estimates.png")
+    if args.estimator is not None:
+        if not args.estimator.is_file():
+            parser.error(f"{args.estimator}: no summary (did the state_estimator node finish cleanly?)")
+        report += format_estimator(json.loads(args.estimator.read_text()))
     print(report)
     if args.output:
         args.output.write_text(report)

@@ -213,6 +213,9 @@ class StateEstimatorNode(Node):
             return
         if self._pending is not None and self._pending[0] < stamp:
             self._tick(*self._pending)  # its IMU sample never came: run it with what arrived
+        # The grid point is taken: later samples before the next one are not ticks, whether or not the
+        # IMU sample of this one has arrived yet (topics are delivered in no fixed order).
+        self._next_tick_ns = tick_after(stamp, self.period_ns)
         self._pending = (stamp, q, qd, tau)
         self._try_tick()
 
@@ -242,7 +245,6 @@ class StateEstimatorNode(Node):
             if self.init_source == "ground_truth" and self._initial_pose is None:
                 return  # no pose yet: the tick stays pending until ground_truth/odom arrives
             self._pending = None
-            self._next_tick_ns = tick_after(stamp, self.period_ns)
             self._imu = [s for s in self._imu if s[0] > stamp]
             if self._initial_pose is not None and self.init_source == "ground_truth":
                 position, rotation = self._initial_pose
@@ -253,7 +255,6 @@ class StateEstimatorNode(Node):
             self._publish_initial(stamp)
             return
         self._pending = None
-        self._next_tick_ns = tick_after(stamp, self.period_ns)
         samples = [s for s in self._imu if s[0] <= stamp]
         self._imu = [s for s in self._imu if s[0] > stamp]
         if samples:

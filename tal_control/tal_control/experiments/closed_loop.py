@@ -40,7 +40,7 @@ from tal_core.legs import NUM_LEGS
 from tal_core.robot_description import load_robot_description
 from tal_core.robot_model import RobotModel
 from tal_core.terrain import Course, load_course
-from tal_estimation.state_estimator import StateEstimator, StateEstimatorSettings
+from tal_estimation.state_estimator import StateEstimator, StateEstimatorSettings, legs_from_impedance_arrays
 from tal_estimation.tce import (
     FiniteDifferenceAcceleration,
     TceSettings,
@@ -358,6 +358,10 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                     impedance = impedance_from_estimates(
                         tce_k, tce_d, np.array([e.valid for e in estimates]),
                         config.terrain_stiffness_n_per_m, config.terrain_damping_ns_per_m)
+                if estimated is not None and tce is not None:
+                    estimated.impedance = legs_from_impedance_arrays(
+                        tce_k, tce_d, np.array([e.valid for e in estimates]),
+                        np.array([normal_fn(*c.position_m[:2]) for c in sim.foot_contacts()]))
                 out = controller.tick(
                     t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd, height_fn, normal_fn,
                     impedance=impedance,
@@ -482,6 +486,7 @@ class _EstimatorInTheLoop:
         self.period_steps = max(1, round(config.state_estimator.period_s / config.physics_dt_s))
         self.base = BaseState(state.base_position_m, state.base_quat_xyzw, np.zeros(3), np.zeros(3))
         self._f, self._w, self._n, self._steps = np.zeros(3), np.zeros(3), 0, 0
+        self.impedance = None  # the TCE's latest estimates (terrain-aware leg odometry), set by the loop
 
     def add(self, t_s: float, state: RobotState) -> None:
         f, w = self.imu.measure(state)
@@ -492,7 +497,7 @@ class _EstimatorInTheLoop:
         if self._steps % self.period_steps:
             return
         e = self.estimator.update(t_s, self._f / self._n, self._w / self._n, state.joint_position_rad,
-                                  state.joint_velocity_rad_s, state.joint_torque_nm)
+                                  state.joint_velocity_rad_s, state.joint_torque_nm, impedance=self.impedance)
         self._f, self._w, self._n = np.zeros(3), np.zeros(3), 0
         self.base = BaseState(e.position, e.quat_xyzw, e.linear_velocity, e.world_R_base @ e.angular_velocity_base)
 
