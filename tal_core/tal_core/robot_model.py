@@ -43,11 +43,13 @@ _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 @dataclass(frozen=True)
 class FootDynamics:
     """What leg odometry and contact-force estimation need at one (q, v), world frame: foot positions
-    (4, 3) [m], foot Jacobians (12, nv), foot velocities (4, 3) [m/s], h (nv,) and optionally M (nv, nv)."""
+    (4, 3) [m], foot Jacobians (12, nv), foot velocities (4, 3) [m/s], foot angular velocities (4, 3)
+    [rad/s] (of the link carrying the foot: its rolling), h (nv,) and optionally M (nv, nv)."""
 
     foot_positions: np.ndarray
     foot_jacobians: np.ndarray
     foot_velocities: np.ndarray
+    foot_angular_velocities: np.ndarray
     nonlinear_effects: np.ndarray
     mass_matrix: np.ndarray | None
 
@@ -239,9 +241,11 @@ class RobotModel:
             upper = pin.crba(model, data, q)
             mass = np.where(self._upper_triangle, upper, upper.T)
         feet = self._foot_frame_ids
-        jacobians = np.vstack([pin.getFrameJacobian(model, data, fid, _LWA)[:3] for fid in feet])
+        full = [pin.getFrameJacobian(model, data, fid, _LWA) for fid in feet]
+        jacobians = np.vstack([j[:3] for j in full])
+        angular = np.array([j[3:] @ v for j in full])
         positions = np.array([data.oMf[fid].translation for fid in feet])
-        return FootDynamics(positions, jacobians, (jacobians @ v).reshape(NUM_LEGS, 3), nle, mass)
+        return FootDynamics(positions, jacobians, (jacobians @ v).reshape(NUM_LEGS, 3), angular, nle, mass)
 
     # ------------------------------------------------------------------------------------------------
     # Accessors (valid after update; arrays are replaced, never modified, by the next update)

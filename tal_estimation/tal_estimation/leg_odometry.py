@@ -9,7 +9,9 @@ world_R_base and the base angular velocity w (world frame):
 * the base velocity this leg reads: v_base = v_foot - v_rel, where v_foot is the foot's own velocity.
 
 ``rigid`` (the thesis): v_foot = 0, binary contact alpha = ||F|| > threshold, v = mean over the legs in
-contact. ``terrain_aware`` (beyond the thesis, its future-work item): the stance foot sinks into and
+contact. ``terrain_aware`` (beyond the thesis, its future-work item): the foot sphere rolls (its centre moves at
+radius * w_foot x n while the contact point stays; not once sunk deeper than its radius) and the stance
+foot sinks into and
 rises with a Kelvin-Voigt ground F_n = K p + D dp/dt whose K and D come from the TCE. Given the measured
 normal force the penetration obeys D dp/dt = F_n - K p, integrated exactly per interval (stable for any
 K/D) from p = 0 at touchdown, so v_foot = -(dp/dt) n; the legs are averaged with a continuous contact
@@ -97,6 +99,7 @@ class LegOdometry:
         self._v_index = [model.leg_joint_v_indices(leg) for leg in range(NUM_LEGS)]
         self._tau_index = [np.arange(3 * leg, 3 * leg + 3) for leg in range(NUM_LEGS)]
         self._origin = np.zeros(3)
+        self._radius = model.description.foot_radius_m
         self.penetration = np.zeros(NUM_LEGS)
         self._previous_v: np.ndarray | None = None
         self._penetration_rate = np.zeros(NUM_LEGS)
@@ -147,13 +150,17 @@ class LegOdometry:
         foot_velocity = np.zeros((NUM_LEGS, 3))
         if terrain_aware:
             normals = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1)) if impedance is None else impedance.normal
+            # A foot sphere that rolls without slipping: its contact point is still, its centre is not. A
+            # foot sunk deeper than its radius is held by the ground around it and does not roll.
+            rolling = self._radius * np.cross(feet.foot_angular_velocities, normals)
+            foot_velocity = np.where((self.penetration < self._radius)[:, None], rolling, 0.0)
             normal_force = np.maximum(np.einsum("lk,lk->l", force, normals), 0.0)
             probability = self.contact_probability(normal_force)
             weights = probability
             in_contact = probability > 0.5
             self._integrate_penetration(dt, normal_force, probability, impedance)
             if impedance is not None:
-                foot_velocity = -self._penetration_rate[:, None] * normals
+                foot_velocity = foot_velocity - self._penetration_rate[:, None] * normals
         else:
             norm = np.linalg.norm(force, axis=1)
             in_contact = norm > self.threshold_n
