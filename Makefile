@@ -21,7 +21,8 @@ bench: bootstrap
 
 experiments: bootstrap
 	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc \
-		&& python -m tal_control.experiments.stance_experiments --out results/stance
+		&& python -m tal_control.experiments.stance_experiments --out results/stance \
+		&& python -m tal_control.experiments.estimation_experiments --out results/estimation
 
 lint: bootstrap
 	@$(ENV) && ruff check . && ruff format --check .

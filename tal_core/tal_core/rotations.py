@@ -39,18 +39,24 @@ def so3_exp(rotation_vector: np.ndarray) -> np.ndarray:
 
 
 def so3_log(rotation: np.ndarray) -> np.ndarray:
-    """Rotation vector [rad] of a rotation matrix (inverse of ``so3_exp`` for angles below pi)."""
-    cos_angle = float(np.clip(0.5 * (np.trace(rotation) - 1.0), -1.0, 1.0))
-    angle = float(np.arccos(cos_angle))
+    """Rotation vector [rad] of a rotation matrix (inverse of ``so3_exp`` for angles up to pi)."""
     axis_sin = 0.5 * np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
                                rotation[1, 0] - rotation[0, 1]])
+    cos_angle = float(np.clip(0.5 * (np.trace(rotation) - 1.0), -1.0, 1.0))
+    sin_angle = float(np.linalg.norm(axis_sin))
+    angle = float(np.arctan2(sin_angle, cos_angle))  # accurate at both ends, unlike arccos near pi
     if angle < 1e-6:
         return axis_sin
-    if np.pi - angle < 1e-4:  # near pi the antisymmetric part vanishes: take the axis from R + I
-        column = int(np.argmax(np.diag(rotation)))
-        axis = (rotation[:, column] + np.eye(3)[column]) / np.sqrt(2.0 * (1.0 + rotation[column, column]))
+    if np.pi - angle < 1e-4:
+        # Near pi the antisymmetric part vanishes: the symmetric part is (1 - cos) a a^T; its largest
+        # column gives the axis, the antisymmetric part its sign.
+        symmetric = 0.5 * (rotation + rotation.T) - cos_angle * np.eye(3)
+        column = int(np.argmax(np.diag(symmetric)))
+        axis = symmetric[:, column] / np.sqrt(symmetric[column, column] * (1.0 - cos_angle))
+        if axis @ axis_sin < 0.0:
+            axis = -axis
         return angle * axis
-    return angle / np.sin(angle) * axis_sin
+    return angle / sin_angle * axis_sin
 
 
 def nearest_rotation(matrix: np.ndarray) -> np.ndarray:

@@ -9,8 +9,8 @@ unobservable (the observer keeps integrating the gyro about z), as for every IMU
 
 NLO (thesis eq. NLO), discretised on SO(3) with the injection projected onto its tangent space:
 
-    R <- R Exp((w - b + sigma c) dt),   c = vex(P_a(R^T K_p J)),   J = sum_j (y_n - R y_b) y_b^T
-    b <- Proj(b - dt k_I c)                                         (||b|| <= M_b)
+    R' = R Exp((w - b) dt),   c = vex(P_a(R'^T K_p J(R'))),   J(R) = sum_j (y_n - R y_b) y_b^T
+    R <- R' Exp(sigma c dt),  b <- Proj(b - dt k_I c)             (||b|| <= M_b)
 
 The thesis prints P(X) = (X + X^T)/2, whose vex is zero; Grip et al. use the antisymmetric part
 P_a(X) = (X - X^T)/2, which is what is implemented.
@@ -102,13 +102,16 @@ class NonlinearAttitudeObserver:
         R P_a(R^T sigma K_p J) (the symmetric part does not rotate), so R stays a rotation without an SVD.
         """
         s = self.settings
+        # Predict with the gyro first, so the correction uses the measurements and the rotation of the
+        # same instant (the end of the interval).
+        predicted = self.rotation @ so3_exp((gyro - self.bias) * dt)
         injection = np.zeros((3, 3))
         for m in measurements:
-            injection += m.weight * np.outer(m.world - self.rotation @ m.base, m.base)
+            injection += m.weight * np.outer(m.world - predicted @ m.base, m.base)
         injection *= s.k_p
-        x = self.rotation.T @ injection
+        x = predicted.T @ injection
         correction = _vex(0.5 * (x - x.T))
-        self.rotation = self.rotation @ so3_exp((gyro - self.bias + s.sigma * correction) * dt)
+        self.rotation = predicted @ so3_exp(s.sigma * correction * dt)
         bias = self.bias - dt * s.k_i * correction  # R_s = sat(R) = R for a rotation matrix
         norm = float(np.linalg.norm(bias))
         if norm > s.max_gyro_bias_rad_s:  # parameter projection onto the ball ||b|| <= M_b

@@ -48,10 +48,11 @@ class StateEstimatorSettings:
     accel_noise_m_s2: std of the acceleration input per tick (IMU noise and unmodelled motion).
     leg_velocity_noise_m_s: std of one leg's velocity reading. motion_compensation_tau_s: time constant of
     the low-pass filter of the motion-compensated gravity direction given to the attitude observer.
-    min_support [-]: below this weight sum of supporting legs there is no velocity update (flight). max_gap_periods: a larger gap between ticks
-    re-initialises the velocity filter. accel_range_m_s2, gyro_range_rad_s: saturation limits of the IMU
-    (a sample at or beyond them is rejected; defaults: a +-40 g, +-2000 deg/s MEMS IMU, since touchdown
-    impacts on rigid ground reach 20-30 g at the trunk in simulation).
+    min_support [-]: below this weight sum of supporting legs there is no velocity update (flight).
+    max_gap_periods: a larger gap between ticks re-initialises the velocity filter. accel_range_m_s2,
+    gyro_range_rad_s: saturation limits of the IMU (a sample at or beyond them is rejected; defaults: a
+    +-40 g, +-2000 deg/s MEMS IMU, since touchdown impacts on rigid ground reach 20-30 g at the trunk in
+    simulation).
     """
 
     period_s: float = 0.003
@@ -201,6 +202,7 @@ class StateEstimator:
         qd = _checked(joint_velocities, n, "joint velocities", "joints")
         tau = _checked(joint_torques, n, "joint torques", "joints")
         f_imu, w_imu = self.check_imu(specific_force, angular_rate)
+        mag_imu = None if magnetic_field is None else _checked(magnetic_field, 3, "magnetic field", "mag_nan")
         if not math.isfinite(t_s) or t_s <= self.t_s:
             raise EstimatorInputError("out_of_order", f"tick at {t_s:.6f} s is not after the previous one "
                                       f"({self.t_s:.6f} s)")
@@ -216,8 +218,7 @@ class StateEstimator:
             alpha = (gyro - self._previous_gyro_base) / dt
             f_base = f_base - _cross(alpha, self._imu_position) - _cross(gyro, _cross(gyro, self._imu_position))
         self._previous_gyro_base = gyro
-        mag = None if magnetic_field is None else self._base_R_imu @ _checked(magnetic_field, 3, "magnetic field",
-                                                                               "mag_nan")
+        mag = None if mag_imu is None else self._base_R_imu @ mag_imu
         # Leg odometry first, with the previous attitude: its base-frame velocity does not depend on it,
         # and it turns the specific force into a gravity direction free of the trunk's own acceleration.
         previous_R = self.attitude.world_R_base

@@ -11,6 +11,9 @@ samples are recorded and the estimator is run offline on them, ticking at 333 Hz
   capture);
 * ``terrain_aware (true K, D)``: the same with the true ground parameters (an upper bound).
 
+Then the estimator goes into the loop: STANCE crawls over the transition course on the estimate, once
+with the rigid and once with the terrain-aware leg odometry.
+
 Writes ``results/estimation/``: ``summary.md`` and ``summary.json`` (drift, velocity RMSE, attitude
 RMSE, chatter per run and estimator) and the thesis-like plots. Usage::
 
@@ -165,7 +168,28 @@ def estimator_settings(mode: str) -> StateEstimatorSettings:
     return StateEstimatorSettings(leg_odometry=LegOdometrySettings(mode=mode))
 
 
-def run(duration_s: float, out: Path, progress: bool = True) -> dict[str, object]:
+def estimator_in_the_loop(duration_s: float, progress: bool = True) -> dict[str, dict[str, object]]:
+    """STANCE (c3WBC + TCE) crawling at 0.1 m/s over the transition course (rigid, T1, T2, T3, rigid) with
+    the controller on the state estimate instead of ground truth: rigid vs terrain-aware leg odometry."""
+    from tal_control.wbc import WbcSettings
+
+    results = {}
+    for mode in ("rigid", "terrain_aware"):
+        config = ClosedLoopConfig(
+            name=f"stance-course-estimate-{mode}", course="stance_course", gait="crawl", duration_s=duration_s,
+            commands=((0.0, 0.0, 0.0, 0.0), (1.0, 0.1, 0.0, 0.0)), settings=WbcSettings(contact_model="compliant"),
+            impedance_source="tce", initial_xy=(0.5, 0.0), state_estimator=estimator_settings(mode),
+            imu_noise=(GYRO_NOISE_RAD_S, ACCEL_NOISE_M_S2), progress=progress)
+        log = run_closed_loop(config)
+        results[mode] = {"fell": log.fell, "fall_time_s": log.meta["fall_time_s"],
+                         "fall_reason": log.meta["fall_reason"],
+                         "distance_m": round(float(log.base_position[-1, 0] - log.base_position[0, 0]), 3),
+                         "final_trunk_height_m": round(float(log.trunk_height[-1]), 3),
+                         "sim_time_s": round(float(log.t[-1]), 2)}
+    return results
+
+
+def run(duration_s: float, out: Path, progress: bool = True, loop_duration_s: float = 60.0) -> dict[str, object]:
     out.mkdir(parents=True, exist_ok=True)
     model = RobotModel.from_name("hyq")
     summary: dict[str, object] = {"duration_s": duration_s, "gyro_noise_rad_s": GYRO_NOISE_RAD_S,
@@ -190,6 +214,8 @@ def run(duration_s: float, out: Path, progress: bool = True) -> dict[str, object
         summary["runs"][surface] = runs
     summary["improvement_soft"] = _improvement(summary["runs"]["soft"], "terrain_aware_tce")
     summary["change_rigid"] = _improvement(summary["runs"]["rigid"], "terrain_aware_tce")
+    if loop_duration_s > 0.0:
+        summary["estimator_in_the_loop"] = estimator_in_the_loop(loop_duration_s, progress)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     (out / "summary.md").write_text(_markdown(summary))
     from tal_control.experiments.estimation_plots import plot_all  # matplotlib only when writing results
@@ -233,6 +259,15 @@ def _markdown(summary: dict) -> str:
         c = summary[key]
         lines.append(f"| {surface} | {c['final_z_drift_pct']:+.1f} | {c['rms_z_drift_pct']:+.1f} | "
                      f"{c['velocity_rmse_norm_pct']:+.1f} |")
+    loop = summary.get("estimator_in_the_loop")
+    if loop:
+        lines += ["", "Estimator in the loop: STANCE (c3WBC + TCE) crawling at 0.1 m/s over rigid -> T1 -> T2 -> T3 "
+                  "-> rigid, the controller on the estimate:", "",
+                  "| leg odometry | fell | fall time [s] | distance [m] | final trunk height [m] |",
+                  "|---|---|---|---|---|"]
+        for mode, r in loop.items():
+            lines.append(f"| {mode} | {'yes' if r['fell'] else 'no'} | {r['fall_time_s'] or '-'} | {r['distance_m']} | "
+                         f"{r['final_trunk_height_m']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -243,9 +278,11 @@ def _fmt(values: list[float]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=70.0, help="[s] trot per surface (after 2 s settling)")
+    parser.add_argument("--loop-duration", type=float, default=60.0,
+                        help="[s] estimator-in-the-loop runs on the STANCE course (0: skip)")
     parser.add_argument("--out", type=Path, default=Path("results/estimation"))
     args = parser.parse_args(argv)
-    summary = run(args.duration, args.out)
+    summary = run(args.duration, args.out, loop_duration_s=args.loop_duration)
     sys.stdout.write((args.out / "summary.md").read_text())
     return 0 if summary else 1
 
