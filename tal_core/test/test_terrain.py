@@ -322,6 +322,7 @@ class TestShippedCourses:
         names = shipped_course_names()
         assert names == sorted(
             [
+                "flat_foam",
                 "flat_rigid",
                 "flat_t1",
                 "flat_t2",
