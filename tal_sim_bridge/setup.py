@@ -25,6 +25,8 @@ setup(
     entry_points={
         "console_scripts": [
             "sim_bridge = tal_sim_bridge.sim_bridge_node:main",
+            "bag_recorder = tal_sim_bridge.bag_recorder_node:main",
+            "bag_player = tal_sim_bridge.bag_player_node:main",
         ],
     },
 )
