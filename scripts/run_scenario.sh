@@ -11,11 +11,15 @@
 #   crawl           the same with a crawl at 0.1 m/s
 #   stand           HyQ stands 10 s in lockstep (joint PD hold), first on rigid ground, then on T1 soft
 #   stand_realtime  the same, following the wall clock
-# Results: runs/<timestamp>/<part>/ (one log per node, summary.json) and runs/<timestamp>/report.md.
+# Results: runs/<timestamp>/<part>/ (one log per node, summary.json), runs/<timestamp>/report.md and, for the
+# walking scenarios, runs/<timestamp>/bag (the run recorded by bag_recorder).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 SCENARIO="${1:-stance}"
 RUN_ROOT="$ROOT/runs/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
+# What make run records into runs/<timestamp>/bag (rosbag2 MCAP; sim time as log time).
+RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/contacts', 'joint_command', \
+'state_estimate', 'contact_estimate', 'terrain_impedance', 'gait_state', 'wbc/diagnostics', 'cmd_vel']"
 # A private DDS domain per run, so concurrent runs and tests do not see each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
 
@@ -28,8 +32,12 @@ walk() {
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
+        -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
+        -s "bag_recorder.topics:=$RECORDED_TOPICS" \
+        -s "bag_recorder.summary_path:=$dir/recorder_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
         tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc tal_control/cmd_vel_script \
+        tal_sim_bridge/bag_recorder \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
     python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
         --estimator "$dir/estimator_summary.json" \
@@ -51,9 +59,12 @@ stance() {
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=terrain_aware" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
+        -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
+        -s "bag_recorder.topics:=$RECORDED_TOPICS" \
+        -s "bag_recorder.summary_path:=$dir/recorder_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
         tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc tal_estimation/tce \
-        tal_control/cmd_vel_script \
+        tal_control/cmd_vel_script tal_sim_bridge/bag_recorder \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
     python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
         --tce "$dir/tce_summary.json" --estimator "$dir/estimator_summary.json" --title "STANCE: HyQ crawl at $speed m/s, rigid -> T1 -> T2 -> T3 -> rigid" --output "$RUN_ROOT/report.md"
@@ -85,3 +96,4 @@ case "$SCENARIO" in
     *) echo "unknown SCENARIO '$SCENARIO'; known: stance, trot, crawl, stand, stand_realtime" >&2; exit 2 ;;
 esac
 echo "[run] report: $RUN_ROOT/report.md"
+if [ -d "$RUN_ROOT/bag" ]; then echo "[run] bag (rosbag2 MCAP): $RUN_ROOT/bag"; fi
