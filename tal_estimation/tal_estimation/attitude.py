@@ -52,7 +52,7 @@ class AttitudeSettings:
     max_gyro_bias_rad_s: float = 0.2
     gyro_noise_rad_s_sqrt_hz: float = 2e-3
     gyro_bias_walk_rad_s2_sqrt_hz: float = 1e-4
-    accel_direction_noise: float = 0.05
+    accel_direction_noise: float = 0.2
     accel_dynamic_scale_m_s2: float = 2.0
     mag_direction_noise: float = 0.05
     initial_attitude_std_rad: float = 1.0

@@ -57,6 +57,46 @@ class EstimateArrays:
     support: np.ndarray
 
 
+class StreamingEstimator:
+    """The node's tick logic for a stream of samples (one at a time, constant memory): the first sample
+    initialises, then a tick falls on the grid k * period_s with the mean of the IMU samples since the
+    previous tick."""
+
+    def __init__(self, model: RobotModel, settings: StateEstimatorSettings | None = None, *,
+                 initial_position: np.ndarray | None = None, initial_world_R_base: np.ndarray | None = None,
+                 magnetic_field_world: np.ndarray | None = None) -> None:
+        self.settings = settings or StateEstimatorSettings()
+        self.estimator = StateEstimator(model, self.settings, magnetic_field_world)
+        self.period_ns = round(self.settings.period_s * 1e9)
+        self.initial_position = initial_position
+        self.initial_world_R_base = initial_world_R_base
+        self._f_sum, self._w_sum, self._count = np.zeros(3), np.zeros(3), 0
+        self._next_tick = 0
+
+    def add(self, stamp_ns: int, specific_force: np.ndarray, angular_rate: np.ndarray,
+            joint_position: np.ndarray, joint_velocity: np.ndarray, joint_torque: np.ndarray,
+            impedance: LegImpedance | None = None, magnetic_field: np.ndarray | None = None) -> StateEstimate | None:
+        """One sensor sample at ``stamp_ns``; returns the estimate when the sample completes a tick."""
+        t = stamp_ns * 1e-9
+        if not self.estimator.initialised:
+            if self.initial_position is None:
+                self.estimator.initialise_standing(t, joint_position, world_R_base=self.initial_world_R_base)
+            else:
+                self.estimator.initialise(t, self.initial_position, self.initial_world_R_base)
+            self._next_tick = tick_after(int(stamp_ns), self.period_ns)
+            return None
+        self._f_sum += specific_force
+        self._w_sum += angular_rate
+        self._count += 1
+        if not reaches_tick(int(stamp_ns), self._next_tick):
+            return None
+        self._next_tick = tick_after(int(stamp_ns), self.period_ns)
+        f, w = self._f_sum / self._count, self._w_sum / self._count
+        self._f_sum, self._w_sum, self._count = np.zeros(3), np.zeros(3), 0
+        return self.estimator.update(t, f, w, joint_position, joint_velocity, joint_torque, impedance=impedance,
+                                     magnetic_field=magnetic_field)
+
+
 def run_estimator(model: RobotModel, sensors: SensorArrays, settings: StateEstimatorSettings | None = None,
                   *, initial_position: np.ndarray | None = None, initial_world_R_base: np.ndarray | None = None,
                   impedance: ImpedanceSource | None = None,
@@ -65,36 +105,19 @@ def run_estimator(model: RobotModel, sensors: SensorArrays, settings: StateEstim
     """Estimate along ``sensors``. The first sample initialises the filter (at ``initial_position`` or,
     by default, standing on flat ground at z = 0 above the origin); ``impedance(t)`` gives the terrain
     impedance the terrain-aware leg odometry sees at each tick."""
-    settings = settings or StateEstimatorSettings()
-    estimator = StateEstimator(model, settings, magnetic_field_world)
+    stream = StreamingEstimator(model, settings, initial_position=initial_position,
+                                initial_world_R_base=initial_world_R_base, magnetic_field_world=magnetic_field_world)
     stamps = np.round(np.asarray(sensors.t, float) * 1e9).astype(np.int64)
-    period_ns = round(settings.period_s * 1e9)
     rows: list[StateEstimate] = []
-    f_sum, w_sum, count = np.zeros(3), np.zeros(3), 0
-    next_tick = int(stamps[0])
     for i, stamp in enumerate(stamps):
-        t = stamp * 1e-9
-        if not estimator.initialised:
-            if initial_position is None:
-                estimator.initialise_standing(t, sensors.joint_position[i], world_R_base=initial_world_R_base)
-            else:
-                estimator.initialise(t, initial_position, initial_world_R_base)
-            next_tick = tick_after(int(stamp), period_ns)
-            continue
-        f_sum += sensors.specific_force[i]
-        w_sum += sensors.angular_rate[i]
-        count += 1
-        if not reaches_tick(int(stamp), next_tick):
-            continue
-        next_tick = tick_after(int(stamp), period_ns)
         mag = None if sensors.magnetic_field is None else sensors.magnetic_field[i]
-        estimate = estimator.update(t, f_sum / count, w_sum / count, sensors.joint_position[i],
-                                    sensors.joint_velocity[i], sensors.joint_torque[i],
-                                    impedance=None if impedance is None else impedance(t), magnetic_field=mag)
-        f_sum, w_sum, count = np.zeros(3), np.zeros(3), 0
-        rows.append(estimate)
-        if on_tick is not None:
-            on_tick(estimate)
+        estimate = stream.add(int(stamp), sensors.specific_force[i], sensors.angular_rate[i],
+                              sensors.joint_position[i], sensors.joint_velocity[i], sensors.joint_torque[i],
+                              impedance=None if impedance is None else impedance(stamp * 1e-9), magnetic_field=mag)
+        if estimate is not None:
+            rows.append(estimate)
+            if on_tick is not None:
+                on_tick(estimate)
     return _stack(rows)
 
 

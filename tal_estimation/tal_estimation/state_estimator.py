@@ -62,7 +62,7 @@ class StateEstimatorSettings:
     initial_velocity_std_m_s: float = 0.1
     min_support: float = 0.5
     max_gap_periods: int = 10
-    motion_compensation_tau_s: float = 0.1
+    motion_compensation_tau_s: float = 0.03
     accel_range_m_s2: float = 392.0
     gyro_range_rad_s: float = 34.9
     attitude: AttitudeSettings = field(default_factory=AttitudeSettings)

@@ -117,7 +117,7 @@ def test_standing_still_holds_position(name: str) -> None:
 def test_standing_drifts_without_the_legs() -> None:
     """Control for the test above: the same data without leg updates (min_support unreachable) drifts."""
     _, estimate, worst = standing_with_noisy_imu("solo12", StateEstimatorSettings(min_support=10.0))
-    assert worst > 3e-3
+    assert worst > 2e-3  # twice the 1 mm the legs hold it to
     assert estimate.legs.weight_sum == 4.0  # the legs were there, only unused
 
 
