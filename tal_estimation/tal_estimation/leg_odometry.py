@@ -41,13 +41,17 @@ class LegOdometrySettings:
     half-width of the contact probability ramp (smoothstep), as a fraction of the threshold.
     swing_probability [-]: below it a leg is in swing (its penetration state resets). use_leg_inertia:
     include M_leg vdot in the force (vdot from the IMU and finite differences; terrain_aware only, the
-    thesis uses the static form)."""
+    thesis uses the static form). min_damping_ns_per_m: floor of the ground damping used in the sinking
+    model (a TCE fit clamped near zero must not make dp/dt explode); max_penetration_rate_m_s: bound on
+    the modelled sinking or rising speed of a stance foot."""
 
     mode: str = "rigid"
     contact_threshold_weight_fraction: float = 0.1
     probability_width_fraction: float = 0.5
     swing_probability: float = 1e-6
     use_leg_inertia: bool = True
+    min_damping_ns_per_m: float = 50.0
+    max_penetration_rate_m_s: float = 2.0
 
     def __post_init__(self) -> None:
         if self.mode not in LEG_ODOMETRY_MODES:
@@ -181,9 +185,12 @@ class LegOdometry:
         if impedance is not None and dt > 0.0:
             for leg in range(NUM_LEGS):
                 k, d = float(impedance.stiffness_n_per_m[leg]), float(impedance.damping_ns_per_m[leg])
-                if swing[leg] or not impedance.valid[leg] or not (k > 0.0 and d > 0.0):
+                if swing[leg] or not impedance.valid[leg] or not (k > 0.0 and math.isfinite(d) and d >= 0.0):
                     continue
+                # An estimated damping near zero (clamped fits) would make dp/dt = (F - K p) / D explode.
+                d = max(d, self.settings.min_damping_ns_per_m)
                 static = normal_force[leg] / k
                 self.penetration[leg] = static + (self.penetration[leg] - static) * math.exp(-k * dt / d)
-                rate[leg] = (normal_force[leg] - k * self.penetration[leg]) / d
+                limit = self.settings.max_penetration_rate_m_s
+                rate[leg] = float(np.clip((normal_force[leg] - k * self.penetration[leg]) / d, -limit, limit))
         self._penetration_rate = rate

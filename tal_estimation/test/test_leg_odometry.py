@@ -289,7 +289,7 @@ def test_swing_legs_get_exactly_zero_weight() -> None:
 
 
 def test_invalid_impedance_is_treated_as_rigid() -> None:
-    """Legs whose impedance is flagged invalid or has K <= 0 or D <= 0 get no sinking (rolling only);
+    """Legs whose impedance is flagged invalid or has K <= 0 or D < 0 get no sinking (rolling only);
     a valid soft leg loaded by a static force starts sinking."""
     model = robot("hyq")
     weight = model.total_mass_kg * G
@@ -338,3 +338,22 @@ def test_contact_probability_is_a_smoothstep_of_the_threshold() -> None:
 def test_settings_reject_invalid_values(kwargs: dict, message: str) -> None:
     with pytest.raises(InputError, match=message):
         LegOdometrySettings(**kwargs)
+
+
+def test_a_damping_fit_clamped_to_zero_cannot_make_the_sinking_rate_explode() -> None:
+    """The TCE reports D = 0 when its damping fit is clamped: the sinking model floors D and bounds the rate
+    (an unbounded (F - K p) / D read a 300 N foot as sinking at hundreds of m/s and threw HyQ over)."""
+    model = robot("hyq")
+    weight = model.total_mass_kg * G
+    force = np.tile([0.0, 0.0, weight / 4], (4, 1))
+    qj = joint_positions(model)
+    sample = make_sample(model, BASE_ROTATION, np.zeros(3), BASE_VELOCITY, ANGULAR_VELOCITY, qj,
+                         {leg: np.zeros(3) for leg in range(4)}, force, free_joint_velocities=np.zeros(12),
+                         rolling_normals=np.tile([0.0, 0.0, 1.0], (4, 1)))
+    undamped = LegImpedance(np.full(4, 1e4), np.zeros(4), np.tile([0.0, 0.0, 1.0], (4, 1)), np.ones(4, bool))
+    settings = LegOdometrySettings(mode="terrain_aware", use_leg_inertia=False)
+    odometry = LegOdometry(model, settings)
+    out = odometry.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, sample.tau, impedance=undamped)
+    sinking = sample.centre_velocity[:, 2] - out.foot_velocity[:, 2]
+    assert np.all(sinking > 0.0) and np.all(sinking <= settings.max_penetration_rate_m_s + 1e-9)
+    assert np.all(np.isfinite(out.base_velocity))
