@@ -50,6 +50,7 @@ from tal_msgs.msg import (
 
 from .locomotion import BaseState, LocomotionController, TickOutput, impedance_from_estimates
 from .locomotion import TerrainImpedance as LegImpedance
+from .map_alignment import HeightmapAligner
 from .motion.gait import PRESETS as GAITS
 from .msg_conversions import gait_state_message
 from .tracking_stats import TrackingStats
@@ -88,6 +89,10 @@ class WbcNode(Node):
         self._base: tuple[int, BaseState] | None = None
         self._cmd_vel = np.zeros(3)
         self._grid = None
+        # The simulator's heightmap is in the true world frame; the estimate drifts in z (map_alignment).
+        self.map_aligner = (HeightmapAligner(p["map_alignment_time_constant_s"])
+                            if p["state_source"] == "estimate" and p["map_alignment_time_constant_s"] > 0.0
+                            else None)
         self.mode = WbcDiagnostics.MODE_NORMAL
         self.rejected_inputs = 0
         self.ticks = 0
@@ -133,6 +138,11 @@ class WbcNode(Node):
                                          "[s] tick of the state_estimator: a control tick waits for the estimate "
                                          "of the latest estimator tick at or before it", low=0.0005, high=0.1,
                                          read_only=True),
+            "map_alignment_time_constant_s": declare(
+                self, "map_alignment_time_constant_s", 1.0,
+                "[s] with state_source estimate: filter constant of the z offset that moves terrain/heightmap "
+                "into the estimate's frame (measured at the loaded stance feet); 0 = use the map as it is",
+                low=0.0, high=100.0, read_only=True),
             "control_period_s": declare(self, "control_period_s", 0.004, "[s] control tick", low=0.0005,
                                         high=0.1, read_only=True),
             "stale_state_periods": declare(self, "stale_state_periods", 3,
@@ -299,6 +309,9 @@ class WbcNode(Node):
     def _tick(self, stamp_ns: int, base: BaseState, q: np.ndarray, qd: np.ndarray) -> None:
         grid = self._grid
         height = (lambda x, y: float(grid.height_at(x, y))) if grid is not None else None
+        world_height = height
+        if height is not None and self.map_aligner is not None:
+            height = self.map_aligner.aligned(height)
         normal = (lambda x, y: heightmap_normal(grid, x, y)) if grid is not None else None
         try:
             out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self._cmd_vel, height, normal,
@@ -309,6 +322,9 @@ class WbcNode(Node):
             return
         if self.mode == WbcDiagnostics.MODE_SAFE:
             self.get_logger().info("fresh state: leaving safe mode")
+        if world_height is not None and self.map_aligner is not None:
+            self.map_aligner.update(stamp_ns * 1e-9, out.measured.foot_positions, out.targets.load_factor,
+                                    self.controller.motion.foot_radius_m, world_height)
         self.mode = WbcDiagnostics.MODE_FALLBACK if out.solution.fallback else WbcDiagnostics.MODE_NORMAL
         self._publish_command(stamp_ns, effort=out.tau)
         self.stats.add(stamp_ns * 1e-9, base, out)
@@ -390,7 +406,9 @@ class WbcNode(Node):
 
 
     def summary(self) -> dict:
+        aligner = self.map_aligner
         return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
+                "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name}
 
     def destroy_node(self) -> None:

@@ -21,8 +21,6 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
-from geometry_msgs.msg import Point, Vector3
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -33,7 +31,7 @@ from sensor_msgs.msg import Imu, JointState
 from tal_core.heightmap import extract_heightmap
 from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
 from tal_core.robot_description import load_robot_description
-from tal_core.rotations import rotation_from_quat_xyzw, yaw_from_quat_xyzw
+from tal_core.rotations import yaw_from_quat_xyzw
 from tal_core.terrain import load_course
 from tal_msgs.msg import ContactState, HeightMap, JointCommand
 
@@ -41,6 +39,13 @@ from .bridge_core import BridgeCore, ImuModel
 from .effects import ModelEffects
 from .errors import CommandRejectedError
 from .physics import Simulation
+from .sensor_messages import (
+    contact_state_message,
+    heightmap_message,
+    imu_message,
+    joint_state_message,
+    odometry_message,
+)
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
     "actuator_delay_s": (0.0, "[s] transport delay of the joint torques"),
@@ -247,76 +252,23 @@ class SimBridgeNode(Node):
             self._publish_heightmap(stamp, state)
 
     def _publish_sensors(self, stamp, state) -> None:
-        joints = JointState()
-        joints.header.stamp = stamp
-        joints.header.frame_id = "base"
-        joints.name = list(self.core.sim.description.joint_names)
-        joints.position = state.joint_position_rad.tolist()
-        joints.velocity = state.joint_velocity_rad_s.tolist()
-        joints.effort = state.joint_torque_nm.tolist()
-        self.pub_joints.publish(joints)
-
+        self.pub_joints.publish(joint_state_message(stamp, self.core.sim.description.joint_names, state))
         specific_force, angular_rate = self.core.imu.measure(state)
-        imu = Imu()
-        imu.header.stamp = stamp
-        imu.header.frame_id = "base"
-        imu.orientation_covariance[0] = -1.0  # no orientation estimate from this IMU
-        imu.angular_velocity = Vector3(x=angular_rate[0], y=angular_rate[1], z=angular_rate[2])
-        imu.linear_acceleration = Vector3(x=specific_force[0], y=specific_force[1], z=specific_force[2])
-        gyro_var = self.params["imu_gyro_noise_std_rad_s"] ** 2
-        accel_var = self.params["imu_accel_noise_std_m_s2"] ** 2
-        for i in (0, 4, 8):
-            imu.angular_velocity_covariance[i] = gyro_var
-            imu.linear_acceleration_covariance[i] = accel_var
-        self.pub_imu.publish(imu)
-
-        odom = Odometry()
-        odom.header.stamp = stamp
-        odom.header.frame_id = "world"
-        odom.child_frame_id = "base"
-        pos, quat = state.base_position_m, state.base_quat_xyzw
-        odom.pose.pose.position = Point(x=pos[0], y=pos[1], z=pos[2])
-        odom.pose.pose.orientation.x, odom.pose.pose.orientation.y = float(quat[0]), float(quat[1])
-        odom.pose.pose.orientation.z, odom.pose.pose.orientation.w = float(quat[2]), float(quat[3])
-        # ROS convention: the twist is expressed in child_frame_id (base).
-        base_R_world = rotation_from_quat_xyzw(quat).T
-        lin = base_R_world @ state.base_lin_vel_m_s
-        ang = base_R_world @ state.base_ang_vel_rad_s
-        odom.twist.twist.linear = Vector3(x=lin[0], y=lin[1], z=lin[2])
-        odom.twist.twist.angular = Vector3(x=ang[0], y=ang[1], z=ang[2])
-        self.pub_odom.publish(odom)
+        self.pub_imu.publish(imu_message(stamp, specific_force, angular_rate,
+                                         self.params["imu_gyro_noise_std_rad_s"],
+                                         self.params["imu_accel_noise_std_m_s2"]))
+        self.pub_odom.publish(odometry_message(stamp, state))
 
     def _publish_contacts(self, stamp, contacts) -> None:
-        msg = ContactState()
-        msg.header.stamp = stamp
-        msg.header.frame_id = "world"
-        for i, c in enumerate(contacts):
-            msg.in_contact[i] = c.in_contact
-            msg.probability[i] = 1.0 if c.in_contact else 0.0
-            msg.force[i] = Vector3(x=c.force_n[0], y=c.force_n[1], z=c.force_n[2])
-            msg.foot_position[i] = Point(x=c.position_m[0], y=c.position_m[1], z=c.position_m[2])
-            msg.foot_velocity[i] = Vector3(x=c.velocity_m_s[0], y=c.velocity_m_s[1], z=c.velocity_m_s[2])
-            msg.normal[i] = Vector3(x=c.normal[0], y=c.normal[1], z=c.normal[2])
-            msg.penetration[i] = c.penetration_m
-            msg.penetration_rate[i] = float(-(c.velocity_m_s @ c.normal)) if c.in_contact else 0.0
-        self.pub_contacts.publish(msg)
+        self.pub_contacts.publish(contact_state_message(stamp, contacts))
 
     def _publish_heightmap(self, stamp, state) -> None:
         p = self.params
-        quat = state.base_quat_xyzw
-        yaw = yaw_from_quat_xyzw(quat)
+        yaw = yaw_from_quat_xyzw(state.base_quat_xyzw)
         grid = extract_heightmap(self.core.sim.course, (state.base_position_m[0], state.base_position_m[1]), yaw,
                                  rows=p["heightmap_rows"], cols=p["heightmap_cols"],
                                  resolution_m=p["heightmap_resolution_m"])
-        msg = HeightMap()
-        msg.header.stamp = stamp
-        msg.header.frame_id = "world"
-        msg.center = Point(x=grid.center_xy[0], y=grid.center_xy[1], z=0.0)
-        msg.yaw = grid.yaw
-        msg.resolution = grid.resolution_m
-        msg.rows, msg.cols = grid.rows, grid.cols
-        msg.heights = np.ascontiguousarray(grid.heights, dtype=np.float32).ravel()
-        self.pub_heightmap.publish(msg)
+        self.pub_heightmap.publish(heightmap_message(stamp, grid))
 
     # -- end of run -------------------------------------------------------------------------------------
     def _finish(self) -> None:

@@ -32,6 +32,7 @@ from tal_control.locomotion import (
     TickOutput,
     impedance_from_estimates,
 )
+from tal_control.map_alignment import HeightmapAligner
 from tal_control.motion.gait import PRESETS, GaitParameters
 from tal_control.motion.trunk import TrunkOscillation
 from tal_control.wbc import WbcGains, WbcSettings
@@ -325,6 +326,9 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
     tce_accelerations = FiniteDifferenceAcceleration(max_gap_s=1.5 * config.physics_dt_s * config.control_decimation)
 
     estimated = _EstimatorInTheLoop(config, description, sim) if config.state_estimator is not None else None
+    # As in the wbc node: on the estimate, the world-frame map is shifted into the estimate's z frame.
+    aligner = HeightmapAligner() if estimated is not None else None
+    control_height_fn = aligner.aligned(height_fn) if aligner is not None else height_fn
 
     recorder = _Recorder()
     n_steps = int(round(config.duration_s / config.physics_dt_s))
@@ -363,9 +367,11 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                         tce_k, tce_d, np.array([e.valid for e in estimates]),
                         np.array([normal_fn(*c.position_m[:2]) for c in sim.foot_contacts()]))
                 out = controller.tick(
-                    t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd, height_fn, normal_fn,
-                    impedance=impedance,
+                    t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd, control_height_fn,
+                    normal_fn, impedance=impedance,
                 )
+                if aligner is not None:
+                    aligner.update(t, out.measured.foot_positions, out.targets.load_factor, radius, height_fn)
                 tau = out.tau
                 if hook is not None:
                     replaced = hook(TickContext(t, k // decimation, core, controller, out, state))
