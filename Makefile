@@ -4,7 +4,7 @@ ENV := source scripts/env.sh
 SCENARIO ?= stance
 PYTEST_ARGS ?=
 
-.PHONY: bootstrap run test bench experiments lint clean
+.PHONY: bootstrap run test bench experiments datasets lint clean
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -18,6 +18,9 @@ test: bootstrap
 bench: bootstrap
 	@$(ENV) && python bench/bench_bridge.py && python bench/bench_wbc.py && python bench/bench_stance.py \
 		&& python bench/bench_estimator.py
+
+datasets: bootstrap
+	@$(ENV) && python -m tal_control.experiments.datasets --out data --duration-s $(or $(DURATION),70)
 
 experiments: bootstrap
 	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc \

@@ -15,13 +15,16 @@ needs neither).
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
+import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 from mcap.exceptions import McapError
 from mcap.reader import StreamReader, breakup_chunk
@@ -237,6 +240,11 @@ class BagWriter:
     def message_count(self) -> int:
         return sum(t.count for t in self._topics.values())
 
+    @property
+    def message_counts(self) -> dict[str, int]:
+        """Messages written per topic."""
+        return {t.name: t.count for t in self._topics.values()}
+
     def close(self) -> None:
         """Finish the MCAP file (summary and index) and write metadata.yaml."""
         if self._closed:
@@ -420,3 +428,37 @@ class BagReader:
                 return
         if not self.report.complete:
             self.report.error = f"{path.name}: ends without an MCAP footer after {count} messages"
+
+
+def _digest_value(digest: Any, value: Any) -> None:
+    """Feed a decoded message value into ``digest`` field by field (padding bytes never enter)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if hasattr(value, "get_fields_and_field_types"):
+        for name in value.get_fields_and_field_types():
+            digest.update(name.encode())
+            _digest_value(digest, getattr(value, name))
+    elif isinstance(value, str):
+        digest.update(value.encode() + b"\0")
+    elif isinstance(value, (bytes, bytearray)):
+        digest.update(bytes(value))
+    elif isinstance(value, (bool, int, float)):
+        digest.update(struct.pack("<d", float(value)) if isinstance(value, float) else str(int(value)).encode())
+    else:  # sequences and arrays: numpy, array.array, list
+        items = list(value)
+        digest.update(f"[{len(items)}]".encode())
+        for item in items:
+            _digest_value(digest, item)
+
+
+def content_digest(path: str | Path, topics: Iterable[str] | None = None) -> str:
+    """SHA-256 over the decoded content of a bag (topic, log time, every field of every message).
+
+    The CDR bytes of two identical messages can differ: FastCDR leaves alignment padding uninitialised. This
+    digest is equal for bags with equal content, so it is what tells two dataset runs apart.
+    """
+    digest = hashlib.sha256()
+    for message in BagReader(path).messages(topics, strict=True):
+        digest.update(f"{message.topic}@{message.log_time_ns}".encode())
+        _digest_value(digest, message.message)
+    return digest.hexdigest()

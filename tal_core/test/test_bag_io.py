@@ -14,7 +14,7 @@ from nav_msgs.msg import Odometry
 from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import Imu, JointState
 
-from tal_core.bag_io import BagError, BagReader, BagWriter, exact_cdr, message_definition
+from tal_core.bag_io import BagError, BagReader, BagWriter, content_digest, exact_cdr, message_definition
 from tal_core.node_utils import stamp_from_ns
 from tal_msgs.msg import ContactState, TerrainImpedance
 
@@ -179,3 +179,24 @@ def test_writer_refuses_bad_requests(tmp_path: Path) -> None:
             bag.write("/raw", b"\x00", 2)
     with pytest.raises(BagError, match="no bag at"):
         BagReader(tmp_path / "missing")
+
+
+def test_the_content_digest_ignores_cdr_padding_and_sees_every_field(tmp_path: Path) -> None:
+    write_sample_bag(tmp_path / "a", 50)
+    write_sample_bag(tmp_path / "b", 50)
+    write_sample_bag(tmp_path / "c", 49)
+    assert content_digest(tmp_path / "a") == content_digest(tmp_path / "b") != content_digest(tmp_path / "c")
+    # The same joint state twice, once with garbage in the alignment padding after the first name (FastCDR
+    # does not initialise it): equal content, different bytes, equal digest; a changed value differs.
+    joints = JointState(name=["lf_haa_joint", "lf_hfe_joint"], position=[0.1, -0.2], velocity=[], effort=[1.5, 2.0])
+    clean = exact_cdr(joints)
+    end = clean.index(b"lf_haa_joint\x00") + len(b"lf_haa_joint\x00")
+    dirty = clean[:end] + b"\xab\xcd\xef" + clean[end + 3:]
+    changed = exact_cdr(JointState(name=joints.name, position=[0.1, -0.25], velocity=[], effort=[1.5, 2.0]))
+    for name, data in (("clean", clean), ("dirty", dirty), ("changed", changed)):
+        with BagWriter(tmp_path / name) as bag:
+            bag.add_topic("/joint_states", "sensor_msgs/msg/JointState")
+            bag.write("/joint_states", data, MS)
+    assert dirty != clean
+    assert content_digest(tmp_path / "clean") == content_digest(tmp_path / "dirty")
+    assert content_digest(tmp_path / "changed") != content_digest(tmp_path / "clean")
