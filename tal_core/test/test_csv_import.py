@@ -1,0 +1,173 @@
+"""CSV import through a YAML column map: round trip, the shipped example, and bad input named precisely."""
+
+from __future__ import annotations
+
+import csv
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from geometry_msgs.msg import Quaternion, Vector3
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu, JointState
+
+from tal_core.bag_io import BagReader, BagWriter
+from tal_core.csv_import import ColumnMap, CsvImportError, export_csv, import_csv
+from tal_core.node_utils import stamp_from_ns
+
+MAPS = Path(__file__).resolve().parents[1] / "tal_core" / "config" / "csv_maps"
+EXAMPLE_MAP = MAPS / "hyq_example.yaml"
+EXAMPLE_CSV = MAPS / "hyq_example.csv"
+JOINTS = yaml.safe_load(EXAMPLE_MAP.read_text())["joint_states"]["joints"]
+
+
+def random_bag(path: Path, n: int = 300, seed: int = 0) -> None:
+    """n samples at 1 kHz of joint states, IMU and ground truth with random values."""
+    rng = np.random.default_rng(seed)
+    with BagWriter(path) as bag:
+        for k in range(n):
+            t_ns = 5 * 10**9 + k * 10**6
+            stamp = stamp_from_ns(t_ns)
+            js = JointState(name=list(JOINTS), position=rng.normal(size=12).tolist(),
+                            velocity=rng.normal(size=12).tolist(), effort=(50 * rng.normal(size=12)).tolist())
+            js.header.stamp = stamp
+            imu = Imu(angular_velocity=Vector3(**dict(zip("xyz", rng.normal(size=3)))),
+                      linear_acceleration=Vector3(**dict(zip("xyz", rng.normal(size=3) + [0, 0, 9.81]))))
+            imu.header.stamp = stamp
+            q = rng.normal(size=4)
+            q /= np.linalg.norm(q)
+            odom = Odometry()
+            odom.header.stamp = stamp
+            odom.pose.pose.position.x, odom.pose.pose.position.y, odom.pose.pose.position.z = rng.normal(size=3)
+            odom.pose.pose.orientation = Quaternion(**dict(zip("xyzw", q)))
+            odom.twist.twist.linear = Vector3(**dict(zip("xyz", rng.normal(size=3))))
+            odom.twist.twist.angular = Vector3(**dict(zip("xyz", rng.normal(size=3))))
+            for topic, msg in (("/joint_states", js), ("/imu", imu), ("/ground_truth/odom", odom)):
+                bag.write(topic, msg, t_ns)
+
+
+def flat(msg) -> np.ndarray:
+    if isinstance(msg, JointState):
+        return np.r_[msg.position, msg.velocity, msg.effort]
+    if isinstance(msg, Imu):
+        a, f = msg.angular_velocity, msg.linear_acceleration
+        return np.array([a.x, a.y, a.z, f.x, f.y, f.z])
+    p, o, v, w = msg.pose.pose.position, msg.pose.pose.orientation, msg.twist.twist.linear, msg.twist.twist.angular
+    return np.array([p.x, p.y, p.z, o.x, o.y, o.z, o.w, v.x, v.y, v.z, w.x, w.y, w.z])
+
+
+def test_a_bag_exported_in_robot_log_units_imports_back_to_the_same_messages(tmp_path: Path) -> None:
+    random_bag(tmp_path / "original")
+    cmap = ColumnMap.load(EXAMPLE_MAP)
+    assert export_csv(tmp_path / "original", cmap, tmp_path / "log.csv") == 300
+    with (tmp_path / "log.csv").open() as stream:  # the CSV really is in degrees, millimetres and g
+        header = next(csv.reader(stream))
+    assert header[0] == "t_ms" and "q_lf_haa_joint" in header and "acc_z" in header
+    report = import_csv(tmp_path / "log.csv", EXAMPLE_MAP, tmp_path / "imported")
+    assert report.rows == 300 and report.skipped_rows == {}
+    assert report.messages == {"/joint_states": 300, "/imu": 300, "/ground_truth/odom": 300}
+    original = list(BagReader(tmp_path / "original").messages())
+    imported = list(BagReader(tmp_path / "imported").messages())
+    assert [(m.topic, m.log_time_ns) for m in imported] == [(m.topic, m.log_time_ns) for m in original]
+    for a, b in zip(original, imported, strict=True):
+        np.testing.assert_allclose(flat(b.message), flat(a.message), rtol=1e-12, atol=1e-12)
+    assert imported[0].message.header.stamp == original[0].message.header.stamp
+
+
+def test_the_shipped_example_imports_with_its_map(tmp_path: Path) -> None:
+    report = import_csv(EXAMPLE_CSV, EXAMPLE_MAP, tmp_path / "bag")
+    assert report.rows == 20 and report.skipped_rows == {}
+    first = next(BagReader(tmp_path / "bag").messages(["/imu"])).message
+    assert 9.0 < first.linear_acceleration.z < 10.6  # g converted to m/s^2 while standing/trotting
+    joints = next(BagReader(tmp_path / "bag").messages(["/joint_states"])).message
+    assert list(joints.name) == JOINTS and max(abs(v) for v in joints.position) < 3.2  # radians
+
+
+def write_csv(path: Path, header: list[str], rows: list[list[object]]) -> Path:
+    with path.open("w", newline="") as stream:
+        out = csv.writer(stream)
+        out.writerow(header)
+        out.writerows(rows)
+    return path
+
+
+IMU_MAP = {"time": {"column": "t", "unit": "s"},
+           "imu": {"angular_velocity": {a: {"column": f"g{a}", "unit": "rad/s"} for a in "xyz"},
+                   "linear_acceleration": {a: {"column": f"a{a}", "unit": "m/s^2"} for a in "xyz"}}}
+IMU_HEADER = ["t", "gx", "gy", "gz", "ax", "ay", "az"]
+
+
+def test_a_missing_column_is_named_with_its_map_entry_and_the_header_line(tmp_path: Path) -> None:
+    text = EXAMPLE_CSV.read_text().splitlines()
+    header = text[0].split(",")
+    drop = header.index("dq_rh_kfe_joint")
+    cut = "\n".join(",".join(c for i, c in enumerate(line.split(",")) if i != drop) for line in text) + "\n"
+    (tmp_path / "cut.csv").write_text(cut)
+    with pytest.raises(CsvImportError, match=r"cut.csv line 1: column 'dq_rh_kfe_joint' "
+                                             r"\(joint_states.velocity of rh_kfe_joint, map .*hyq_example.yaml\)"):
+        import_csv(tmp_path / "cut.csv", EXAMPLE_MAP, tmp_path / "bag")
+
+
+def test_a_bad_unit_names_the_column_and_the_map_line(tmp_path: Path) -> None:
+    text = EXAMPLE_MAP.read_text().replace("unit: deg/s}", "unit: furlong/fortnight}", 1)
+    (tmp_path / "map.yaml").write_text(text)
+    line = next(i for i, s in enumerate(text.splitlines(), 1) if "furlong" in s)
+    with pytest.raises(CsvImportError, match=rf"map.yaml line {line}: column 'dq_lf_haa_joint' \(joint_states."
+                                             r"velocity of lf_haa_joint\) has unit 'furlong/fortnight', which is "
+                                             r"not a unit of angular velocity \(rad/s, deg/s\)"):
+        ColumnMap.load(tmp_path / "map.yaml")
+    text = EXAMPLE_MAP.read_text().replace("{column: t_ms, unit: ms", "{column: t_ms, unit: deg", 1)
+    (tmp_path / "map.yaml").write_text(text)
+    with pytest.raises(CsvImportError, match=r"line 14: column 't_ms' \(time\) has unit 'deg'.*not a unit of time"):
+        ColumnMap.load(tmp_path / "map.yaml")
+
+
+def test_a_cell_that_is_not_a_number_names_the_column_and_the_line(tmp_path: Path) -> None:
+    rows = [[0.001 * k, 0, 0, 0.1 * k, 0, 0, 9.81] for k in range(10)]
+    rows[6][4] = "n/a"
+    path = write_csv(tmp_path / "log.csv", IMU_HEADER, rows)
+    cmap = ColumnMap.from_dict(IMU_MAP)
+    with pytest.raises(CsvImportError, match=r"log.csv line 8: column 'ax' \(imu.linear_acceleration.x\) is 'n/a'"):
+        import_csv(path, cmap, tmp_path / "strict")
+    assert sum(1 for _ in BagReader(tmp_path / "strict").messages()) == 6  # what came before is kept
+    report = import_csv(path, ColumnMap.from_dict(IMU_MAP), tmp_path / "lenient", skip_bad_rows=True)
+    assert report.rows == 9 and report.skipped_rows == {"bad cell": 1}
+
+
+def test_rows_whose_time_does_not_increase_are_skipped_counted_and_logged_once(tmp_path: Path, caplog) -> None:
+    times = [0.0, 0.001, 0.002, 0.0015, 0.002, 0.003, 0.001, 0.004]
+    path = write_csv(tmp_path / "log.csv", IMU_HEADER, [[t, 0, 0, 0, 0, 0, 9.81] for t in times])
+    with caplog.at_level(logging.WARNING, logger="tal.csv_import"):
+        report = import_csv(path, ColumnMap.from_dict(IMU_MAP), tmp_path / "bag")
+    assert report.rows == 5 and report.skipped_rows == {"time not increasing": 3}
+    assert len(caplog.records) == 1 and "log.csv line 5" in caplog.records[0].getMessage()
+    stamps = [m.log_time_ns for m in BagReader(tmp_path / "bag").messages()]
+    assert stamps == [0, 1_000_000, 2_000_000, 3_000_000, 4_000_000]
+
+
+@pytest.mark.parametrize(("raw", "match"), [
+    ({"imu": IMU_MAP["imu"]}, "the map needs 'time'"),
+    ({"time": {"column": "t", "unit": "s"}}, "maps no signal"),
+    ({**IMU_MAP, "imu": {"angular_velocity": {"x": {"column": "gx", "unit": "rad/s"}}}}, r"missing \['y', 'z'\]"),
+    ({**IMU_MAP, "time": {"column": "t", "unit": "s", "scale": 0}}, "scale 0; it must be a finite non-zero"),
+    ({**IMU_MAP, "joint_states": {"joints": ["a", "a"], "position": {"column": "q_{joint}", "unit": "rad"}}},
+     "must be unique names"),
+])
+def test_invalid_maps_are_refused_with_the_reason(raw, match) -> None:
+    with pytest.raises(CsvImportError, match=match):
+        ColumnMap.from_dict(raw)
+
+
+def test_a_quaternion_that_is_not_unit_and_an_empty_file_are_refused(tmp_path: Path) -> None:
+    header = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"]
+    raw = {"time": {"column": "t", "unit": "s"}, "ground_truth": {
+        "position": {a: {"column": a, "unit": "m"} for a in "xyz"},
+        "orientation_xyzw": {a: {"column": f"q{a}", "unit": "-"} for a in "xyzw"}}}
+    path = write_csv(tmp_path / "log.csv", header, [[0.0, 0, 0, 0.5, 0, 0, 0, 1], [0.001, 0, 0, 0.5, 0, 0, 0, 2]])
+    with pytest.raises(CsvImportError, match="log.csv line 3: ground_truth.orientation_xyzw has norm 2.000"):
+        import_csv(path, ColumnMap.from_dict(raw), tmp_path / "bag")
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(CsvImportError, match="empty.csv line 1: the file is empty"):
+        import_csv(tmp_path / "empty.csv", ColumnMap.from_dict(raw), tmp_path / "bag2")
