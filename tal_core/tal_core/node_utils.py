@@ -14,7 +14,7 @@ from typing import Any
 import rclpy
 from builtin_interfaces.msg import Time
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from tal_core.ticks import NS_PER_S, TICK_TOLERANCE_NS, reaches_tick, tick_after  # noqa: F401 (re-exported)
@@ -64,7 +64,8 @@ def declare(node: Node, name: str, default: Any, description: str, *,
 
 
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None,
-             until: Callable[[Node], bool] | None = None, name: str = "node") -> int:
+             until: Callable[[Node], bool] | None = None, name: str = "node",
+             executor_factory: Callable[[], Executor] = SingleThreadedExecutor) -> int:
     """Jazzy main() pattern: init, spin until shutdown (or ``until(node)``), clean up. Returns an exit code.
 
     A configuration error raised while constructing the node (invalid parameter, bad course or robot
@@ -72,7 +73,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None,
     """
     rclpy.init(args=args)
     node = None
-    executor = SingleThreadedExecutor()
+    executor = executor_factory()
     code = 0
     try:
         try:

@@ -332,14 +332,26 @@ class TestShippedCourses:
                 "slope_15deg",
                 "stairs",
                 "mixed_course",
+                "trot_loop",
             ]
         )
         for name in names:
             course = load_course(name)
             assert course.name == name
+            if name == "trot_loop":  # a square around the origin, not a strip along x
+                continue
             assert (course.extent.x_min, course.extent.y_min, course.extent.y_max) == (-2.0, -2.0, 2.0)
             last_patch_end = max([p.region.x_max for p in course.patches], default=course.extent.x_min)
             assert course.extent.x_max >= last_patch_end + 2.0
+
+    def test_the_trot_loop_crosses_its_blocks_in_order_on_a_2_m_circle(self) -> None:
+        course = load_course("trot_loop")
+        angles = np.linspace(-np.pi / 2, 3 * np.pi / 2, 721)  # from the start (0, -2), counter-clockwise
+        names = [str(course.patch_at(2.0 * np.cos(a), 2.0 * np.sin(a))) for a in angles]
+        crossed = [n for i, n in enumerate(names) if i == 0 or n != names[i - 1]]
+        assert crossed == ["default", "soft_t1", "default", "slippery", "default", "foam", "default", "moderate_t2",
+                           "default"]
+        assert course.properties(0.0, 2.0).stiffness_n_per_m == 2400.0
 
     @pytest.mark.parametrize("terrain", ["T1", "T2", "T3", "T4"])
     def test_flat_courses_have_one_terrain(self, terrain: str) -> None:
