@@ -45,7 +45,6 @@ import numpy as np
 
 try:
     from tal_core.bag_io import BagReader, BagWriter, exact_cdr, message_class
-    from tal_core.node_utils import stamp_from_ns
 except ImportError as _exc:  # environment problem, not a benchmark result
     raise SystemExit(f"bench_bags: {_exc}; run it after `source scripts/env.sh`") from None
 
@@ -313,14 +312,16 @@ def report(r: dict) -> str:
              "| stage | messages/s | MB/s (payload) | CPU per robot second (share of one core) | notes |",
              "|---|---|---|---|---|",
              f"| BagWriter, zstd ({w['robot_time_s']:.0f} s bag, {w['file_mb']:.1f} MB file) | "
-             f"{w['messages_per_s']:,.0f} | {w['mb_per_s']:.1f} | {100 * w['cpu_share_of_one_core_at_real_time']:.1f} % "
+             f"{w['messages_per_s']:,.0f} | {w['mb_per_s']:.1f} | "
+             f"{100 * w['cpu_share_of_one_core_at_real_time']:.1f} % "
              f"| {w['payload_mb']:.1f} MB payload |",
              f"| BagReader, decoding every message | {rd['messages_per_s']:,.0f} | {rd['mb_per_s']:.1f} | – | "
              f"{rd['messages']:,} messages |"]
     if "live_recorder" in r:
         lv = r["live_recorder"]
-        lines.append(f"| bag_recorder node, live at real time ({lv['duration_s']:.0f} s) | {lv['messages_per_s']:,.0f} "
-                     f"| {lv['mb_per_s']:.2f} | {100 * lv['recorder_cpu_share_of_one_core']:.1f} % (measured, "
+        lines.append(f"| bag_recorder node, live at real time ({lv['duration_s']:.0f} s) | "
+                     f"{lv['messages_per_s']:,.0f} | {lv['mb_per_s']:.2f} | "
+                     f"{100 * lv['recorder_cpu_share_of_one_core']:.1f} % (measured, "
                      f"/proc) | recorded {lv['recorded']:,} of {lv['published']:,} published |")
     if "replay" in r:
         lines += ["", "| offline replay (estimator + TCE) | leg odometry | robot time [s] | wall [s] | x real time |",
@@ -331,7 +332,8 @@ def report(r: dict) -> str:
     if "memory" in r:
         lines += ["", "| memory | bag length [s] | messages | peak RSS [MB] |", "|---|---|---|---|"]
         for row in r["memory"]:
-            lines.append(f"| {row['case']} | {row['duration_s']:.0f} | {row['messages']:,} | {row['peak_rss_mb']:.1f} |")
+            lines.append(f"| {row['case']} | {row['duration_s']:.0f} | {row['messages']:,} | "
+                         f"{row['peak_rss_mb']:.1f} |")
         for case in ("write", "read"):
             pair = [row for row in r["memory"] if row["case"] == case]
             if len(pair) == 2:
