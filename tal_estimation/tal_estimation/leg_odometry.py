@@ -43,7 +43,10 @@ class LegOdometrySettings:
     include M_leg vdot in the force (vdot from the IMU and finite differences; terrain_aware only, the
     thesis uses the static form). min_damping_ns_per_m: floor of the ground damping used in the sinking
     model (a TCE fit clamped near zero must not make dp/dt explode); max_penetration_rate_m_s: bound on
-    the modelled sinking or rising speed of a stance foot."""
+    the modelled sinking or rising speed of a stance foot. min_stiffness_n_per_m: a stiffness below it is
+    implausible for ground that carries the robot (an unconverged or clamped TCE fit) and the leg is
+    treated as on rigid ground; max_penetration_m: bound on the modelled sinking of one foot (a wrong
+    stiffness must not sink the estimate by metres per step)."""
 
     mode: str = "rigid"
     contact_threshold_weight_fraction: float = 0.1
@@ -52,6 +55,8 @@ class LegOdometrySettings:
     use_leg_inertia: bool = True
     min_damping_ns_per_m: float = 50.0
     max_penetration_rate_m_s: float = 2.0
+    min_stiffness_n_per_m: float = 500.0
+    max_penetration_m: float = 0.3
 
     def __post_init__(self) -> None:
         if self.mode not in LEG_ODOMETRY_MODES:
@@ -185,12 +190,18 @@ class LegOdometry:
         if impedance is not None and dt > 0.0:
             for leg in range(NUM_LEGS):
                 k, d = float(impedance.stiffness_n_per_m[leg]), float(impedance.damping_ns_per_m[leg])
-                if swing[leg] or not impedance.valid[leg] or not (k > 0.0 and math.isfinite(d) and d >= 0.0):
+                if (swing[leg] or not impedance.valid[leg] or not (math.isfinite(d) and d >= 0.0)
+                        or not k >= self.settings.min_stiffness_n_per_m):
+                    self.penetration[leg] = 0.0
                     continue
                 # An estimated damping near zero (clamped fits) would make dp/dt = (F - K p) / D explode.
                 d = max(d, self.settings.min_damping_ns_per_m)
                 static = normal_force[leg] / k
-                self.penetration[leg] = static + (self.penetration[leg] - static) * math.exp(-k * dt / d)
+                p = static + (self.penetration[leg] - static) * math.exp(-k * dt / d)
+                bounded = min(max(p, 0.0), self.settings.max_penetration_m)
+                self.penetration[leg] = bounded
+                if bounded != p:  # at a bound the modelled foot does not move
+                    continue
                 limit = self.settings.max_penetration_rate_m_s
-                rate[leg] = float(np.clip((normal_force[leg] - k * self.penetration[leg]) / d, -limit, limit))
+                rate[leg] = float(np.clip((normal_force[leg] - k * bounded) / d, -limit, limit))
         self._penetration_rate = rate

@@ -357,3 +357,33 @@ def test_a_damping_fit_clamped_to_zero_cannot_make_the_sinking_rate_explode() ->
     sinking = sample.centre_velocity[:, 2] - out.foot_velocity[:, 2]
     assert np.all(sinking > 0.0) and np.all(sinking <= settings.max_penetration_rate_m_s + 1e-9)
     assert np.all(np.isfinite(out.base_velocity))
+
+
+def test_an_implausibly_soft_stiffness_is_ignored_and_the_sinking_is_bounded() -> None:
+    """A TCE fit clamped at 100 N/m read a 210 N foot as 2 m deep: replaying the STANCE course, the
+    estimate sank 87 m. Below min_stiffness the leg counts as rigid; the sinking is capped per foot."""
+    model = robot("hyq")
+    weight = model.total_mass_kg * G
+    force = np.tile([0.0, 0.0, weight / 4], (4, 1))
+    qj = joint_positions(model)
+    sample = make_sample(model, BASE_ROTATION, np.zeros(3), BASE_VELOCITY, ANGULAR_VELOCITY, qj,
+                         {leg: np.zeros(3) for leg in range(4)}, force, free_joint_velocities=np.zeros(12),
+                         rolling_normals=np.tile([0.0, 0.0, 1.0], (4, 1)))
+    normals = np.tile([0.0, 0.0, 1.0], (4, 1))
+    settings = LegOdometrySettings(mode="terrain_aware", use_leg_inertia=False, max_penetration_m=0.1)
+    reference = LegOdometry(model, settings)
+    for _ in range(50):
+        rigid = reference.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, sample.tau, impedance=None)
+    clamped = LegImpedance(np.full(4, 100.0), np.full(4, 400.0), normals, np.ones(4, bool))
+    odometry = LegOdometry(model, settings)
+    for _ in range(50):
+        out = odometry.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, sample.tau, impedance=clamped)
+    np.testing.assert_allclose(out.penetration, 0.0)
+    np.testing.assert_allclose(out.foot_velocity, rigid.foot_velocity, atol=1e-9)  # as on rigid ground
+    soft = LegImpedance(np.full(4, 1000.0), np.full(4, 50.0), normals, np.ones(4, bool))  # F/K = 0.21 m
+    odometry = LegOdometry(model, settings)
+    for _ in range(400):
+        out = odometry.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, sample.tau, impedance=soft)
+    np.testing.assert_allclose(out.penetration, 0.1)
+    # At the cap the modelled foot neither sinks nor (sunk deeper than its radius) rolls.
+    np.testing.assert_allclose(out.foot_velocity, 0.0, atol=1e-12)
