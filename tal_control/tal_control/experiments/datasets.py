@@ -89,7 +89,7 @@ SCENARIOS: dict[str, DatasetScenario] = {s.name: s for s in (
     DatasetScenario("trot_in_place_soft", "HyQ trotting in place on a 2400 N/m, 400 N s/m foam (thesis "
                     "dataset, soft)", "flat_foam"),
     DatasetScenario("trot_loop_mixed", "HyQ trotting a 2 m circle (0.3 m/s, 0.15 rad/s) over rigid ground, "
-                    "T1, a low-friction square, foam and T2", "trot_loop",
+                    "T1, foam and T2", "trot_loop",
                     commands=((0.0, 0.0, 0.0, 0.0), (2.0, 0.3, 0.0, 0.15)), initial_xy=(0.0, -2.0)),
 )}
 
