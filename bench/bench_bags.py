@@ -32,7 +32,6 @@ import argparse
 import datetime as dt
 import json
 import os
-import resource
 import shutil
 import signal
 import subprocess
@@ -151,7 +150,12 @@ def read_bag(path: Path) -> dict[str, float]:
 
 
 def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+    """Peak resident memory of this process [MB] (VmHWM: getrusage's ru_maxrss would include the parent's
+    peak, which Linux carries across fork and exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError("no VmHWM in /proc/self/status")
 
 
 def memory_case(case: str, duration_s: float, path: Path) -> None:

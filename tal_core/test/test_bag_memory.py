@@ -12,14 +12,16 @@ import pytest
 pytestmark = pytest.mark.slow
 
 CHILD = r"""
-import json, resource, sys
+import json, sys
 import numpy as np
 from sensor_msgs.msg import Imu, JointState
 from tal_core.bag_io import BagReader, BagWriter, exact_cdr
 from tal_msgs.msg import HeightMap
 
-def rss_mb():
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+def rss_mb():  # VmHWM: ru_maxrss would carry the parent's (pytest's) peak across fork and exec
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
 
 case, seconds, path = sys.argv[1], float(sys.argv[2]), sys.argv[3]
 rng = np.random.default_rng(0)
@@ -53,7 +55,7 @@ else:
     for message in BagReader(path).messages():
         count += 1
         payload += len(message.data)
-print(json.dumps({"growth_mb": rss_mb() - before, "messages": count, "payload_mb": payload / 1e6}))
+print(json.dumps({"growth_mb": rss_mb() - before, "peak_mb": rss_mb(), "messages": count, "payload_mb": payload / 1e6}))
 """
 
 

@@ -207,7 +207,7 @@ def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: 
                       "accel_std_m_s2": scenario.accel_noise_std_m_s2},
         "effects": _effects_dict(scenario.effects),
         "controller": "sWBC (rigid contact model) on ground truth, 250 Hz; physics 1 kHz",
-        "distance_travelled_m": round(float(np.linalg.norm(log.base_position[-1, :2] - log.base_position[0, :2])), 3),
+        "net_displacement_m": round(float(np.linalg.norm(log.base_position[-1, :2] - log.base_position[0, :2])), 3),
         "content_sha256": content_digest(out_dir),
     }
     entry["message_counts"] = counts
