@@ -288,16 +288,21 @@ def test_swing_legs_get_exactly_zero_weight() -> None:
     np.testing.assert_array_equal(out.penetration, 0.0)  # without an impedance the ground is rigid
 
 
-def test_invalid_impedance_is_treated_as_rigid() -> None:
-    """Legs whose impedance is flagged invalid or has K <= 0 or D < 0 get no sinking (rolling only);
-    a valid soft leg loaded by a static force starts sinking."""
+def standing_on_four_feet():
+    """HyQ (model, joint positions, sample) with a quarter of its weight on each static foot."""
     model = robot("hyq")
-    weight = model.total_mass_kg * G
-    force = np.tile([0.0, 0.0, weight / 4], (4, 1))
+    force = np.tile([0.0, 0.0, model.total_mass_kg * G / 4], (4, 1))
     qj = joint_positions(model)
     sample = make_sample(model, BASE_ROTATION, np.zeros(3), BASE_VELOCITY, ANGULAR_VELOCITY, qj,
                          {leg: np.zeros(3) for leg in range(4)}, force, free_joint_velocities=np.zeros(12),
                          rolling_normals=np.tile([0.0, 0.0, 1.0], (4, 1)))
+    return model, qj, sample
+
+
+def test_invalid_impedance_is_treated_as_rigid() -> None:
+    """Legs whose impedance is flagged invalid or has K <= 0 or D < 0 get no sinking (rolling only);
+    a valid soft leg loaded by a static force starts sinking."""
+    model, qj, sample = standing_on_four_feet()
     invalid = LegImpedance(np.array([1e4, 0.0, 1e4, 1e4]), np.array([3e3, 3e3, -1.0, 3e3]),
                            np.tile([0.0, 0.0, 1.0], (4, 1)), np.array([False, True, True, True]))
     odometry = LegOdometry(model, LegOdometrySettings(mode="terrain_aware", use_leg_inertia=False))
@@ -343,13 +348,7 @@ def test_settings_reject_invalid_values(kwargs: dict, message: str) -> None:
 def test_a_damping_fit_clamped_to_zero_cannot_make_the_sinking_rate_explode() -> None:
     """The TCE reports D = 0 when its damping fit is clamped: the sinking model floors D and bounds the rate
     (an unbounded (F - K p) / D read a 300 N foot as sinking at hundreds of m/s and threw HyQ over)."""
-    model = robot("hyq")
-    weight = model.total_mass_kg * G
-    force = np.tile([0.0, 0.0, weight / 4], (4, 1))
-    qj = joint_positions(model)
-    sample = make_sample(model, BASE_ROTATION, np.zeros(3), BASE_VELOCITY, ANGULAR_VELOCITY, qj,
-                         {leg: np.zeros(3) for leg in range(4)}, force, free_joint_velocities=np.zeros(12),
-                         rolling_normals=np.tile([0.0, 0.0, 1.0], (4, 1)))
+    model, qj, sample = standing_on_four_feet()
     undamped = LegImpedance(np.full(4, 1e4), np.zeros(4), np.tile([0.0, 0.0, 1.0], (4, 1)), np.ones(4, bool))
     settings = LegOdometrySettings(mode="terrain_aware", use_leg_inertia=False)
     odometry = LegOdometry(model, settings)
@@ -362,13 +361,7 @@ def test_a_damping_fit_clamped_to_zero_cannot_make_the_sinking_rate_explode() ->
 def test_an_implausibly_soft_stiffness_is_ignored_and_the_sinking_is_bounded() -> None:
     """A TCE fit clamped at 100 N/m read a 210 N foot as 2 m deep: replaying the STANCE course, the
     estimate sank 87 m. Below min_stiffness the leg counts as rigid; the sinking is capped per foot."""
-    model = robot("hyq")
-    weight = model.total_mass_kg * G
-    force = np.tile([0.0, 0.0, weight / 4], (4, 1))
-    qj = joint_positions(model)
-    sample = make_sample(model, BASE_ROTATION, np.zeros(3), BASE_VELOCITY, ANGULAR_VELOCITY, qj,
-                         {leg: np.zeros(3) for leg in range(4)}, force, free_joint_velocities=np.zeros(12),
-                         rolling_normals=np.tile([0.0, 0.0, 1.0], (4, 1)))
+    model, qj, sample = standing_on_four_feet()
     normals = np.tile([0.0, 0.0, 1.0], (4, 1))
     settings = LegOdometrySettings(mode="terrain_aware", use_leg_inertia=False, max_penetration_m=0.1)
     reference = LegOdometry(model, settings)
