@@ -15,9 +15,7 @@ decayed previous solution and is counted (MODE_FALLBACK); nothing raises out of 
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import Twist, Vector3
@@ -35,6 +33,7 @@ from tal_core.node_utils import (
     run_node,
     stamp_from_ns,
     tick_after,
+    write_summary,
 )
 from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid, heightmap_normal
@@ -412,10 +411,7 @@ class WbcNode(Node):
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name}
 
     def destroy_node(self) -> None:
-        path = self.p["summary_path"]
-        if path:
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            Path(path).write_text(json.dumps(self.summary(), indent=2) + "\n")
+        write_summary(self.p["summary_path"], self.summary())
         super().destroy_node()
 
 

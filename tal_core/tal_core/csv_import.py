@@ -35,6 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
+from geometry_msgs.msg import Point, Quaternion, Vector3
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu, JointState
 
 from tal_core.bag_io import BagWriter
 from tal_core.errors import InputError
@@ -227,10 +230,6 @@ def _value(row: list[str], c: Column, csv_name: str, line: int) -> float:
 
 
 def _messages(cmap: ColumnMap, row: list[str], csv_name: str, line: int, t_ns: int) -> list[tuple[str, object]]:
-    from geometry_msgs.msg import Point, Quaternion, Vector3
-    from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import Imu, JointState
-
     stamp = stamp_from_ns(t_ns)
     out: list[tuple[str, object]] = []
     if cmap.joint_columns:

@@ -7,8 +7,10 @@ conversions, and the Jazzy ``main()`` pattern.
 
 from __future__ import annotations
 
+import json
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import rclpy
@@ -94,3 +96,12 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None,
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def write_summary(path: str, summary: dict, indent: int | None = 2) -> None:
+    """Write a node's end-of-run summary as JSON to ``path`` (parents created); '' writes nothing."""
+    if not path:
+        return
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(json.dumps(summary, indent=indent) + "\n")

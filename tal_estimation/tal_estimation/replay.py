@@ -18,7 +18,6 @@ import logging
 import math
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ from tal_core.legs import LEGS, NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.rotations import rotation_from_quat_xyzw
 
+from .drift_statistics import DriftStatistics
 from .leg_odometry import LegOdometrySettings
 from .offline import StreamingEstimator
 from .state_estimator import StateEstimate, StateEstimatorSettings, legs_from_impedance_arrays
@@ -36,38 +36,6 @@ from .tce import FiniteDifferenceAcceleration, TerrainComplianceEstimator
 LOG = logging.getLogger("tal_estimation.replay")
 PAIRING_WINDOW_NS = 20_000_000   # [ns] a joint or IMU sample unpaired for this long is dropped (counted)
 PLOT_PERIOD_NS = 50_000_000      # [ns] plot series decimation (20 Hz)
-
-
-@dataclass
-class _Errors:
-    """Running sums for drift and RMSE against a reference (constant memory)."""
-
-    n: int = 0
-    offset: np.ndarray | None = None
-    sq_position: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    sq_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    last_position: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    max_abs_position: float = 0.0
-    max_abs_velocity: float = 0.0
-
-    def add(self, position_error: np.ndarray, velocity_error: np.ndarray, align_start: bool) -> None:
-        if align_start and self.offset is None:
-            self.offset = position_error.copy()
-        dp = position_error - (self.offset if align_start else 0.0)
-        self.n += 1
-        self.sq_position += dp**2
-        self.sq_velocity += velocity_error**2
-        self.last_position = dp
-        self.max_abs_position = max(self.max_abs_position, float(np.max(np.abs(dp))))
-        self.max_abs_velocity = max(self.max_abs_velocity, float(np.max(np.abs(velocity_error))))
-
-    def summary(self) -> dict[str, object]:
-        if self.n == 0:
-            return {}
-        return {"samples": self.n, "final_drift_m": np.round(self.last_position, 5).tolist(),
-                "rms_drift_m": np.round(np.sqrt(self.sq_position / self.n), 5).tolist(),
-                "velocity_rmse_m_s": np.round(np.sqrt(self.sq_velocity / self.n), 5).tolist(),
-                "max_abs_position_m": self.max_abs_position, "max_abs_velocity_m_s": self.max_abs_velocity}
 
 
 def _odometry_state(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -99,8 +67,8 @@ class BagReplay:
         self._truth: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._live: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._estimates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self.vs_truth = _Errors()
-        self.vs_live = _Errors()
+        self.vs_truth = DriftStatistics(align_start=True)
+        self.vs_live = DriftStatistics(align_start=False)
         self.counts = {"samples": 0, "ticks": 0, "unpaired": 0, "duplicates": 0, "rejected": 0}
         self.series: dict[str, list] = {k: [] for k in ("t", "position", "velocity", "truth_position",
                                                         "truth_velocity", "stiffness")}
@@ -204,10 +172,10 @@ class BagReplay:
             return
         truth = self._truth.pop(stamp, None) if stamp in self._truth else None
         if truth is not None:
-            self.vs_truth.add(estimate[0] - truth[0], estimate[1] - truth[1], align_start=True)
+            self.vs_truth.add(stamp * 1e-9, estimate[0] - truth[0], estimate[1] - truth[1])
         live = self._live.pop(stamp, None)
         if live is not None:
-            self.vs_live.add(estimate[0] - live[0], estimate[1] - live[1], align_start=False)
+            self.vs_live.add(stamp * 1e-9, estimate[0] - live[0], estimate[1] - live[1])
         # Keep the buffers bounded: anything older than the pairing window is not coming any more.
         horizon = stamp - PAIRING_WINDOW_NS
         for buffer in (self._estimates, self._truth, self._live):

@@ -17,10 +17,8 @@ more than 0.5 s (restarted simulation) restarts the estimator.
 
 from __future__ import annotations
 
-import json
 import math
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -30,13 +28,22 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState, MagneticField
 
 from tal_core.errors import InputError
-from tal_core.node_utils import declare, ns_from_stamp, reaches_tick, run_node, stamp_from_ns, tick_after
+from tal_core.node_utils import (
+    declare,
+    ns_from_stamp,
+    reaches_tick,
+    run_node,
+    stamp_from_ns,
+    tick_after,
+    write_summary,
+)
 from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state
 from tal_core.rotations import quat_xyzw_from_rotation, rotation_from_quat_xyzw
 from tal_msgs.msg import ContactState, TerrainImpedance
 
 from .attitude import AttitudeSettings
+from .drift_statistics import DriftStatistics
 from .leg_odometry import LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
 from .state_estimator import EstimatorInputError, StateEstimate, StateEstimator, StateEstimatorSettings
 
@@ -109,8 +116,7 @@ class StateEstimatorNode(Node):
         self._mag: np.ndarray | None = None
         self._initial_pose: tuple[np.ndarray, np.ndarray] | None = None
         self._truth: tuple[int, object] | None = None
-        self._errors: list[list[float]] = []   # [t, dx, dy, dz, dvx, dvy, dvz] against ground truth
-        self._start_offset: np.ndarray | None = None
+        self._vs_truth = DriftStatistics(align_start=True)  # constant memory: the node may run for hours
 
         self.pub_state = self.create_publisher(Odometry, "state_estimate", 10)
         self.pub_contact = self.create_publisher(ContactState, "contact_estimate", 10)
@@ -363,11 +369,7 @@ class StateEstimatorNode(Node):
         if not self.summary_path or self._truth is None or abs(self._truth[0] - stamp) > self.period_ns:
             return
         truth = self._truth[1]
-        if self._start_offset is None:
-            self._start_offset = e.position - truth.position
-        dp = e.position - truth.position - self._start_offset
-        dv = e.linear_velocity - truth.linear_velocity
-        self._errors.append([stamp * 1e-9, *dp, *dv])
+        self._vs_truth.add(stamp * 1e-9, e.position - truth.position, e.linear_velocity - truth.linear_velocity)
 
     def summary(self) -> dict:
         """Counters and, when ground truth was seen, drift [m] and velocity RMSE [m/s] per axis."""
@@ -376,18 +378,11 @@ class StateEstimatorNode(Node):
                      "reinitialisations": self.estimator.reinitialisations,
                      "rejected": dict(self.rejections),
                      "leg_odometry": self.estimator.settings.leg_odometry.mode}
-        if self._errors:
-            err = np.array(self._errors)
-            out["final_drift_m"] = np.round(err[-1, 1:4], 4).tolist()
-            out["rms_drift_m"] = np.round(np.sqrt(np.mean(err[:, 1:4] ** 2, axis=0)), 4).tolist()
-            out["velocity_rmse_m_s"] = np.round(np.sqrt(np.mean(err[:, 4:7] ** 2, axis=0)), 4).tolist()
-            out["compared_s"] = round(float(err[-1, 0] - err[0, 0]), 3)
+        out.update(self._vs_truth.summary(decimals=4))
         return out
 
     def destroy_node(self) -> None:
-        if self.summary_path:
-            Path(self.summary_path).parent.mkdir(parents=True, exist_ok=True)
-            Path(self.summary_path).write_text(json.dumps(self.summary(), indent=2) + "\n")
+        write_summary(self.summary_path, self.summary())
         super().destroy_node()
 
 

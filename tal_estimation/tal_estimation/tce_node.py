@@ -9,9 +9,7 @@ older than ``stale_state_periods``; feet outside the heightmap give no sample (c
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import Vector3
@@ -21,7 +19,15 @@ from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
 from tal_core.legs import LEGS
-from tal_core.node_utils import declare, ns_from_stamp, reaches_tick, run_node, stamp_from_ns, tick_after
+from tal_core.node_utils import (
+    declare,
+    ns_from_stamp,
+    reaches_tick,
+    run_node,
+    stamp_from_ns,
+    tick_after,
+    write_summary,
+)
 from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid
 from tal_msgs.msg import HeightMap, TerrainImpedance
@@ -154,9 +160,7 @@ class TceNode(Node):
         }
 
     def destroy_node(self) -> None:
-        if self.summary_path:
-            Path(self.summary_path).parent.mkdir(parents=True, exist_ok=True)
-            Path(self.summary_path).write_text(json.dumps(self.summary()) + "\n")
+        write_summary(self.summary_path, self.summary(), indent=None)
         super().destroy_node()
 
 

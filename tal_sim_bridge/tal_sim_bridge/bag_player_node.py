@@ -13,10 +13,8 @@ bag is played up to its damage and the player says how much it read.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -24,7 +22,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from tal_core.bag_io import BagError, BagMessage, BagReader, message_class
-from tal_core.node_utils import declare, run_node, stamp_from_ns
+from tal_core.node_utils import declare, run_node, stamp_from_ns, write_summary
 
 TICK_S = 0.001      # [s] wall-clock timer period of the player
 BURST = 2000        # messages per tick at most when playing as fast as possible
@@ -138,9 +136,7 @@ class BagPlayerNode(Node):
                 "skipped_types": sorted(self._skipped_types)}
 
     def destroy_node(self) -> None:
-        if self.summary_path:
-            Path(self.summary_path).parent.mkdir(parents=True, exist_ok=True)
-            Path(self.summary_path).write_text(json.dumps(self.summary(), indent=2) + "\n")
+        write_summary(self.summary_path, self.summary())
         super().destroy_node()
 
 

@@ -14,7 +14,6 @@ reported once.
 
 from __future__ import annotations
 
-import json
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -25,7 +24,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from tal_core.bag_io import BagError, BagWriter, message_class
-from tal_core.node_utils import declare, run_node
+from tal_core.node_utils import declare, run_node, write_summary
 
 IGNORED_TOPICS = ("/rosout", "/parameter_events")
 
@@ -112,9 +111,7 @@ class BagRecorderNode(Node):
 
     def destroy_node(self) -> None:
         self.writer.close()
-        if self.summary_path:
-            Path(self.summary_path).parent.mkdir(parents=True, exist_ok=True)
-            Path(self.summary_path).write_text(json.dumps(self.summary(), indent=2) + "\n")
+        write_summary(self.summary_path, self.summary())
         self.get_logger().info(f"bag closed: {self.writer.message_count} messages in {self.writer.path}")
         super().destroy_node()
 

@@ -37,7 +37,9 @@ from tal_control.experiments.closed_loop import ClosedLoopConfig, Command, TickC
 from tal_core.bag_io import BagWriter, content_digest
 from tal_core.heightmap import extract_heightmap
 from tal_core.node_utils import stamp_from_ns
+from tal_core.robot_description import load_robot_description
 from tal_core.rotations import yaw_from_quat_xyzw
+from tal_core.terrain import Course, load_course
 from tal_sim_bridge.bridge_core import BridgeCore, ImuModel
 from tal_sim_bridge.effects import ModelEffects
 from tal_sim_bridge.physics import RobotState
@@ -94,21 +96,14 @@ SCENARIOS: dict[str, DatasetScenario] = {s.name: s for s in (
 )}
 
 
-def _command_at(commands: Sequence[Command], t: float) -> tuple[float, float, float]:
-    current = (0.0, 0.0, 0.0)
-    for start, vx, vy, wz in commands:
-        if t + 1e-12 >= start:
-            current = (vx, vy, wz)
-    return current
-
-
 class _DatasetRecorder:
     """Writes the bridge's and the controller's messages of a closed-loop run into a bag."""
 
-    def __init__(self, writer: BagWriter, scenario: DatasetScenario, joint_names: Sequence[str], seed: int,
-                 course) -> None:
+    def __init__(self, writer: BagWriter, scenario: DatasetScenario, config: ClosedLoopConfig,
+                 joint_names: Sequence[str], seed: int, course: Course) -> None:
         self.writer = writer
         self.scenario = scenario
+        self.config = config
         self.joint_names = list(joint_names)
         self.course = course
         self.imu = ImuModel(scenario.effects, scenario.gyro_noise_std_rad_s, scenario.accel_noise_std_m_s2, seed)
@@ -134,7 +129,7 @@ class _DatasetRecorder:
                                      cols=HEIGHTMAP_CELLS, resolution_m=HEIGHTMAP_RESOLUTION_M)
             self._put("/terrain/heightmap", heightmap_message(stamp, grid), t_ns)
         if self.steps % CMD_VEL_EVERY_STEPS == 0:
-            self._put("/cmd_vel", twist_message(*_command_at(self.scenario.commands, t_s)), t_ns)
+            self._put("/cmd_vel", twist_message(*self.config.command_at(t_s)), t_ns)
         self.steps += 1
 
     def on_tick(self, context: TickContext) -> None:
@@ -159,8 +154,6 @@ def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: 
              progress: bool = True) -> dict[str, object]:
     """Run ``scenario`` for ``duration_s`` [s] of sim time and write the bag ``out_dir`` (replaced if it
     exists). Returns its manifest entry. Raises DatasetError when the robot falls."""
-    from tal_core.terrain import load_course
-
     out_dir = Path(out_dir)
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -169,25 +162,18 @@ def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: 
     config = ClosedLoopConfig(name=scenario.name, course=course, gait=scenario.gait, commands=scenario.commands,
                               duration_s=duration_s, effects=scenario.effects, initial_xy=scenario.initial_xy,
                               initial_yaw_rad=scenario.initial_yaw_rad, progress=progress)
-    from tal_core.robot_description import load_robot_description
-
     joint_names = load_robot_description(config.robot).joint_names
     with BagWriter(out_dir) as writer:
         for topic, type_name in TOPIC_TYPES.items():
             writer.add_topic(topic, type_name)
-        recorder = _DatasetRecorder(writer, scenario, joint_names, seed, course)
-        first = {"done": False}
-
-        def step_hook(t_s: float, state: RobotState, core: BridgeCore) -> None:
-            recorder.on_step(t_s, state, core)
+        recorder = _DatasetRecorder(writer, scenario, config, joint_names, seed, course)
 
         def tick_hook(context: TickContext) -> None:
-            if not first["done"]:  # the state at t = 0, as the bridge publishes it before the first step
-                first["done"] = True
+            if context.tick == 0:  # the state at t = 0, as the bridge publishes it before the first step
                 recorder.on_step(0.0, context.state, context.core)
             recorder.on_tick(context)
 
-        log = run_closed_loop(config, hook=tick_hook, step_hook=step_hook)
+        log = run_closed_loop(config, hook=tick_hook, step_hook=recorder.on_step)
         counts = writer.message_counts
     if log.fell:
         raise DatasetError(f"{scenario.name}: HyQ fell at t = {log.meta['fall_time_s']} s "
