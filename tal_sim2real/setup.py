@@ -23,6 +23,6 @@ setup(
     description=open("README.md", encoding="utf-8").read().splitlines()[2],
     license="BSD-3-Clause",
     entry_points={
-        "console_scripts": [],
+        "console_scripts": ["tal_sim2real = tal_sim2real.cli:main"],
     },
 )

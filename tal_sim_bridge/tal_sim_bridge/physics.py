@@ -151,6 +151,9 @@ class Simulation:
                 self.robot = self.client.loadURDF(str(self._urdf), [0.0, 0.0, 1.0],
                                                   flags=pybullet.URDF_USE_INERTIA_FROM_FILE)
             self._index_links()
+            # PyBullet's base pose and velocity are those of the base link's inertial (CoM) frame; a payload
+            # with an offset moves that frame, so every base quantity is converted to the link frame.
+            self._base_com_offset = np.array(self.client.getDynamicsInfo(self.robot, -1)[3])
             self._configure_robot()
             tau_min, tau_max = description.torque_limits(description.nominal_joint_positions_rad)
             self.actuators = ActuatorModel(self.effects, self.time_step_s, tau_min, tau_max)
@@ -226,20 +229,65 @@ class Simulation:
         for joint, angle in zip(self.joint_ids, q):
             self.client.resetJointState(self.robot, joint, float(angle), 0.0)
         quat = self.client.getQuaternionFromEuler([0.0, 0.0, initial_yaw_rad])
-        self.client.resetBasePositionAndOrientation(self.robot, [initial_xy[0], initial_xy[1], 0.0], quat)
+        self._reset_base_pose([initial_xy[0], initial_xy[1], 0.0], quat)
         feet = np.array([self.client.getLinkState(self.robot, f, computeForwardKinematics=1)[4]
                          for f in self.foot_links])
         ground = np.array([float(self.course.height(x, y)) for x, y in feet[:, :2]])
         if not np.all(np.isfinite(ground)):
             raise BridgeConfigError(f"initial position {initial_xy} puts a foot outside the course extent")
         lift = float(np.max(ground - feet[:, 2])) + self.description.foot_radius_m + drop_height_m
-        self.client.resetBasePositionAndOrientation(self.robot, [initial_xy[0], initial_xy[1], lift], quat)
+        self._reset_base_pose([initial_xy[0], initial_xy[1], lift], quat)
         self.client.resetBaseVelocity(self.robot, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
         self.actuators.reset()
         self._last_torque = np.zeros(len(self.joint_ids))
         self._prev_base_vel = np.zeros(3)
         self._base_acc = np.zeros(3)
         self.step_count = 0
+
+    def set_state(self, base_position_m: np.ndarray, base_quat_xyzw: np.ndarray,
+                  base_lin_vel_world_m_s: np.ndarray, base_ang_vel_world_rad_s: np.ndarray,
+                  joint_position_rad: np.ndarray, joint_velocity_rad_s: np.ndarray) -> None:
+        """Teleport the robot to a full rigid-body state (world frame, canonical joint order) and clear the
+        actuator history (open-loop prediction from a measured state, tal_sim2real)."""
+        q = np.asarray(joint_position_rad, dtype=float)
+        qd = np.asarray(joint_velocity_rad_s, dtype=float)
+        if q.shape != (len(self.joint_ids),) or qd.shape != q.shape:
+            raise BridgeConfigError(f"set_state needs {len(self.joint_ids)} joint positions and velocities, "
+                                    f"got {q.shape} and {qd.shape}")
+        for joint, angle, rate in zip(self.joint_ids, q, qd):
+            self.client.resetJointState(self.robot, joint, float(angle), float(rate))
+        quat = [float(v) for v in base_quat_xyzw]
+        self._reset_base_pose([float(v) for v in base_position_m], quat)
+        lin = np.asarray(base_lin_vel_world_m_s, dtype=float)
+        ang = np.asarray(base_ang_vel_world_rad_s, dtype=float)
+        com_lever = self._world_R(quat) @ self._base_com_offset
+        self.client.resetBaseVelocity(self.robot, (lin + np.cross(ang, com_lever)).tolist(), ang.tolist())
+        self.actuators.reset()
+        self._last_torque = np.zeros(len(self.joint_ids))
+        self._prev_base_vel = lin.copy()
+        self._base_acc = np.zeros(3)
+
+    def _world_R(self, quat_xyzw) -> np.ndarray:
+        return np.array(self.client.getMatrixFromQuaternion(list(quat_xyzw))).reshape(3, 3)
+
+    def _reset_base_pose(self, position_m, quat_xyzw) -> None:
+        """Place the base link frame (not PyBullet's CoM frame) at ``position_m`` [m] world."""
+        com = np.asarray(position_m, dtype=float) + self._world_R(quat_xyzw) @ self._base_com_offset
+        self.client.resetBasePositionAndOrientation(self.robot, com.tolist(), list(quat_xyzw))
+
+    def base_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Base link frame position [m] (world) and orientation quaternion (x, y, z, w)."""
+        com, quat = self.client.getBasePositionAndOrientation(self.robot)
+        return np.asarray(com) - self._world_R(quat) @ self._base_com_offset, np.asarray(quat)
+
+    def base_velocity(self) -> tuple[np.ndarray, np.ndarray]:
+        """Base link frame linear [m/s] and angular [rad/s] velocity, world frame."""
+        lin, ang = self.client.getBaseVelocity(self.robot)
+        ang = np.asarray(ang)
+        if not self._base_com_offset.any():
+            return np.asarray(lin), ang
+        _, quat = self.client.getBasePositionAndOrientation(self.robot)
+        return np.asarray(lin) - np.cross(ang, self._world_R(quat) @ self._base_com_offset), ang
 
     @property
     def time_s(self) -> float:
@@ -269,13 +317,13 @@ class Simulation:
         self.client.stepSimulation()
         self.step_count += 1
         self._last_torque = delivered
-        vel = np.array(self.client.getBaseVelocity(self.robot)[0])
+        vel = self.base_velocity()[0]
         self._base_acc = (vel - self._prev_base_vel) / self.time_step_s
         self._prev_base_vel = vel
 
     def robot_state(self) -> RobotState:
-        position, quat = self.client.getBasePositionAndOrientation(self.robot)
-        lin, ang = self.client.getBaseVelocity(self.robot)
+        position, quat = self.base_pose()
+        lin, ang = self.base_velocity()
         q, qd = self.joint_state()
         return RobotState(np.array(position), np.array(quat), np.array(lin), np.array(ang),
                           self._base_acc.copy(), q, qd, self._last_torque.copy())

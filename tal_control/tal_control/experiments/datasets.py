@@ -70,12 +70,14 @@ class DatasetError(RuntimeError):
 
 @dataclass(frozen=True)
 class DatasetScenario:
-    """One dataset: course, gait, piecewise-constant command (t_start [s], vx [m/s], vy [m/s], yaw rate
-    [rad/s]), start pose, sensor noise (white, std per 1 kHz sample) and optional model effects."""
+    """One dataset: course (shipped name, YAML path or a Course), gait, piecewise-constant command
+    (t_start [s], vx [m/s], vy [m/s], yaw rate [rad/s]), start pose, sensor noise (white, std per 1 kHz
+    sample; joint_* noise is added to the recorded joint states only, the controller sees the true ones)
+    and optional model effects."""
 
     name: str
     description: str
-    course: str
+    course: str | Course
     gait: str = "trot"
     commands: tuple[Command, ...] = ((0.0, 0.0, 0.0, 0.0),)
     initial_xy: tuple[float, float] = (0.0, 0.0)
@@ -83,6 +85,9 @@ class DatasetScenario:
     gyro_noise_std_rad_s: float = GYRO_NOISE_RAD_S
     accel_noise_std_m_s2: float = ACCEL_NOISE_M_S2
     effects: ModelEffects = field(default_factory=ModelEffects)
+    joint_position_noise_std_rad: float = 0.0
+    joint_velocity_noise_std_rad_s: float = 0.0
+    joint_effort_noise_std_nm: float = 0.0
 
 
 SCENARIOS: dict[str, DatasetScenario] = {s.name: s for s in (
@@ -107,6 +112,9 @@ class _DatasetRecorder:
         self.joint_names = list(joint_names)
         self.course = course
         self.imu = ImuModel(scenario.effects, scenario.gyro_noise_std_rad_s, scenario.accel_noise_std_m_s2, seed)
+        self.joint_noise = np.array([scenario.joint_position_noise_std_rad, scenario.joint_velocity_noise_std_rad_s,
+                                     scenario.joint_effort_noise_std_nm])
+        self.joint_rng = np.random.default_rng([seed, 1])  # separate stream: the IMU noise stays as it was
         self.steps = 0
 
     def _put(self, topic: str, message, t_ns: int) -> None:
@@ -116,7 +124,7 @@ class _DatasetRecorder:
         """After every physics step (and once at t = 0): sensors, contacts, heightmap, cmd_vel."""
         t_ns = round(t_s * 1e9)
         stamp = stamp_from_ns(t_ns)
-        self._put("/joint_states", joint_state_message(stamp, self.joint_names, state), t_ns)
+        self._put("/joint_states", joint_state_message(stamp, self.joint_names, self._noisy(state)), t_ns)
         f, w = self.imu.measure(state)
         self._put("/imu", imu_message(stamp, f, w, self.scenario.gyro_noise_std_rad_s,
                                      self.scenario.accel_noise_std_m_s2), t_ns)
@@ -131,6 +139,16 @@ class _DatasetRecorder:
         if self.steps % CMD_VEL_EVERY_STEPS == 0:
             self._put("/cmd_vel", twist_message(*self.config.command_at(t_s)), t_ns)
         self.steps += 1
+
+    def _noisy(self, state: RobotState) -> RobotState:
+        """The joint states as measured: true values plus white noise (when the scenario sets any)."""
+        if not self.joint_noise.any():
+            return state
+        n = len(state.joint_position_rad)
+        noise = self.joint_rng.normal(0.0, 1.0, (3, n)) * self.joint_noise[:, None]
+        return dataclasses.replace(state, joint_position_rad=state.joint_position_rad + noise[0],
+                                   joint_velocity_rad_s=state.joint_velocity_rad_s + noise[1],
+                                   joint_torque_nm=state.joint_torque_nm + noise[2])
 
     def on_tick(self, context: TickContext) -> None:
         """Every control tick: the torque command sent to the robot."""
@@ -158,7 +176,7 @@ def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: 
     if out_dir.exists():
         shutil.rmtree(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    course = load_course(scenario.course)
+    course = scenario.course if isinstance(scenario.course, Course) else load_course(scenario.course)
     config = ClosedLoopConfig(name=scenario.name, course=course, gait=scenario.gait, commands=scenario.commands,
                               duration_s=duration_s, effects=scenario.effects, initial_xy=scenario.initial_xy,
                               initial_yaw_rad=scenario.initial_yaw_rad, progress=progress)
@@ -184,7 +202,7 @@ def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: 
         "bag": out_dir.name,
         "seed": seed,
         "duration_s": duration_s,
-        "course": scenario.course,
+        "course": course.name,
         "gait": scenario.gait,
         "commands": [list(c) for c in scenario.commands],
         "initial_xy_m": list(scenario.initial_xy),
@@ -192,6 +210,9 @@ def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: 
         "imu_noise": {"gyro_std_rad_s": scenario.gyro_noise_std_rad_s,
                       "accel_std_m_s2": scenario.accel_noise_std_m_s2},
         "effects": _effects_dict(scenario.effects),
+        "joint_noise": {"position_std_rad": scenario.joint_position_noise_std_rad,
+                        "velocity_std_rad_s": scenario.joint_velocity_noise_std_rad_s,
+                        "effort_std_nm": scenario.joint_effort_noise_std_nm},
         "controller": "sWBC (rigid contact model) on ground truth, 250 Hz; physics 1 kHz",
         "net_displacement_m": round(float(np.linalg.norm(log.base_position[-1, :2] - log.base_position[0, :2])), 3),
         "content_sha256": content_digest(out_dir),

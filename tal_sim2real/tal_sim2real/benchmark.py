@@ -1,0 +1,225 @@
+"""Hidden-effect benchmark (``make experiments``): generate datasets with sealed effects, run the
+workflow on each bag (the identification never sees the labels), then score against the labels.
+
+Writes ``<out>/summary.md`` (acceptance table and per-dataset table), ``<out>/scores.json``,
+``<out>/gap_before_after.png``, ``<out>/parameter_errors.png`` and one report per dataset.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+
+MAIN_PARAMETER = {
+    "ground": "ground_stiffness_n_per_m",
+    "foot_friction": "foot_friction",
+    "joint_viscous_friction": "joint_viscous_friction_nms_per_rad",
+    "joint_coulomb_friction": "joint_coulomb_friction_nm",
+    "actuator_delay": "actuator_delay_s",
+    "actuator_lag": "actuator_lag_s",
+    "torque_gain": "torque_gain",
+    "torque_limit": "torque_limit_scale",
+    "payload": "payload_mass_kg",
+    "imu_bias": None,
+}
+TOLERANCE = {"ground": 0.25, "payload": 0.25, "imu_bias": 0.25}  # others (friction, actuator): 0.10
+
+
+def _identify_one(args: tuple[str, str]) -> dict:
+    """Worker: the workflow on one bag (no labels here). Returns the outcome as plain data."""
+    bag, report_dir = args
+    from .identify import identify
+    from .model import SimModel
+    from .report import write_report
+
+    started = time.perf_counter()
+    result = identify(bag, SimModel.nominal("flat_rigid"))
+    result.updated.write_yaml(Path(report_dir) / "model_updated.yaml")
+    write_report(result, Path(report_dir))
+    return {
+        "bag": bag,
+        "named": {f.candidate: f.values for f in result.named},
+        "intervals": {f.candidate: f.intervals for f in result.named},
+        "statuses": {f.candidate: f.status for f in result.findings},
+        "gap_before": result.gap(False),
+        "gap_after": result.gap(True),
+        "elapsed_s": time.perf_counter() - started,
+    }
+
+
+def score(outcome: dict, label: dict) -> dict:
+    """Compare one outcome with its sealed label."""
+    true = {e["kind"]: e for e in label["effects"]}
+    named = set(outcome["named"])
+    row = {
+        "name": label["name"],
+        "true": sorted(true),
+        "named": sorted(named),
+        "detectable": all(e["detectable"] for e in true.values()),
+        "gap_before": outcome["gap_before"],
+        "gap_after": outcome["gap_after"],
+        "gap_reduction": 1.0 - outcome["gap_after"] / outcome["gap_before"] if outcome["gap_before"] > 0 else 0.0,
+        "elapsed_s": outcome["elapsed_s"],
+        "param_errors": {},
+        "within_tolerance": {},
+    }
+    for kind, effect in true.items():
+        if kind not in named:
+            continue
+        fitted = outcome["named"][kind]
+        if MAIN_PARAMETER[kind] is None:  # IMU bias: worst axis, relative to the largest true component
+            truth = np.array([effect["values"][k] for k in sorted(effect["values"])])
+            est = np.array([fitted[k] for k in sorted(effect["values"])])
+            err = float(np.max(np.abs(est - truth)) / np.max(np.abs(truth)))
+        else:
+            key = MAIN_PARAMETER[kind]
+            err = abs(fitted[key] - effect["values"][key]) / abs(effect["values"][key])
+        row["param_errors"][kind] = err
+        row["within_tolerance"][kind] = err <= TOLERANCE.get(kind, 0.10)
+    return row
+
+
+def acceptance(rows: list[dict]) -> list[tuple[str, str, str, bool]]:
+    """(criterion, measured, goal, met) rows."""
+    free = [r for r in rows if not r["true"]]
+    singles = [r for r in rows if len(r["true"]) == 1 and r["detectable"]]
+    pairs = [r for r in rows if len(r["true"]) == 2]
+    right = [r for r in singles if r["true"][0] in r["named"]]
+    fp = [r for r in free if r["named"]]
+    errors = [ok for r in rows for ok in r["within_tolerance"].values()]
+    with_effect = [r for r in rows if r["true"]]
+    reductions = [r["gap_reduction"] for r in with_effect]
+    worse = [r for r in rows if r["gap_after"] > 1.02 * r["gap_before"]]
+    both = [r for r in pairs if set(r["true"]) <= set(r["named"])]
+    slowest = max(r["elapsed_s"] for r in rows)
+
+    def pct(a: int, b: int) -> str:
+        return f"{a}/{b} ({100 * a / b:.0f}%)" if b else "n/a"
+
+    return [
+        (
+            "right effect named (detectable single-effect datasets)",
+            pct(len(right), len(singles)),
+            ">= 90%",
+            bool(singles) and len(right) >= 0.9 * len(singles),
+        ),
+        ("false positives (effect-free datasets)", pct(len(fp), len(free)), "<= 5%", len(fp) <= 0.05 * len(free)),
+        (
+            "fitted parameter within tolerance (10% friction/actuator, 25% ground/payload/IMU)",
+            pct(sum(errors), len(errors)),
+            "all",
+            all(errors),
+        ),
+        (
+            "median held-out gap reduction (datasets with an effect)",
+            f"{100 * statistics.median(reductions):.1f}%" if reductions else "n/a",
+            ">= 80%",
+            bool(reductions) and statistics.median(reductions) >= 0.8,
+        ),
+        ("datasets made worse (gap after > 1.02 x before)", f"{len(worse)}", "0", not worse),
+        (
+            "both effects named (two-effect datasets)",
+            pct(len(both), len(pairs)),
+            ">= 70%",
+            bool(pairs) and len(both) >= 0.7 * len(pairs),
+        ),
+        ("slowest workflow per dataset", f"{slowest:.1f} s", "<= 60 s", slowest <= 60.0),
+    ]
+
+
+def run_benchmark(out: Path, data_dir: Path, count: int = 30, seed: int = 0, jobs: int = 2) -> Path:
+    from .hidden_effects import draw_effect, generate_hidden, plan
+
+    out, data_dir = Path(out), Path(data_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed + 1)
+    todo = []
+    for i, (name, kinds) in enumerate(plan(count, seed)):
+        effects = [draw_effect(k, rng) for k in kinds]
+        bag, label = data_dir / "bags" / name, data_dir / "sealed" / f"{name}.yaml"
+        if not (label.exists() and (bag / "metadata.yaml").exists()):
+            sys.stderr.write(f"[sim2real] generating {i + 1}/{count} {name}\n")
+            generate_hidden(data_dir, name, effects, seed=seed * 1000 + i)
+        todo.append((str(bag), str(out / "datasets" / name)))
+    outcomes = []
+    with ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
+        for i, outcome in enumerate(pool.map(_identify_one, todo), 1):
+            sys.stderr.write(
+                f"[sim2real] identified {i}/{len(todo)} {Path(outcome['bag']).name}: "
+                f"{sorted(outcome['named']) or 'nothing'} ({outcome['elapsed_s']:.1f} s)\n"
+            )
+            outcomes.append(outcome)
+    # scoring: the only place the sealed labels are read
+    rows = [
+        score(o, yaml.safe_load((data_dir / "sealed" / f"{Path(o['bag']).name}.yaml").read_text())) for o in outcomes
+    ]
+    table = acceptance(rows)
+    (out / "scores.json").write_text(json.dumps({"acceptance": table, "datasets": rows}, indent=1, default=float))
+    _plot(rows, out)
+    lines = [
+        "# Sim-vs-measured gap workflow on hidden-effect datasets",
+        "",
+        f"{len(rows)} datasets (`python -m tal_sim2real benchmark --count {count} --seed {seed}`), "
+        f"{jobs} worker processes. Labels are read only by the scorer.",
+        "",
+        "| criterion | measured | goal | met |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {c} | {m} | {g} | {'yes' if ok else 'NO'} |" for c, m, g, ok in table]
+    lines += [
+        "",
+        "![gap before and after](gap_before_after.png)",
+        "![parameter errors](parameter_errors.png)",
+        "",
+        "| dataset | true effects | detectable | named | parameter error | gap before -> after | time |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        errs = ", ".join(f"{k} {100 * v:.1f}%" for k, v in r["param_errors"].items())
+        lines.append(
+            f"| [{r['name']}](datasets/{r['name']}/report.md) | {', '.join(r['true']) or 'none'} | "
+            f"{'yes' if r['detectable'] else 'no'} | {', '.join(r['named']) or 'none'} | {errs} | "
+            f"{r['gap_before']:.3g} -> {r['gap_after']:.3g} | {r['elapsed_s']:.1f} s |"
+        )
+    path = out / "summary.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _plot(rows: list[dict], out: Path) -> None:
+    fig, ax = plt.subplots(figsize=(9.0, 4.0))
+    x = np.arange(len(rows))
+    ax.bar(x - 0.2, [r["gap_before"] for r in rows], 0.4, label="nominal model")
+    ax.bar(x + 0.2, [r["gap_after"] for r in rows], 0.4, label="updated model")
+    ax.set_yscale("log")
+    ax.set_xticks(x, [f"{r['name'][-2:]}\n{'+'.join(k[:6] for k in r['true']) or 'none'}" for r in rows], fontsize=6)
+    ax.set_ylabel("held-out gap (cost / noise floor, summed)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "gap_before_after.png", dpi=110)
+    plt.close(fig)
+    errs = [(k, v) for r in rows for k, v in r["param_errors"].items()]
+    fig, ax = plt.subplots(figsize=(7.0, 3.5))
+    if errs:
+        kinds = sorted({k for k, _ in errs})
+        for i, kind in enumerate(kinds):
+            values = [100 * v for k, v in errs if k == kind]
+            ax.scatter([i] * len(values), values)
+        ax.set_xticks(range(len(kinds)), kinds, rotation=30, ha="right", fontsize=7)
+    ax.axhline(10, color="k", lw=0.8, ls="--")
+    ax.axhline(25, color="k", lw=0.8, ls=":")
+    ax.set_ylabel("fitted parameter error [%]")
+    fig.tight_layout()
+    fig.savefig(out / "parameter_errors.png", dpi=110)
+    plt.close(fig)

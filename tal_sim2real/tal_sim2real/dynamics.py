@@ -1,0 +1,271 @@
+"""The dynamics subsystem: open-loop segments re-simulated with candidate effects, screened, fitted and
+chosen by information criterion and validation."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from .errors import MissingSignalsError
+from .fitting import Fit, fit_least_squares
+from .library import Candidate
+from .measured import MeasuredData
+from .model import SimModel
+from .outcomes import STIFF_GROUND_N_PER_M, Finding, Settings, SubsystemResult
+from .segments import CHANNEL_SCALES, SegmentSimulator, channel_rms, measured_vectors, plan_segments, scaled_residual
+from .torque_path import effort_noise_std
+
+LOG = logging.getLogger("tal.sim2real.dynamics")
+
+
+# -- dynamics ---------------------------------------------------------------------------------------------
+def dynamics_subsystem(
+    data: MeasuredData,
+    description,
+    candidates: list[Candidate],
+    nominal: SimModel,
+    windows: dict[str, tuple[float, float]],
+    settings: Settings,
+) -> tuple[SubsystemResult, list[Finding], int]:
+    source = "effort" if data.effort_nm is not None else "command"
+    try:
+        sim = SegmentSimulator(description, data, source)
+    except MissingSignalsError as exc:
+        return (
+            SubsystemResult("dynamics", verdict=str(exc)),
+            [Finding(c.name, c.subsystem, "missing_signals", note=str(exc)) for c in candidates],
+            0,
+        )
+    try:
+        return _dynamics_with(sim, data, candidates, nominal, windows, settings)
+    finally:
+        sim.close()
+
+
+def _dynamics_with(
+    sim: SegmentSimulator,
+    data: MeasuredData,
+    candidates: list[Candidate],
+    nominal: SimModel,
+    windows: dict[str, tuple[float, float]],
+    settings: Settings,
+):
+    start, stop = windows["identification"]
+    every = settings.segment_every_s
+    fit_plan = plan_segments(data, start, stop, every, settings.horizon_s)
+    val_plan = plan_segments(data, start + every / 2, stop, every, settings.horizon_s)
+    ho_plan = plan_segments(data, windows["holdout"][0], windows["holdout"][1], every / 2, settings.horizon_s)
+    meas = {
+        "fit": measured_vectors(data, fit_plan),
+        "val": measured_vectors(data, val_plan),
+        "ho": measured_vectors(data, ho_plan),
+    }
+    plans = {"fit": fit_plan, "val": val_plan, "ho": ho_plan}
+    base_values = nominal.values()
+
+    def residual(which: str, values: dict[str, float]) -> np.ndarray:
+        return scaled_residual(meas[which], sim.predict(nominal.with_values(values), plans[which]))
+
+    n_obs = len(fit_plan.starts) * len(fit_plan.sample_offsets) * len(CHANNEL_SCALES)
+    r0 = residual("fit", {})
+    j0 = float(r0 @ r0)
+    floor = _noise_floor(sim, data, nominal, fit_plan, meas["fit"])
+    LOG.info("dynamics: nominal cost %.0f, noise floor %.0f", j0, floor)
+    # screening: one probe per candidate, linearised gain
+    screened: dict[str, tuple[float, dict[str, float], float]] = {}
+    ground_probe = math.inf
+    for c in candidates:
+        probe = {p.name: p.probe for p in c.parameters}
+        if c.name == "ground":
+            ground_probe = _stiffness_from_penetration(data, nominal, description=sim.description)
+            probe["ground_stiffness_n_per_m"] = ground_probe
+        r1 = residual("fit", probe)
+        j1 = float(r1 @ r1)
+        step = r1 - r0
+        alpha = -float(step @ r0) / max(float(step @ step), 1e-300)
+        alpha = float(np.clip(alpha, 0.0, 4.0)) if c.name != "ground" else float(np.clip(alpha, 0.0, 2.0))
+        predicted = float(np.sum((r0 + alpha * step) ** 2))
+        start_vals = {}
+        for p in c.parameters:
+            nominal_p = base_values[p.name]
+            start_vals[p.name] = (
+                float(np.clip(nominal_p + max(alpha, 0.3) * (probe[p.name] - nominal_p), p.lower, p.upper))
+                if not p.log
+                else probe[p.name]
+            )
+        screened[c.name] = (j0 - min(predicted, j1), start_vals, abs(j1 - j0))
+    findings: dict[str, Finding] = {}
+    nominal_fit = Fit((), {}, {}, j0, n_obs)
+    fits: dict[str, Fit] = {}
+    at_floor = j0 < settings.floor_factor * floor
+    ranked = sorted(candidates, key=lambda c: -screened[c.name][0])
+    if not at_floor:
+        for c in ranked[: settings.max_pair_candidates]:
+            if screened[c.name][0] <= 0.05 * (j0 - floor):
+                continue
+            fit = fit_least_squares(
+                [c],
+                lambda v: residual("fit", v),
+                screened[c.name][1],
+                n_obs,
+                max_evaluations=10 * (len(c.parameters) + 1),
+            )
+            rv = residual("val", fit.values)
+            fit.validation_cost = float(rv @ rv)
+            fits[c.name] = fit
+    rv0 = residual("val", {})
+    val0 = float(rv0 @ rv0)
+
+    def acceptable(fit: Fit, reference: Fit, reference_val: float) -> bool:
+        return (
+            fit.bic() < reference.bic() - settings.min_bic_drop
+            and fit.validation_cost is not None
+            and fit.validation_cost < (1.0 - settings.min_validation_gain) * reference_val
+        )
+
+    best, best_val = nominal_fit, val0
+    for fit in sorted(fits.values(), key=lambda f: f.bic()):
+        if acceptable(fit, best, best_val):
+            best, best_val = fit, float(fit.validation_cost)  # type: ignore[arg-type]
+    if best is not nominal_fit and best.cost > 2.0 * floor:
+        by_name = {c.name: c for c in candidates}
+        pair_best = None
+        for name in [n for n in fits if n not in best.candidates]:
+            pair_cands = [by_name[n] for n in (*best.candidates, name)]
+            start_vals = {**fits[name].values, **best.values}
+            pair = fit_least_squares(
+                pair_cands, lambda v: residual("fit", v), start_vals, n_obs, max_evaluations=6 * (len(start_vals) + 1)
+            )
+            rv = residual("val", pair.values)
+            pair.validation_cost = float(rv @ rv)
+            if acceptable(pair, best, best_val) and (pair_best is None or pair.bic() < pair_best.bic()):
+                pair_best = pair
+        if pair_best is not None:
+            best, best_val = pair_best, float(pair_best.validation_cost)  # type: ignore[arg-type]
+    for c in candidates:
+        gain, _, probe_change = screened[c.name]
+        if best is not nominal_fit and c.name in best.candidates:
+            vals = {k: best.values[k] for k in c.parameter_names}
+            ints = {k: best.intervals[k] for k in c.parameter_names}
+            note = _ground_note(vals, ints) if c.name == "ground" else ""
+            findings[c.name] = Finding(c.name, c.subsystem, "named", vals, ints, best.cost / j0, note)
+        elif c.name == "ground" and ground_probe >= STIFF_GROUND_N_PER_M:
+            findings[c.name] = Finding(
+                c.name,
+                c.subsystem,
+                "rejected",
+                note=(
+                    f"stiff ground: the stance sinkage says >= ~{ground_probe:.0f} N/m; stiffness above "
+                    f"{STIFF_GROUND_N_PER_M:.0e} N/m is not identifiable from this data (sinkage below the noise)"
+                ),
+            )
+        elif probe_change < floor:
+            findings[c.name] = Finding(
+                c.name,
+                c.subsystem,
+                "not_excited",
+                note=(
+                    f"its probe value changes the residual by {probe_change:.0f}, less than the noise floor "
+                    f"{floor:.0f}: this data cannot show it; to test it: {c.experiment}"
+                ),
+            )
+        elif c.name in fits:
+            f = fits[c.name]
+            findings[c.name] = Finding(c.name, c.subsystem, "rejected", f.values, f.intervals, f.cost / j0)
+        else:
+            findings[c.name] = Finding(
+                c.name,
+                c.subsystem,
+                "not_screened" if at_floor else "rejected",
+                note=f"screening gain {gain:.0f} (nominal cost {j0:.0f})",
+            )
+    named_values = best.values if best is not nominal_fit else {}
+    pred_before = sim.predict(nominal, ho_plan)
+    # the same model gives the same prediction (re-running it would differ by Bullet's cached contacts)
+    pred_after = sim.predict(nominal.with_values(named_values), ho_plan) if named_values else pred_before
+    ho_before = scaled_residual(meas["ho"], pred_before)
+    ho_after = scaled_residual(meas["ho"], pred_after)
+    result = SubsystemResult(
+        "dynamics",
+        floor,
+        j0,
+        best.cost,
+        float(ho_before @ ho_before),
+        float(ho_after @ ho_after),
+        floor * len(ho_plan.starts) / max(len(fit_plan.starts), 1),
+        best.candidates,
+    )
+    result.verdict = (
+        "no missing effect (at the noise floor)"
+        if at_floor
+        else f"named {', '.join(best.candidates)}"
+        if best.candidates
+        else "unexplained residual (no candidate fits)"
+    )
+    result.channels_before = channel_rms(meas["ho"], pred_before)
+    result.channels_after = channel_rms(meas["ho"], pred_after)
+    return result, [findings[c.name] for c in candidates], sim.simulated_steps
+
+
+def _ground_note(values: dict[str, float], intervals: dict[str, tuple[float, float]]) -> str:
+    k = values["ground_stiffness_n_per_m"]
+    lo, hi = intervals["ground_stiffness_n_per_m"]
+    if hi > 10.0 * k or k > 1e6:
+        return f"stiff ground: stiffness not identifiable above ~{lo:.0f} N/m (sinkage below the noise)"
+    return ""
+
+
+def _noise_floor(sim: SegmentSimulator, data: MeasuredData, nominal: SimModel, plan, measured: np.ndarray) -> float:
+    """Cost the correct model would leave: predictions from initial states and driving torques perturbed by
+    the measured noise levels (white-noise std from second differences) against unperturbed ones, plus the
+    measurement noise of the compared samples."""
+    sigma_q = _white_noise_std(data.q_rad)
+    sigma_qd = _white_noise_std(data.qd_rad_s)
+    rng = np.random.default_rng(0)
+    clean = sim.predict(nominal, plan)
+    saved_q, saved_qd, saved_tau = data.q_rad.copy(), data.qd_rad_s.copy(), sim.torques
+    try:
+        data.q_rad[plan.starts] += rng.normal(0.0, sigma_q, (len(plan.starts), data.q_rad.shape[1]))
+        data.qd_rad_s[plan.starts] += rng.normal(0.0, sigma_qd, (len(plan.starts), data.qd_rad_s.shape[1]))
+        if sim.torque_source == "effort":  # the measured torques that drive the segments are noisy too
+            sim.torques = saved_tau + rng.normal(0.0, effort_noise_std(saved_tau), saved_tau.shape)
+        perturbed = sim.predict(nominal, plan)
+    finally:
+        data.q_rad[:], data.qd_rad_s[:] = saved_q, saved_qd
+        sim.torques = saved_tau
+    r = scaled_residual(clean, perturbed)
+    samples = len(plan.starts) * len(plan.sample_offsets)
+    measurement = (
+        samples
+        * 12
+        * ((sigma_q / CHANNEL_SCALES["joint_position"]) ** 2 + (sigma_qd / CHANNEL_SCALES["joint_velocity"]) ** 2)
+    )
+    return float(r @ r) + measurement
+
+
+def _white_noise_std(x: np.ndarray) -> float:
+    d2 = np.diff(x, n=2, axis=0).ravel()
+    return 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / math.sqrt(6.0)
+
+
+def _stiffness_from_penetration(data: MeasuredData, nominal: SimModel, description) -> float:
+    """Screening guess of the ground stiffness [N/m]: weight / mean summed stance-foot sinkage (feet from
+    the measured base pose and joint angles, ground height from the nominal course)."""
+    from tal_core.robot_model import RobotModel
+
+    model = RobotModel(description)
+    base = data.base
+    assert base is not None
+    idx = np.arange(data.index_at(data.t_s[0] + 1.0), len(data.t_s), 20)
+    sinkage = []
+    for i in idx:
+        model.update(model.make_q(base.position_m[i], base.quat_xyzw[i], data.q_rad[i]), np.zeros(model.nv))
+        feet = model.foot_positions()
+        ground = np.array([float(nominal.course.height(x, y)) for x, y in feet[:, :2]])
+        depth = ground + description.foot_radius_m - feet[:, 2]
+        sinkage.append(float(np.sum(depth[depth > 0.0])))
+    mean_sinkage = float(np.mean(sinkage)) if sinkage else 0.0
+    weight = model.total_mass_kg * 9.81
+    return float(np.clip(weight / max(mean_sinkage, 1e-6), 2e3, 5e6))

@@ -1,0 +1,248 @@
+"""Hidden-effect test data: measured bags produced by the simulator with a sealed model effect.
+
+Each dataset is a closed-loop sWBC trot (forward, turning, sideways) on flat ground, recorded like the
+graph records a real robot (joint states with encoder/torque-sensor noise, IMU with noise, motion-capture
+ground truth, the torque commands sent, cmd_vel). The simulated robot carries zero, one or two effects of
+random type and size; the truth goes to ``<out>/sealed/<name>.yaml``, a file the identification code never
+opens (``tal_sim2real.identify`` takes a bag path only). Scoring (``score``) reads it afterwards.
+
+The label also says whether the data can show the effect (``detectable``) from the simulator's own record:
+a torque limit that no command reached, or a friction coefficient that no stance foot came near, leaves no
+trace in the data, and ground stiffer than 1e5 N/m sinks a foot by < 3 mm (not identifiable).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from tal_control.experiments.datasets import DatasetError, DatasetScenario, generate
+from tal_core.robot_description import load_robot_description
+
+from .measured import load_measured
+from .model import SimModel
+
+LOG = logging.getLogger("tal.sim2real.hidden")
+
+DURATION_S = 8.0
+COMMANDS = (
+    (0.0, 0.0, 0.0, 0.0),
+    (0.8, 0.3, 0.0, 0.0),
+    (3.0, 0.2, 0.0, 0.35),
+    (5.0, -0.1, 0.15, 0.0),
+    (6.5, 0.25, 0.0, -0.3),
+)
+JOINT_NOISE = (2e-4, 0.02, 0.3)  # [rad], [rad/s], [N m] encoder, velocity and torque-sensor noise (std)
+STIFF_GROUND_N_PER_M = 1e5  # above this the data cannot identify the ground stiffness
+EFFECT_TYPES = (
+    "ground",
+    "foot_friction",
+    "joint_viscous_friction",
+    "joint_coulomb_friction",
+    "actuator_delay",
+    "actuator_lag",
+    "torque_gain",
+    "torque_limit",
+    "payload",
+    "imu_bias",
+)
+
+
+@dataclass(frozen=True)
+class HiddenEffect:
+    """One sealed effect: its type and the true parameter values (model parameter names, SI units)."""
+
+    kind: str
+    values: dict[str, float]
+
+
+def draw_effect(kind: str, rng: np.random.Generator) -> HiddenEffect:
+    """A random size of effect ``kind`` over a realistic range."""
+
+    def log_uniform(low: float, high: float) -> float:
+        return float(math.exp(rng.uniform(math.log(low), math.log(high))))
+
+    if kind == "ground":
+        stiff = rng.random() < 0.25
+        k = log_uniform(2e5, 1e6) if stiff else log_uniform(1.2e4, 8e4)
+        return HiddenEffect(
+            kind, {"ground_stiffness_n_per_m": k, "ground_damping_ns_per_m": log_uniform(300.0, 1500.0)}
+        )
+    if kind == "foot_friction":
+        return HiddenEffect(kind, {"foot_friction": float(rng.uniform(0.3, 0.6))})
+    if kind == "joint_viscous_friction":
+        return HiddenEffect(kind, {"joint_viscous_friction_nms_per_rad": float(rng.uniform(0.5, 4.0))})
+    if kind == "joint_coulomb_friction":
+        return HiddenEffect(kind, {"joint_coulomb_friction_nm": float(rng.uniform(1.0, 6.0))})
+    if kind == "actuator_delay":
+        return HiddenEffect(kind, {"actuator_delay_s": float(rng.uniform(0.003, 0.012))})
+    if kind == "actuator_lag":
+        return HiddenEffect(kind, {"actuator_lag_s": float(rng.uniform(0.003, 0.015))})
+    if kind == "torque_gain":
+        gain = float(rng.uniform(0.8, 0.93)) if rng.random() < 0.5 else float(rng.uniform(1.07, 1.2))
+        return HiddenEffect(kind, {"torque_gain": gain})
+    if kind == "torque_limit":
+        return HiddenEffect(kind, {"torque_limit_scale": float(rng.uniform(0.25, 0.6))})
+    if kind == "payload":
+        return HiddenEffect(
+            kind,
+            {
+                "payload_mass_kg": float(rng.uniform(4.0, 15.0)),
+                "payload_offset_x_m": float(rng.uniform(-0.1, 0.1)),
+                "payload_offset_y_m": float(rng.uniform(-0.05, 0.05)),
+            },
+        )
+    if kind == "imu_bias":
+        signs = rng.choice([-1.0, 1.0], 6)
+        gyro = signs[:3] * rng.uniform(0.005, 0.03, 3)
+        accel = signs[3:] * rng.uniform(0.05, 0.3, 3)
+        return HiddenEffect(
+            kind,
+            {
+                **{f"imu_gyro_bias_{a}_rad_s": float(v) for a, v in zip("xyz", gyro)},
+                **{f"imu_accel_bias_{a}_m_s2": float(v) for a, v in zip("xyz", accel)},
+            },
+        )
+    raise ValueError(f"unknown effect type '{kind}'; known: {EFFECT_TYPES}")
+
+
+def _scaled(effect: HiddenEffect, factor: float) -> HiddenEffect:
+    """The same effect, ``factor`` of the way from nominal (used after a fall)."""
+    nominal = SimModel.nominal().values()
+    values = {}
+    for name, value in effect.values.items():
+        if name == "ground_stiffness_n_per_m":
+            values[name] = value / factor  # stiffer ground is closer to nominal
+        else:
+            values[name] = nominal[name] + factor * (value - nominal[name])
+    return HiddenEffect(effect.kind, values)
+
+
+def generate_hidden(
+    out_root: Path,
+    name: str,
+    effects: list[HiddenEffect],
+    seed: int,
+    duration_s: float = DURATION_S,
+    progress: bool = False,
+) -> tuple[Path, Path]:
+    """Generate one measured bag ``<out_root>/bags/<name>`` with ``effects`` sealed in
+    ``<out_root>/sealed/<name>.yaml``. Effects that make HyQ fall are shrunk towards nominal (x0.6, at most
+    4 times; the label records it). Returns (bag path, label path)."""
+    out_root = Path(out_root)
+    bag = out_root / "bags" / name
+    label_path = out_root / "sealed" / f"{name}.yaml"
+    label_path.parent.mkdir(parents=True, exist_ok=True)
+    shrinks = 0
+    while True:
+        model = SimModel.nominal("flat_rigid")
+        for effect in effects:
+            model = model.with_values(effect.values)
+        scenario = DatasetScenario(
+            name,
+            "hidden-effect dataset (tal_sim2real)",
+            model.course,
+            commands=COMMANDS,
+            effects=model.effects,
+            joint_position_noise_std_rad=JOINT_NOISE[0],
+            joint_velocity_noise_std_rad_s=JOINT_NOISE[1],
+            joint_effort_noise_std_nm=JOINT_NOISE[2],
+        )
+        try:
+            generate(scenario, bag, duration_s, seed=seed, progress=progress)
+            break
+        except DatasetError as exc:
+            if shrinks >= 4:
+                raise
+            LOG.info("%s: %s; shrinking the effect(s)", name, exc)
+            effects = [_scaled(e, 0.6) for e in effects]
+            shrinks += 1
+    label = {
+        "name": name,
+        "seed": seed,
+        "duration_s": duration_s,
+        "shrunk_after_falls": shrinks,
+        "effects": [{"kind": e.kind, "values": e.values, **_detectability(e, bag)} for e in effects],
+    }
+    label_path.write_text(yaml.safe_dump(label, sort_keys=False))
+    return bag, label_path
+
+
+def _detectability(effect: HiddenEffect, bag: Path) -> dict[str, object]:
+    """Whether the recorded motion excites the effect, from the simulator's record (scorer's oracle)."""
+    if effect.kind == "ground":
+        k = effect.values["ground_stiffness_n_per_m"]
+        ok = k < STIFF_GROUND_N_PER_M
+        return {"detectable": ok, "why": "" if ok else f"stiffer than {STIFF_GROUND_N_PER_M:.0e} N/m"}
+    if effect.kind not in ("torque_limit", "foot_friction"):
+        return {"detectable": True, "why": ""}
+    description = load_robot_description("hyq")
+    data = load_measured(bag, description)
+    if effect.kind == "torque_limit":
+        scale = effect.values["torque_limit_scale"]
+        command = data.command_in_force()
+        low, high = zip(*(description.torque_limits(q) for q in data.q_rad[::10]))
+        low, high = np.array(low), np.array(high)
+        cmd = command[::10]
+        clipped = int(((cmd > scale * high) | (cmd < scale * low)).sum())
+        return {
+            "detectable": clipped >= 20,
+            "why": f"{clipped} commanded joint torques beyond the limit (every 10th sample)",
+        }
+    mu = effect.values["foot_friction"]
+    force = data.contact_force_n
+    normal = force[..., 2]
+    tangential = np.linalg.norm(force[..., :2], axis=-1)
+    stance = normal > 20.0
+    near = int((tangential[stance] > 0.9 * mu * normal[stance]).sum())
+    return {"detectable": near >= 25, "why": f"{near} stance samples at > 90% of the friction cone"}
+
+
+def plan(count: int, seed: int) -> list[tuple[str, list[str]]]:
+    """Names and effect types of ``count`` datasets: 20% effect-free, 20% two effects, the rest single
+    effects cycling over all types (so every type appears)."""
+    rng = np.random.default_rng(seed)
+    n_free = max(1, round(0.2 * count))
+    n_two = max(1, round(0.2 * count))
+    kinds: list[list[str]] = [[] for _ in range(n_free)]
+    singles = count - n_free - n_two
+    kinds += [[EFFECT_TYPES[i % len(EFFECT_TYPES)]] for i in range(singles)]
+    for _ in range(n_two):
+        pair = rng.choice([k for k in EFFECT_TYPES if k != "foot_friction"], 2, replace=False)
+        kinds.append([str(k) for k in pair])
+    order = rng.permutation(len(kinds))
+    return [(f"hidden_{i:02d}", kinds[j]) for i, j in enumerate(order)]
+
+
+def generate_set(out_root: Path, count: int, seed: int = 0, progress: bool = True) -> list[tuple[Path, Path]]:
+    """``count`` hidden-effect datasets under ``out_root`` (see ``plan``)."""
+    rng = np.random.default_rng(seed + 1)
+    out = []
+    for i, (name, kinds) in enumerate(plan(count, seed)):
+        effects = [draw_effect(k, rng) for k in kinds]
+        if progress:
+            sys.stderr.write(f"[hidden] {i + 1}/{count} {name}\n")
+        out.append(generate_hidden(out_root, name, effects, seed=seed * 1000 + i))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="Generate measured bags with sealed (hidden) model effects.")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (bags/ and sealed/)")
+    parser.add_argument("--count", type=int, default=30, help="number of datasets (default 30)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    generate_set(args.out, args.count, args.seed)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

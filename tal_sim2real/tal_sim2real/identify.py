@@ -1,0 +1,97 @@
+"""Identify the missing effect(s) in a measured bag: residuals per subsystem, screening of the candidate
+library, fits by re-simulation, choice by information criterion and a check on validation data.
+
+Time windows of the bag: the first ``settle_s`` are skipped (start-up transients), the last
+``holdout_fraction`` are held out (never used to fit or choose, only to report the gap before/after),
+and the rest is the identification window. Within it, open-loop segments alternate between fitting and
+validation.
+
+Decisions per subsystem (torque path, IMU, dynamics):
+  * named: the fitted effect lowers the Bayesian information criterion by more than ``min_bic_drop`` and
+    (dynamics) the validation cost by at least ``min_validation_gain``;
+  * no missing effect: the nominal residual is at the noise floor (cost < ``floor_factor`` x floor);
+  * not excited: the probe value of the effect would change the residual by less than the noise floor
+    (the report says which experiment would show it);
+  * missing signals: the effect needs signals the bag lacks (that effect is skipped, not the others).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from tal_core.robot_description import load_robot_description
+
+from .dynamics import dynamics_subsystem
+from .library import CANDIDATES, missing_signals
+from .measured import load_measured
+from .model import SimModel
+from .outcomes import Finding, Identification, Settings, SubsystemResult
+from .subsystems import imu_subsystem, torque_path_subsystem
+
+__all__ = ["Finding", "Identification", "Settings", "SubsystemResult", "identify"]
+
+
+def identify(bag: str | Path, nominal: SimModel, settings: Settings | None = None) -> Identification:
+    """Run the whole identification on ``bag`` against the ``nominal`` model."""
+    settings = settings or Settings()
+    started = time.perf_counter()
+    description = load_robot_description(nominal.robot)
+    data = load_measured(bag, description)
+    t0, t_end = float(data.t_s[0]), float(data.t_s[-1])
+    fit_start = t0 + settings.settle_s
+    holdout_start = t_end - settings.holdout_fraction * (t_end - t0)
+    windows = {"identification": (fit_start, holdout_start), "holdout": (holdout_start, t_end)}
+    id_slice = slice(data.index_at(fit_start), data.index_at(holdout_start))
+    ho_slice = slice(data.index_at(holdout_start), len(data.t_s))
+    available = data.signals()
+    findings: list[Finding] = []
+    subsystems: dict[str, SubsystemResult] = {}
+    values = nominal.values()
+    for candidate in CANDIDATES:
+        missing = missing_signals(candidate, available)
+        if missing:
+            findings.append(
+                Finding(
+                    candidate.name, candidate.subsystem, "missing_signals", note=f"skipped: needs {', '.join(missing)}"
+                )
+            )
+    skipped = {f.candidate for f in findings}
+    usable = [c for c in CANDIDATES if c.name not in skipped]
+
+    torque = [c for c in usable if c.subsystem == "torque_path"]
+    if torque:
+        result, found = torque_path_subsystem(data, description, torque, id_slice, ho_slice, settings)
+        subsystems["torque_path"] = result
+        findings += found
+    imu = [c for c in usable if c.subsystem == "imu"]
+    if imu:
+        result, found = imu_subsystem(data, imu[0], id_slice, ho_slice)
+        subsystems["imu"] = result
+        findings += found
+    for f in findings:
+        if f.status == "named":
+            values.update(f.values)
+    dynamics = [c for c in usable if c.subsystem == "dynamics"]
+    steps = 0
+    if dynamics:
+        result, found, steps = dynamics_subsystem(data, description, dynamics, nominal, windows, settings)
+        subsystems["dynamics"] = result
+        findings += found
+        for f in found:
+            if f.status == "named":
+                values.update(f.values)
+    updated = nominal.with_values({k: v for k, v in values.items()})
+    order = {c.name: i for i, c in enumerate(CANDIDATES)}
+    findings.sort(key=lambda f: order[f.candidate])
+    return Identification(
+        str(bag),
+        nominal,
+        updated,
+        findings,
+        subsystems,
+        windows,
+        time.perf_counter() - started,
+        steps,
+        dict(data.rejected),
+    )

@@ -1,0 +1,88 @@
+"""Outcome types of the identification: settings, per-candidate findings, per-subsystem costs."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+from .model import SimModel
+
+LOG = logging.getLogger("tal.sim2real.identify")
+
+GYRO_BIAS_FLOOR_RAD_S = 1e-3  # [rad/s] smaller biases are not worth naming
+ACCEL_BIAS_FLOOR_M_S2 = 0.02  # [m/s^2]
+IMU_T_STATISTIC = 6.0
+STIFF_GROUND_N_PER_M = 1e5  # [N/m] stiffer ground sinks a loaded HyQ foot by < 4 mm
+
+
+@dataclass
+class Settings:
+    """Windows [s], segment plan and decision thresholds (see the module docstring)."""
+
+    settle_s: float = 1.0
+    holdout_fraction: float = 0.25
+    segment_every_s: float = 0.2
+    horizon_s: float = 0.1
+    min_bic_drop: float = 10.0
+    min_validation_gain: float = 0.1
+    floor_factor: float = 1.5
+    max_pair_candidates: int = 3
+
+
+@dataclass
+class Finding:
+    """The outcome for one candidate effect."""
+
+    candidate: str
+    subsystem: str
+    status: str  # named | rejected | not_excited | missing_signals | not_screened
+    values: dict[str, float] = field(default_factory=dict)
+    intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
+    cost_ratio: float | None = None  # fitted cost / nominal cost on the fitting data
+    note: str = ""
+
+
+@dataclass
+class SubsystemResult:
+    """Residual costs of one subsystem (nominal, fitted, noise floor) on fit, validation and hold-out."""
+
+    name: str
+    floor: float = math.nan
+    nominal_cost: float = math.nan
+    fitted_cost: float = math.nan
+    holdout_before: float = math.nan
+    holdout_after: float = math.nan
+    holdout_floor: float = math.nan
+    named: tuple[str, ...] = ()
+    verdict: str = ""
+    channels_before: dict[str, float] = field(default_factory=dict)
+    channels_after: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class Identification:
+    """Everything ``identify`` found, and the updated model."""
+
+    bag: str
+    nominal: SimModel
+    updated: SimModel
+    findings: list[Finding]
+    subsystems: dict[str, SubsystemResult]
+    windows_s: dict[str, tuple[float, float]]
+    elapsed_s: float = 0.0
+    simulated_steps: int = 0
+    rejected_samples: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def named(self) -> list[Finding]:
+        return [f for f in self.findings if f.status == "named"]
+
+    def gap(self, after: bool) -> float:
+        """Held-out gap: sum over subsystems of cost / noise floor (1 per subsystem at the floor)."""
+        total = 0.0
+        for s in self.subsystems.values():
+            cost = s.holdout_after if after else s.holdout_before
+            if math.isfinite(cost) and math.isfinite(s.holdout_floor) and s.holdout_floor > 0:
+                total += cost / s.holdout_floor
+        return total

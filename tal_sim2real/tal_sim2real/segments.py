@@ -1,0 +1,214 @@
+"""Open-loop prediction segments: the simulator started from a measured state and driven by the measured
+joint torques for a short horizon, compared with what was measured next.
+
+Short segments keep simulation and measurement from drifting apart (a closed-loop re-run diverges after
+the first different footstep), and the measured torques take the controller out of the loop, so a
+residual points at the plant: ground, friction, mass, (with commanded torques) the actuators.
+
+Residual channels, each divided by its scale so that they are comparable: base position [m], base
+orientation (rotation vector of measured^-1 * predicted) [rad], base linear and angular velocity (world
+frame) [m/s, rad/s], joint positions [rad] and velocities [rad/s].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from tal_core.robot_description import RobotDescription
+from tal_sim_bridge.physics import Simulation
+
+from .errors import MissingSignalsError
+from .measured import MeasuredData
+from .model import SimModel
+
+CHANNEL_SCALES = {
+    "base_position": 0.005,
+    "base_orientation": 0.01,
+    "base_lin_vel": 0.05,
+    "base_ang_vel": 0.1,
+    "joint_position": 0.005,
+    "joint_velocity": 0.1,
+}
+CHANNEL_SIZES = {
+    "base_position": 3,
+    "base_orientation": 3,
+    "base_lin_vel": 3,
+    "base_ang_vel": 3,
+    "joint_position": 12,
+    "joint_velocity": 12,
+}
+ACTUATOR_WARMUP_STEPS = 60  # commands fed to the actuator model before a segment (delay + lag history)
+
+
+@dataclass(frozen=True)
+class SegmentPlan:
+    """Segment start indices (joint-state samples), horizon [steps] and the comparison stride [steps]."""
+
+    starts: np.ndarray
+    horizon_steps: int = 100
+    sample_every: int = 10
+
+    @property
+    def sample_offsets(self) -> np.ndarray:
+        return np.arange(self.sample_every, self.horizon_steps + 1, self.sample_every)
+
+
+def plan_segments(
+    data: MeasuredData, start_s: float, end_s: float, every_s: float = 0.2, horizon_s: float = 0.1
+) -> SegmentPlan:
+    """Segments starting every ``every_s`` [s] in [start_s, end_s - horizon_s]."""
+    horizon = int(round(horizon_s / data.dt_s))
+    times = np.arange(start_s, end_s - horizon_s + 1e-9, every_s)
+    starts = np.array([data.index_at(t) for t in times], dtype=int)
+    starts = starts[(starts > ACTUATOR_WARMUP_STEPS) & (starts + horizon < len(data.t_s))]
+    return SegmentPlan(np.unique(starts), horizon, max(1, int(round(0.01 / data.dt_s))))
+
+
+class SegmentSimulator:
+    """One PyBullet world reused across segments and across models that differ only in parameters that
+    can change in place (ground, friction, joint friction, actuators); a payload rebuilds it."""
+
+    def __init__(self, description: RobotDescription, data: MeasuredData, torque_source: str = "effort") -> None:
+        if data.base is None:
+            raise MissingSignalsError("open-loop prediction", ["ground_truth/odom or state_estimate"])
+        if torque_source == "effort" and data.effort_nm is None:
+            raise MissingSignalsError("open-loop prediction with measured torques", ["joint_states.effort"])
+        if torque_source == "command" and data.command_nm is None:
+            raise MissingSignalsError("open-loop prediction with commanded torques", ["joint_command"])
+        self.description = description
+        self.data = data
+        self.torque_source = torque_source
+        self.torques = data.effort_nm if torque_source == "effort" else data.command_in_force()
+        self._sim: Simulation | None = None
+        self._urdf_key: tuple | None = None
+        self.simulated_steps = 0
+
+    def close(self) -> None:
+        if self._sim is not None:
+            self._sim.close()
+            self._sim = None
+
+    def _configure(self, model: SimModel) -> Simulation:
+        effects = model.effects
+        if self.torque_source == "effort":  # measured torques are what the actuators delivered
+            effects = dataclasses.replace(
+                effects, actuator_delay_s=0.0, actuator_lag_s=0.0, torque_gain=1.0, torque_limit_scale=1.0
+            )
+        key = (model.robot, effects.payload_mass_kg, effects.payload_offset_m, model.course.name)
+        if self._sim is None or key != self._urdf_key:
+            self.close()
+            start_xy = tuple(self.data.base.position_m[0, :2])  # type: ignore[union-attr]
+            self._sim = Simulation(self.description, model.course, effects=effects, initial_xy=start_xy)
+            self._urdf_key = key
+        sim = self._sim
+        ground = model.course.default
+        for body in sim.ground_bodies:
+            sim.client.changeDynamics(
+                body,
+                -1,
+                contactStiffness=ground.stiffness_n_per_m,
+                contactDamping=ground.damping_ns_per_m,
+                lateralFriction=ground.friction,
+            )
+        sim.effects = effects
+        sim.actuators = dataclasses.replace(sim.actuators, effects=effects)
+        return sim
+
+    def predict(self, model: SimModel, plan: SegmentPlan) -> np.ndarray:
+        """(segments, samples, STATE_SIZE) predicted states at the plan's sample offsets, laid out as in
+        ``state_vector``."""
+        sim = self._configure(model)
+        base = self.data.base
+        assert base is not None
+        offsets = plan.sample_offsets
+        out = np.empty((len(plan.starts), len(offsets), STATE_SIZE))
+        for s, i0 in enumerate(plan.starts):
+            sim.set_state(
+                base.position_m[i0],
+                base.quat_xyzw[i0],
+                base.lin_vel_world_m_s[i0],
+                base.ang_vel_world_rad_s[i0],
+                self.data.q_rad[i0],
+                self.data.qd_rad_s[i0],
+            )
+            if self.torque_source == "command":
+                for k in range(i0 - ACTUATOR_WARMUP_STEPS + 1, i0 + 1):
+                    sim.actuators.delivered_torque(self.torques[k])
+            j = 0
+            for step in range(1, plan.horizon_steps + 1):
+                sim.step(self.torques[i0 + step])
+                if step == offsets[j]:
+                    out[s, j] = state_vector(sim)
+                    j = min(j + 1, len(offsets) - 1)
+            self.simulated_steps += plan.horizon_steps
+        return out
+
+
+STATE_SIZE = 3 + 4 + 3 + 3 + 12 + 12
+
+
+def state_vector(sim: Simulation) -> np.ndarray:
+    """Base position, quaternion (x, y, z, w), world linear and angular velocity, q, qd."""
+    position, quat = sim.base_pose()
+    lin, ang = sim.base_velocity()
+    q, qd = sim.joint_state()
+    return np.concatenate([position, quat, lin, ang, q, qd])
+
+
+def measured_vectors(data: MeasuredData, plan: SegmentPlan) -> np.ndarray:
+    """The measured counterpart of ``SegmentSimulator.predict``."""
+    base = data.base
+    assert base is not None
+    idx = plan.starts[:, None] + plan.sample_offsets[None, :]
+    return np.concatenate(
+        [
+            base.position_m[idx],
+            base.quat_xyzw[idx],
+            base.lin_vel_world_m_s[idx],
+            base.ang_vel_world_rad_s[idx],
+            data.q_rad[idx],
+            data.qd_rad_s[idx],
+        ],
+        axis=-1,
+    )
+
+
+def _quat_error(measured: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """Small-angle rotation vector [rad] of measured^-1 * predicted, (..., 3)."""
+    mx, my, mz, mw = (measured[..., i] for i in range(4))
+    px, py, pz, pw = (predicted[..., i] for i in range(4))
+    # conj(m) * p
+    w = mw * pw + mx * px + my * py + mz * pz
+    x = mw * px - mx * pw - my * pz + mz * py
+    y = mw * py + mx * pz - my * pw - mz * px
+    z = mw * pz - mx * py + my * px - mz * pw
+    sign = np.where(w < 0.0, -1.0, 1.0)
+    return 2.0 * sign[..., None] * np.stack([x, y, z], axis=-1)
+
+
+def channel_errors(measured: np.ndarray, predicted: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-channel errors (predicted - measured) in physical units, each (segments, samples, size)."""
+    return {
+        "base_position": predicted[..., 0:3] - measured[..., 0:3],
+        "base_orientation": _quat_error(measured[..., 3:7], predicted[..., 3:7]),
+        "base_lin_vel": predicted[..., 7:10] - measured[..., 7:10],
+        "base_ang_vel": predicted[..., 10:13] - measured[..., 10:13],
+        "joint_position": predicted[..., 13:25] - measured[..., 13:25],
+        "joint_velocity": predicted[..., 25:37] - measured[..., 25:37],
+    }
+
+
+def scaled_residual(measured: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """All channel errors divided by CHANNEL_SCALES, flattened (the fitting residual)."""
+    errors = channel_errors(measured, predicted)
+    parts = [errors[name] / CHANNEL_SCALES[name] for name in CHANNEL_SCALES]
+    out = np.concatenate([p.reshape(len(measured), -1) for p in parts], axis=1).ravel()
+    return np.nan_to_num(out, nan=1e3, posinf=1e3, neginf=-1e3)
+
+
+def channel_rms(measured: np.ndarray, predicted: np.ndarray) -> dict[str, float]:
+    """RMS error per channel in physical units (over segments, samples and components)."""
+    return {name: float(np.sqrt(np.mean(err**2))) for name, err in channel_errors(measured, predicted).items()}

@@ -1,0 +1,99 @@
+"""The workflow on generated hidden-effect bags (short ones): it must name the sealed effect, fit its size,
+shrink the held-out gap, and name nothing on effect-free data. Labels are read only to score."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from tal_sim2real.hidden_effects import HiddenEffect, generate_hidden
+from tal_sim2real.identify import Settings, identify
+from tal_sim2real.model import SimModel
+
+DURATION_S = 4.5
+SETTINGS = Settings(settle_s=1.0, holdout_fraction=0.3)
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("hidden")
+    cases = {
+        "free": [],
+        "viscous": [HiddenEffect("joint_viscous_friction", {"joint_viscous_friction_nms_per_rad": 1.5})],
+        "delay_and_payload": [
+            HiddenEffect("actuator_delay", {"actuator_delay_s": 0.006}),
+            HiddenEffect("payload", {"payload_mass_kg": 8.0, "payload_offset_x_m": 0.0, "payload_offset_y_m": 0.0}),
+        ],
+    }
+    for i, (name, effects) in enumerate(cases.items()):
+        generate_hidden(root, name, effects, seed=10 + i, duration_s=DURATION_S)
+    return root
+
+
+def _label(root: Path, name: str) -> dict:
+    return yaml.safe_load((root / "sealed" / f"{name}.yaml").read_text())
+
+
+@pytest.mark.slow
+def test_effect_free_data_names_nothing(bags: Path) -> None:
+    result = identify(bags / "bags" / "free", SimModel.nominal(), SETTINGS)
+    assert _label(bags, "free")["effects"] == []
+    assert result.named == []
+    assert result.subsystems["dynamics"].verdict.startswith("no missing effect")
+    assert result.gap(True) == pytest.approx(result.gap(False))
+
+
+@pytest.mark.slow
+def test_viscous_friction_is_named_fitted_and_closes_the_gap(bags: Path) -> None:
+    result = identify(bags / "bags" / "viscous", SimModel.nominal(), SETTINGS)
+    truth = _label(bags, "viscous")["effects"][0]["values"]["joint_viscous_friction_nms_per_rad"]
+    assert [f.candidate for f in result.named] == ["joint_viscous_friction"]
+    fitted = result.named[0].values["joint_viscous_friction_nms_per_rad"]
+    assert abs(fitted - truth) / truth < 0.1
+    low, high = result.named[0].intervals["joint_viscous_friction_nms_per_rad"]
+    assert low < fitted < high
+    assert result.gap(True) < 0.2 * result.gap(False)
+    assert result.updated.effects.joint_viscous_friction_nms_per_rad == pytest.approx(fitted)
+
+
+@pytest.mark.slow
+def test_two_effects_in_different_subsystems_are_both_named(bags: Path, tmp_path: Path) -> None:
+    result = identify(bags / "bags" / "delay_and_payload", SimModel.nominal(), SETTINGS)
+    named = {f.candidate: f.values for f in result.named}
+    assert set(named) == {"actuator_delay", "payload"}
+    assert named["actuator_delay"]["actuator_delay_s"] == pytest.approx(0.006, abs=1e-9)
+    assert named["payload"]["payload_mass_kg"] == pytest.approx(8.0, rel=0.25)
+    written = SimModel.from_yaml(result.updated.write_yaml(tmp_path / "model.yaml"))
+    assert written.effects.actuator_delay_s == pytest.approx(0.006)
+    assert not written.differences(result.updated)
+
+
+@pytest.mark.slow
+def test_missing_torque_sensor_skips_only_the_effects_that_need_it(bags: Path, tmp_path: Path) -> None:
+    """A bag without joint_states.effort and joint_command: torque-path effects are skipped with the
+    signal named; the IMU check still runs."""
+    from tal_core.bag_io import BagReader, BagWriter
+
+    src = bags / "bags" / "free"
+    dst = tmp_path / "no_effort"
+    reader = BagReader(src)
+    with BagWriter(dst) as writer:
+        for topic, type_name in reader.topics().items():
+            if topic != "/joint_command":
+                writer.add_topic(topic, type_name)
+        for record in reader.messages():
+            if record.topic == "/joint_command":
+                continue
+            message = record.message
+            if record.topic == "/joint_states":
+                message.effort = []
+            writer.write(record.topic, message, record.log_time_ns)
+    result = identify(dst, SimModel.nominal(), SETTINGS)
+    status = {f.candidate: f for f in result.findings}
+    for name in ("actuator_delay", "actuator_lag", "torque_gain", "torque_limit"):
+        assert status[name].status == "missing_signals"
+        assert "joint_command" in status[name].note and "joint_states.effort" in status[name].note
+    assert status["imu_bias"].status == "rejected"
+    assert "torque_path" not in result.subsystems and "imu" in result.subsystems
+    assert np.isfinite(result.gap(False))
