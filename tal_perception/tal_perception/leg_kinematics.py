@@ -1,0 +1,264 @@
+"""Closed-form, vectorised leg kinematics (HAA-HFE-KFE legs) derived from the Pinocchio model.
+
+Every number comes from the model: the HAA joint origin and axis, the HFE and KFE origins and axes and
+the foot frame, all read at the zero configuration with the base at the world origin (so world = base
+frame there), plus the joint limits of the robot YAML. Nothing is HyQ specific; the structure must be
+the usual one (checked at construction, ``LegKinematicsError`` otherwise):
+
+* HFE and KFE axes parallel (or anti-parallel) to each other and perpendicular to the HAA axis.
+
+Geometry used (per leg). With ``h`` the HAA origin, ``u`` its axis, ``w`` the HFE axis and
+``e2 = w x u``, a vector ``v`` in the HAA body has coordinates ``X = v.u``, ``Y = v.e2``, ``W = v.w``.
+HFE and KFE rotate the foot in the (X, Y) plane (``W`` stays the lateral offset ``d``); HAA rotates
+the (W, Y) pair about ``u``. Inverse kinematics inverts the HAA rotation first (two branches: the one
+of the nominal pose is kept), then solves the planar two-link problem (two knee branches: the nominal
+one is kept).
+
+Frames and units: positions [m] in the BASE frame (x forward, y left, z up), joint angles [rad] in
+the leg's HAA, HFE, KFE order. Arrays are vectorised over a leading batch dimension.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import ArrayLike, NDArray
+
+from tal_core.legs import LEGS, Leg, PerLeg
+from tal_core.robot_model import RobotModel
+from tal_perception.errors import LegKinematicsError, PerceptionInputError
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+_AXIS_TOLERANCE = 1e-6  # [-] |cos| tolerance for parallel / perpendicular axes
+
+
+@dataclass(frozen=True)
+class IkResult:
+    """Inverse kinematics of a batch of N foot positions.
+
+    joints (N, 3) [rad] HAA, HFE, KFE (NaN where unreachable); reachable (N,) the position lies in the
+    leg's reach (with the reach margin); within_limits (N,) the joints respect the position limits (with
+    the limit margin); feasible = reachable & within_limits.
+    """
+
+    joints: FloatArray | None
+    reachable: BoolArray
+    within_limits: BoolArray
+    knee: FloatArray  # (N, 3) [m] base frame, KFE joint origin (NaN where unreachable)
+
+    @property
+    def feasible(self) -> BoolArray:
+        return self.reachable & self.within_limits
+
+
+@dataclass(frozen=True)
+class LegGeometry:
+    """Constant geometry of one leg read from the model (base frame at zero joint angles) [m, rad]."""
+
+    leg: Leg
+    haa_origin: FloatArray  # (3,) h [m]
+    haa_axis: FloatArray  # (3,) u, unit
+    hfe_axis: FloatArray  # (3,) w, unit
+    kfe_sign: float  # +1 if the KFE axis is w, -1 if it is -w
+    hfe_xyw: FloatArray  # (3,) HFE origin - h in (X, Y, W) coordinates [m]
+    knee_xyw: FloatArray  # (3,) KFE origin - h in (X, Y, W) [m]
+    foot_xyw: FloatArray  # (3,) foot centre - h in (X, Y, W) [m]
+    lower_rad: FloatArray  # (3,) joint position lower limits
+    upper_rad: FloatArray  # (3,) joint position upper limits
+    hip_branch: float  # sign of the foot's planar Y in the nominal pose
+    knee_branch: float  # sign of the planar knee angle in the nominal pose
+
+    @property
+    def e2(self) -> FloatArray:
+        return np.cross(self.hfe_axis, self.haa_axis)
+
+    @property
+    def thigh_2d(self) -> FloatArray:
+        """(2,) HFE -> KFE in (X, Y) at zero angles [m]."""
+        return self.knee_xyw[:2] - self.hfe_xyw[:2]
+
+    @property
+    def shin_2d(self) -> FloatArray:
+        """(2,) KFE -> foot in (X, Y) at zero angles [m]."""
+        return self.foot_xyw[:2] - self.knee_xyw[:2]
+
+    @property
+    def max_reach_m(self) -> float:
+        """[m] HFE-to-foot distance in the (X, Y) plane with the leg stretched."""
+        return float(np.linalg.norm(self.thigh_2d) + np.linalg.norm(self.shin_2d))
+
+
+def _rot2(angle: FloatArray, vector: FloatArray) -> FloatArray:
+    """Rotate 2D vectors (2,) or (..., 2) by ``angle`` (...) counter-clockwise; result (..., 2)."""
+    c, s = np.cos(angle), np.sin(angle)
+    x, y = vector[..., 0], vector[..., 1]
+    return np.stack([c * x - s * y, s * x + c * y], axis=-1)
+
+
+def _wrap(angle: FloatArray) -> FloatArray:
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+class LegKinematics:
+    """Vectorised forward and inverse kinematics of the four legs of ``model``.
+
+    ``reach_margin_m`` [m]: targets closer than this to full stretch (or full fold) count as
+    unreachable; ``limit_margin_rad`` [rad]: joints closer than this to a position limit are infeasible.
+    """
+
+    def __init__(self, model: RobotModel, reach_margin_m: float = 0.0, limit_margin_rad: float = 0.0) -> None:
+        if not (np.isfinite(reach_margin_m) and reach_margin_m >= 0.0):
+            raise LegKinematicsError(f"reach_margin_m must be a finite value >= 0 [m], got {reach_margin_m!r}")
+        if not (np.isfinite(limit_margin_rad) and limit_margin_rad >= 0.0):
+            raise LegKinematicsError(f"limit_margin_rad must be a finite value >= 0 [rad], got {limit_margin_rad!r}")
+        self.reach_margin_m = float(reach_margin_m)
+        self.limit_margin_rad = float(limit_margin_rad)
+        self.foot_radius_m = float(model.description.foot_radius_m)
+        self.geometry: PerLeg[LegGeometry] = PerLeg.from_sequence([_read_leg(model, leg) for leg in LEGS])
+
+    # -- forward -------------------------------------------------------------------------------------
+    def forward(self, leg: Leg, joints: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(HFE origin, KFE origin, foot centre) [m], base frame, each (N, 3), for joints (N, 3) [rad]."""
+        g = self.geometry[leg]
+        q = np.asarray(joints, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 3:
+            raise PerceptionInputError(f"leg {leg.name}: joints must have shape (N, 3), got {q.shape}")
+        theta1, theta2 = q[:, 1], g.kfe_sign * q[:, 2]
+        knee_2d = g.hfe_xyw[:2] + _rot2(theta1, g.thigh_2d)
+        foot_2d = knee_2d + _rot2(theta1 + theta2, g.shin_2d)
+        n = q.shape[0]
+        hfe_2d = np.broadcast_to(g.hfe_xyw[:2], (n, 2))
+        points = [
+            self._to_base(g, q[:, 0], xy, np.full(n, w_coord))
+            for xy, w_coord in ((hfe_2d, g.hfe_xyw[2]), (knee_2d, g.knee_xyw[2]), (foot_2d, g.foot_xyw[2]))
+        ]
+        return points[0], points[1], points[2]
+
+    @staticmethod
+    def _to_base(g: LegGeometry, q_haa: FloatArray, xy: FloatArray, w_coord: FloatArray) -> FloatArray:
+        """Base-frame positions of points with HAA-body coordinates (X, Y) and W, after the HAA rotation."""
+        c, s = np.cos(q_haa), np.sin(q_haa)
+        w_rot = w_coord * c + xy[:, 1] * s
+        y_rot = -w_coord * s + xy[:, 1] * c
+        return g.haa_origin + xy[:, 0, None] * g.haa_axis + y_rot[:, None] * g.e2 + w_rot[:, None] * g.hfe_axis
+
+    # -- inverse -------------------------------------------------------------------------------------
+    def inverse(self, leg: Leg, foot_base: ArrayLike, with_joints: bool = True) -> IkResult:
+        """Joint angles putting the foot centre at ``foot_base`` (N, 3) [m], base frame (nominal branch).
+
+        The rotations are built from normalised dot and cross products, so the knee (KFE origin)
+        positions and the joint-limit check need no trigonometry; only the joint angles themselves need
+        atan2 (skipped with ``with_joints=False``, then ``IkResult.joints`` is None).
+        """
+        g = self.geometry[leg]
+        p = np.asarray(foot_base, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise PerceptionInputError(f"leg {leg.name}: foot positions must have shape (N, 3), got {p.shape}")
+        finite = np.isfinite(p).all(axis=1)
+        r = np.where(finite[:, None], p - g.haa_origin, g.foot_xyw @ np.stack([g.haa_axis, g.e2, g.hfe_axis]))
+        x_t, y_t, w_t = r @ g.haa_axis, r @ g.e2, r @ g.hfe_axis
+        d = g.foot_xyw[2]
+        rho_sq = w_t * w_t + y_t * y_t
+        y_p = g.hip_branch * np.sqrt(np.maximum(rho_sq - d * d, 0.0))
+        # HAA angle: from (d, y_p) (foot in the unrotated HAA body) to (w_t, y_t), both of norm rho.
+        inv_rho_sq = 1.0 / np.maximum(rho_sq, 1e-12)
+        cos_haa = (d * w_t + y_p * y_t) * inv_rho_sq
+        sin_haa = (y_p * w_t - d * y_t) * inv_rho_sq
+        # Planar two-link problem from HFE to the foot.
+        tx, ty = x_t - g.hfe_xyw[0], y_p - g.hfe_xyw[1]
+        thigh, shin = g.thigh_2d, g.shin_2d
+        l1, l2 = float(np.hypot(*thigh)), float(np.hypot(*shin))
+        dist_sq = tx * tx + ty * ty
+        cos_gamma = np.clip((dist_sq - l1 * l1 - l2 * l2) / (2.0 * l1 * l2), -1.0, 1.0)
+        sin_gamma = g.knee_branch * np.sqrt(1.0 - cos_gamma * cos_gamma)
+        # shin rotated by theta2 = gamma - phi2 + phi1 is the thigh direction rotated by gamma, scaled.
+        ux, uy = thigh / l1
+        sx, sy = l2 * (cos_gamma * ux - sin_gamma * uy), l2 * (sin_gamma * ux + cos_gamma * uy)
+        rx, ry = thigh[0] + sx, thigh[1] + sy  # HFE -> foot at theta1 = 0
+        inv_dist_sq = 1.0 / np.maximum(dist_sq, 1e-12)
+        cos_1 = (rx * tx + ry * ty) * inv_dist_sq
+        sin_1 = (rx * ty - ry * tx) * inv_dist_sq
+        inv_l2_sq = 1.0 / (l2 * l2)
+        cos_2 = (shin[0] * sx + shin[1] * sy) * inv_l2_sq  # KFE rotation (shin -> its rotated direction)
+        sin_2 = g.kfe_sign * (shin[0] * sy - shin[1] * sx) * inv_l2_sq
+        cosines = np.stack([cos_haa, cos_1, cos_2], axis=-1)
+        sines = np.stack([sin_haa, sin_1, sin_2], axis=-1)
+        knee_x = g.hfe_xyw[0] + cos_1 * thigh[0] - sin_1 * thigh[1]
+        knee_y = g.hfe_xyw[1] + sin_1 * thigh[0] + cos_1 * thigh[1]
+        w_k = g.knee_xyw[2]
+        knee = (
+            g.haa_origin
+            + knee_x[:, None] * g.haa_axis
+            + (-w_k * sin_haa + knee_y * cos_haa)[:, None] * g.e2
+            + (w_k * cos_haa + knee_y * sin_haa)[:, None] * g.hfe_axis
+        )
+        margin = self.reach_margin_m
+        dist = np.sqrt(dist_sq)
+        reachable = finite & (rho_sq >= d * d) & (dist <= l1 + l2 - margin) & (dist >= abs(l1 - l2) + margin)
+        # q in [lower + m, upper - m]  <=>  cos(q - mid) >= cos(half - m): no atan2 needed.
+        mid, half = 0.5 * (g.lower_rad + g.upper_rad), 0.5 * (g.upper_rad - g.lower_rad) - self.limit_margin_rad
+        cos_offset = cosines * np.cos(mid) + sines * np.sin(mid)
+        within = np.all(cos_offset >= np.cos(np.maximum(half, 0.0)), axis=1) & (half >= 0.0).all() & reachable
+        knee[~reachable] = np.nan
+        joints = None
+        if with_joints:
+            joints = np.arctan2(sines, cosines)
+            joints[~reachable] = np.nan
+        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee=knee)
+
+
+def _read_leg(model: RobotModel, leg: Leg) -> LegGeometry:
+    """Read one leg's geometry from Pinocchio at the zero configuration (base at the world origin)."""
+    pin_model, data = model.model, model.model.createData()
+    description = model.description
+    q0 = pin.neutral(pin_model)
+    pin.computeJointJacobians(pin_model, data, q0)
+    pin.framesForwardKinematics(pin_model, data, q0)
+    names = description.leg_joint_names(leg)
+    origins, axes = [], []
+    for name in names:
+        joint_id = pin_model.getJointId(name)
+        jacobian = pin.getJointJacobian(pin_model, data, joint_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        axis = jacobian[3:, pin_model.joints[joint_id].idx_v]
+        if not np.isclose(np.linalg.norm(axis), 1.0, atol=_AXIS_TOLERANCE):
+            raise LegKinematicsError(f"leg {leg.name}: joint {name!r} is not a revolute joint")
+        origins.append(data.oMi[joint_id].translation.copy())
+        axes.append(axis / np.linalg.norm(axis))
+    foot = data.oMf[pin_model.getFrameId(description.foot_frames[leg])].translation.copy()
+    u, w, w_knee = axes
+    if abs(float(u @ w)) > _AXIS_TOLERANCE:
+        raise LegKinematicsError(f"leg {leg.name}: HFE axis is not perpendicular to the HAA axis (u.w = {u @ w:.3g})")
+    if abs(abs(float(w @ w_knee)) - 1.0) > _AXIS_TOLERANCE:
+        raise LegKinematicsError(
+            f"leg {leg.name}: KFE axis is not parallel to the HFE axis (w.w_kfe = {w @ w_knee:.3g})"
+        )
+    e2 = np.cross(w, u)
+    h = origins[0]
+
+    def xyw(point: FloatArray) -> FloatArray:
+        v = point - h
+        return np.array([v @ u, v @ e2, v @ w])
+
+    hfe, knee, foot_xyw = xyw(origins[1]), xyw(origins[2]), xyw(foot)
+    sl = description.leg_joint_slice(leg)
+    nominal = np.asarray(description.nominal_joint_positions_rad, dtype=float)[sl]
+    kfe_sign = float(np.sign(w @ w_knee))
+    partial = LegGeometry(
+        leg, h, u, w, kfe_sign, hfe, knee, foot_xyw,
+        np.asarray(description.position_lower_rad, dtype=float)[sl].copy(),
+        np.asarray(description.position_upper_rad, dtype=float)[sl].copy(),
+        1.0, 1.0,
+    )  # fmt: skip
+    # Branches of the nominal pose: sign of the planar foot Y and of the knee angle.
+    thigh, shin = partial.thigh_2d, partial.shin_2d
+    theta1, theta2 = nominal[1], kfe_sign * nominal[2]
+    foot_2d = hfe[:2] + _rot2(np.array(theta1), thigh) + _rot2(np.array(theta1 + theta2), shin)
+    gamma = _wrap(theta2 + np.arctan2(shin[1], shin[0]) - np.arctan2(thigh[1], thigh[0]))
+    hip_branch = 1.0 if foot_2d[1] >= 0.0 else -1.0
+    knee_branch = 1.0 if gamma >= 0.0 else -1.0
+    return LegGeometry(
+        leg, h, u, w, kfe_sign, hfe, knee, foot_xyw, partial.lower_rad, partial.upper_rad, hip_branch, knee_branch
+    )
