@@ -118,6 +118,9 @@ class LegKinematics:
         self.limit_margin_rad = float(limit_margin_rad)
         self.foot_radius_m = float(model.description.foot_radius_m)
         self.geometry: PerLeg[LegGeometry] = PerLeg.from_sequence([_read_leg(model, leg) for leg in LEGS])
+        self._constants = tuple(
+            _IkConstants.build(g, self.reach_margin_m, self.limit_margin_rad) for g in self.geometry
+        )
 
     # -- forward -------------------------------------------------------------------------------------
     def forward(self, leg: Leg, joints: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -153,61 +156,125 @@ class LegKinematics:
         positions and the joint-limit check need no trigonometry; only the joint angles themselves need
         atan2 (skipped with ``with_joints=False``, then ``IkResult.joints`` is None).
         """
-        g = self.geometry[leg]
         p = np.asarray(foot_base, dtype=float)
         if p.ndim != 2 or p.shape[1] != 3:
             raise PerceptionInputError(f"leg {leg.name}: foot positions must have shape (N, 3), got {p.shape}")
-        finite = np.isfinite(p).all(axis=1)
-        r = np.where(finite[:, None], p - g.haa_origin, g.foot_xyw @ np.stack([g.haa_axis, g.e2, g.hfe_axis]))
-        x_t, y_t, w_t = r @ g.haa_axis, r @ g.e2, r @ g.hfe_axis
-        d = g.foot_xyw[2]
+        return self.inverse_xyz(leg, p[:, 0], p[:, 1], p[:, 2], with_joints)
+
+    def inverse_xyz(self, leg: Leg, x: FloatArray, y: FloatArray, z: FloatArray, with_joints: bool = False) -> IkResult:
+        """``inverse`` for foot positions given as three (N,) component arrays [m], base frame.
+
+        The batch runs along the last axis of every intermediate array (numpy is an order of magnitude
+        slower on (N, 3) arrays whose inner axis has 3 elements) and every constant is a Python float
+        precomputed per leg (``_IkConstants``), which keeps the per-call overhead low.
+        """
+        c = self._constants[leg]
+        finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        rx, ry, rz = x - c.h[0], y - c.h[1], z - c.h[2]
+        if not finite.all():
+            rx, ry, rz = (np.where(finite, v, 0.0) for v in (rx, ry, rz))
+        u, e2, wa = c.u, c.e2, c.w
+        x_t = u[0] * rx + u[1] * ry + u[2] * rz
+        y_t = e2[0] * rx + e2[1] * ry + e2[2] * rz
+        w_t = wa[0] * rx + wa[1] * ry + wa[2] * rz
+        d = c.d
         rho_sq = w_t * w_t + y_t * y_t
-        y_p = g.hip_branch * np.sqrt(np.maximum(rho_sq - d * d, 0.0))
+        y_p = np.sqrt(np.maximum(rho_sq - d * d, 0.0))
+        if c.hip_branch < 0.0:
+            y_p = -y_p
         # HAA angle: from (d, y_p) (foot in the unrotated HAA body) to (w_t, y_t), both of norm rho.
         inv_rho_sq = 1.0 / np.maximum(rho_sq, 1e-12)
         cos_haa = (d * w_t + y_p * y_t) * inv_rho_sq
         sin_haa = (y_p * w_t - d * y_t) * inv_rho_sq
         # Planar two-link problem from HFE to the foot.
-        tx, ty = x_t - g.hfe_xyw[0], y_p - g.hfe_xyw[1]
-        thigh, shin = g.thigh_2d, g.shin_2d
-        l1, l2 = float(np.hypot(*thigh)), float(np.hypot(*shin))
+        tx, ty = x_t - c.hfe_x, y_p - c.hfe_y
         dist_sq = tx * tx + ty * ty
-        cos_gamma = np.clip((dist_sq - l1 * l1 - l2 * l2) / (2.0 * l1 * l2), -1.0, 1.0)
-        sin_gamma = g.knee_branch * np.sqrt(1.0 - cos_gamma * cos_gamma)
-        # shin rotated by theta2 = gamma - phi2 + phi1 is the thigh direction rotated by gamma, scaled.
-        ux, uy = thigh / l1
-        sx, sy = l2 * (cos_gamma * ux - sin_gamma * uy), l2 * (sin_gamma * ux + cos_gamma * uy)
-        rx, ry = thigh[0] + sx, thigh[1] + sy  # HFE -> foot at theta1 = 0
+        cos_gamma = np.clip((dist_sq - c.l_sq_sum) * c.inv_2l1l2, -1.0, 1.0)
+        sin_gamma = np.sqrt(1.0 - cos_gamma * cos_gamma)
+        if c.knee_branch < 0.0:
+            sin_gamma = -sin_gamma
+        # The shin, rotated by the knee, is the thigh direction rotated by gamma and scaled to l2.
+        sx = c.l2_ux * cos_gamma - c.l2_uy * sin_gamma
+        sy = c.l2_ux * sin_gamma + c.l2_uy * cos_gamma
+        rx2, ry2 = sx + c.thigh[0], sy + c.thigh[1]  # HFE -> foot at theta1 = 0
         inv_dist_sq = 1.0 / np.maximum(dist_sq, 1e-12)
-        cos_1 = (rx * tx + ry * ty) * inv_dist_sq
-        sin_1 = (rx * ty - ry * tx) * inv_dist_sq
-        inv_l2_sq = 1.0 / (l2 * l2)
-        cos_2 = (shin[0] * sx + shin[1] * sy) * inv_l2_sq  # KFE rotation (shin -> its rotated direction)
-        sin_2 = g.kfe_sign * (shin[0] * sy - shin[1] * sx) * inv_l2_sq
-        cosines = np.stack([cos_haa, cos_1, cos_2], axis=-1)
-        sines = np.stack([sin_haa, sin_1, sin_2], axis=-1)
-        knee_x = g.hfe_xyw[0] + cos_1 * thigh[0] - sin_1 * thigh[1]
-        knee_y = g.hfe_xyw[1] + sin_1 * thigh[0] + cos_1 * thigh[1]
-        w_k = g.knee_xyw[2]
-        knee = (
-            g.haa_origin
-            + knee_x[:, None] * g.haa_axis
-            + (-w_k * sin_haa + knee_y * cos_haa)[:, None] * g.e2
-            + (w_k * cos_haa + knee_y * sin_haa)[:, None] * g.hfe_axis
-        )
-        margin = self.reach_margin_m
-        dist = np.sqrt(dist_sq)
-        reachable = finite & (rho_sq >= d * d) & (dist <= l1 + l2 - margin) & (dist >= abs(l1 - l2) + margin)
+        cos_1 = (rx2 * tx + ry2 * ty) * inv_dist_sq
+        sin_1 = (rx2 * ty - ry2 * tx) * inv_dist_sq
+        cos_2 = (c.shin[0] * sx + c.shin[1] * sy) * c.inv_l2_sq  # KFE rotation: shin -> rotated shin
+        sin_2 = (c.shin[0] * sy - c.shin[1] * sx) * (c.inv_l2_sq * c.kfe_sign)
+        cosines, sines = (cos_haa, cos_1, cos_2), (sin_haa, sin_1, sin_2)
+        knee_x = c.hfe_x + cos_1 * c.thigh[0] - sin_1 * c.thigh[1]
+        knee_y = c.hfe_y + sin_1 * c.thigh[0] + cos_1 * c.thigh[1]
+        knee_e2 = knee_y * cos_haa - c.knee_w * sin_haa
+        knee_w = knee_y * sin_haa + c.knee_w * cos_haa
+        knee = np.empty((3, x_t.shape[0]))  # (3, N), returned transposed
+        for i in range(3):
+            knee[i] = c.h[i] + knee_x * u[i] + knee_e2 * e2[i] + knee_w * wa[i]
+        reachable = finite & (rho_sq >= d * d) & (dist_sq <= c.max_dist_sq) & (dist_sq >= c.min_dist_sq)
         # q in [lower + m, upper - m]  <=>  cos(q - mid) >= cos(half - m): no atan2 needed.
-        mid, half = 0.5 * (g.lower_rad + g.upper_rad), 0.5 * (g.upper_rad - g.lower_rad) - self.limit_margin_rad
-        cos_offset = cosines * np.cos(mid) + sines * np.sin(mid)
-        within = np.all(cos_offset >= np.cos(np.maximum(half, 0.0)), axis=1) & (half >= 0.0).all() & reachable
-        knee[~reachable] = np.nan
+        within = reachable.copy() if c.limits_nonempty else np.zeros_like(reachable)
+        for i in range(3):
+            within &= cosines[i] * c.cos_mid[i] + sines[i] * c.sin_mid[i] >= c.cos_half[i]
+        if not reachable.all():
+            knee[:, ~reachable] = np.nan
         joints = None
         if with_joints:
-            joints = np.arctan2(sines, cosines)
+            joints = np.arctan2(np.stack(sines, axis=-1), np.stack(cosines, axis=-1))
             joints[~reachable] = np.nan
-        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee=knee)
+        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee=knee.T)
+
+
+@dataclass(frozen=True)
+class _IkConstants:
+    """Per-leg constants of the inverse kinematics as Python floats (see ``LegGeometry``)."""
+
+    h: tuple[float, float, float]
+    u: tuple[float, float, float]
+    e2: tuple[float, float, float]
+    w: tuple[float, float, float]
+    d: float
+    hfe_x: float
+    hfe_y: float
+    knee_w: float
+    thigh: tuple[float, float]
+    shin: tuple[float, float]
+    l2_ux: float
+    l2_uy: float
+    l_sq_sum: float
+    inv_2l1l2: float
+    inv_l2_sq: float
+    kfe_sign: float
+    hip_branch: float
+    knee_branch: float
+    max_dist_sq: float
+    min_dist_sq: float
+    cos_mid: tuple[float, float, float]
+    sin_mid: tuple[float, float, float]
+    cos_half: tuple[float, float, float]
+    limits_nonempty: bool
+
+    @classmethod
+    def build(cls, g: LegGeometry, reach_margin_m: float, limit_margin_rad: float) -> _IkConstants:
+        def floats(values: ArrayLike) -> tuple[float, ...]:
+            return tuple(float(v) for v in np.asarray(values).reshape(-1))
+
+        thigh, shin = g.thigh_2d, g.shin_2d
+        l1, l2 = float(np.hypot(*thigh)), float(np.hypot(*shin))
+        max_dist = max(l1 + l2 - reach_margin_m, 0.0)
+        min_dist = abs(l1 - l2) + reach_margin_m
+        mid = 0.5 * (g.lower_rad + g.upper_rad)
+        half = 0.5 * (g.upper_rad - g.lower_rad) - limit_margin_rad
+        return cls(
+            h=floats(g.haa_origin), u=floats(g.haa_axis), e2=floats(g.e2), w=floats(g.hfe_axis),
+            d=float(g.foot_xyw[2]), hfe_x=float(g.hfe_xyw[0]), hfe_y=float(g.hfe_xyw[1]),
+            knee_w=float(g.knee_xyw[2]), thigh=floats(thigh), shin=floats(shin),
+            l2_ux=l2 * float(thigh[0]) / l1, l2_uy=l2 * float(thigh[1]) / l1,
+            l_sq_sum=l1 * l1 + l2 * l2, inv_2l1l2=1.0 / (2.0 * l1 * l2), inv_l2_sq=1.0 / (l2 * l2),
+            kfe_sign=g.kfe_sign, hip_branch=g.hip_branch, knee_branch=g.knee_branch,
+            max_dist_sq=max_dist * max_dist, min_dist_sq=min_dist * min_dist,
+            cos_mid=floats(np.cos(mid)), sin_mid=floats(np.sin(mid)),
+            cos_half=floats(np.cos(np.maximum(half, 0.0))), limits_nonempty=bool((half >= 0.0).all()),
+        )  # fmt: skip
 
 
 def _read_leg(model: RobotModel, leg: Leg) -> LegGeometry:
