@@ -48,6 +48,7 @@ class IkResult:
     reachable: BoolArray
     within_limits: BoolArray
     knee: FloatArray  # (N, 3) [m] base frame, KFE joint origin (NaN where unreachable)
+    hfe: FloatArray  # (N, 3) [m] base frame, HFE joint origin (NaN where unreachable)
 
     @property
     def feasible(self) -> BoolArray:
@@ -207,9 +208,13 @@ class LegKinematics:
         knee_y = c.hfe_y + sin_1 * c.thigh[0] + cos_1 * c.thigh[1]
         knee_e2 = knee_y * cos_haa - c.knee_w * sin_haa
         knee_w = knee_y * sin_haa + c.knee_w * cos_haa
+        hfe_e2 = c.hfe_y * cos_haa - c.hfe_w * sin_haa
+        hfe_w = c.hfe_y * sin_haa + c.hfe_w * cos_haa
         knee = np.empty((3, x_t.shape[0]))  # (3, N), returned transposed
+        hfe = np.empty((3, x_t.shape[0]))
         for i in range(3):
             knee[i] = c.h[i] + knee_x * u[i] + knee_e2 * e2[i] + knee_w * wa[i]
+            hfe[i] = (c.h[i] + c.hfe_x * u[i]) + hfe_e2 * e2[i] + hfe_w * wa[i]
         reachable = finite & (rho_sq >= d * d) & (dist_sq <= c.max_dist_sq) & (dist_sq >= c.min_dist_sq)
         # q in [lower + m, upper - m]  <=>  cos(q - mid) >= cos(half - m): no atan2 needed.
         within = reachable.copy() if c.limits_nonempty else np.zeros_like(reachable)
@@ -217,11 +222,12 @@ class LegKinematics:
             within &= cosines[i] * c.cos_mid[i] + sines[i] * c.sin_mid[i] >= c.cos_half[i]
         if not reachable.all():
             knee[:, ~reachable] = np.nan
+            hfe[:, ~reachable] = np.nan
         joints = None
         if with_joints:
             joints = np.arctan2(np.stack(sines, axis=-1), np.stack(cosines, axis=-1))
             joints[~reachable] = np.nan
-        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee=knee.T)
+        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee=knee.T, hfe=hfe.T)
 
 
 @dataclass(frozen=True)
@@ -235,6 +241,7 @@ class _IkConstants:
     d: float
     hfe_x: float
     hfe_y: float
+    hfe_w: float
     knee_w: float
     thigh: tuple[float, float]
     shin: tuple[float, float]
@@ -266,7 +273,7 @@ class _IkConstants:
         half = 0.5 * (g.upper_rad - g.lower_rad) - limit_margin_rad
         return cls(
             h=floats(g.haa_origin), u=floats(g.haa_axis), e2=floats(g.e2), w=floats(g.hfe_axis),
-            d=float(g.foot_xyw[2]), hfe_x=float(g.hfe_xyw[0]), hfe_y=float(g.hfe_xyw[1]),
+            d=float(g.foot_xyw[2]), hfe_x=float(g.hfe_xyw[0]), hfe_y=float(g.hfe_xyw[1]), hfe_w=float(g.hfe_xyw[2]),
             knee_w=float(g.knee_xyw[2]), thigh=floats(thigh), shin=floats(shin),
             l2_ux=l2 * float(thigh[0]) / l1, l2_uy=l2 * float(thigh[1]) / l1,
             l_sq_sum=l1 * l1 + l2 * l2, inv_2l1l2=1.0 / (2.0 * l1 * l2), inv_l2_sq=1.0 / (l2 * l2),

@@ -1,0 +1,121 @@
+"""Grid operations of the FEC on a heightmap patch: roughness, disc max-filter, erosion, look-ups.
+
+Heights are world z [m] on a rows x cols grid (patch frame, see ``fec_settings``); NaN = unknown.
+Two kinds of "no data" are kept apart: cells outside the patch carry no information (ignored), cells
+inside the patch that are NaN are unknown terrain (unsafe to step on, treated as an obstacle).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+def disc_offsets(radius_m: float, resolution_m: float, include_centre: bool = False) -> list[tuple[int, int]]:
+    """Cell offsets (di, dj) within ``radius_m`` [m] of a cell centre (small tolerance for round-off)."""
+    k = int(np.floor(radius_m / resolution_m + 1e-9))
+    offsets = []
+    for di in range(-k, k + 1):
+        for dj in range(-k, k + 1):
+            if (di or dj or include_centre) and (di * di + dj * dj) * resolution_m**2 <= radius_m**2 + 1e-12:
+                offsets.append((di, dj))
+    return offsets
+
+
+def _shifted(padded: NDArray, k: int, di: int, dj: int, rows: int, cols: int) -> NDArray:
+    """View of ``padded`` (padded by k) aligned so that [r, c] reads the original cell (r + di, c + dj)."""
+    return padded[k + di : k + di + rows, k + dj : k + dj + cols]
+
+
+def terrain_roughness(
+    heights: FloatArray, resolution_m: float, radius_m: float, max_mean_slope: float, max_slope_std: float
+) -> BoolArray:
+    """TR criterion: True where a candidate is smooth enough (thesis: slope mean and std to neighbours).
+
+    Slopes s_j = (h_j - h_c) / d_j to the neighbours within ``radius_m``; outside-patch neighbours are
+    ignored, an unknown (NaN) neighbour or candidate makes the candidate rough.
+    """
+    rows, cols = heights.shape
+    offsets = disc_offsets(radius_m, resolution_m)
+    if not offsets:
+        return ~np.isnan(heights)
+    k = max(max(abs(di), abs(dj)) for di, dj in offsets)
+    padded = np.pad(heights, k, constant_values=np.nan)
+    inside = np.pad(np.ones_like(heights, dtype=bool), k, constant_values=False)
+    unknown = np.isnan(heights)
+    total_abs = np.zeros_like(heights)
+    total = np.zeros_like(heights)
+    total_sq = np.zeros_like(heights)
+    count = np.zeros_like(heights)
+    for di, dj in offsets:
+        neighbour = _shifted(padded, k, di, dj, rows, cols)
+        valid = _shifted(inside, k, di, dj, rows, cols)
+        missing = np.isnan(neighbour)
+        unknown |= valid & missing
+        use = valid & ~missing
+        slope = np.where(use, neighbour - heights, 0.0) / (resolution_m * np.hypot(di, dj))
+        total_abs += np.abs(slope)
+        total += slope
+        total_sq += slope * slope
+        count += use
+    n = np.maximum(count, 1.0)
+    mean_abs = total_abs / n
+    variance = np.maximum(total_sq / n - (total / n) ** 2, 0.0)
+    return ~unknown & (mean_abs <= max_mean_slope) & (np.sqrt(variance) <= max_slope_std)
+
+
+def disc_max(heights: FloatArray, resolution_m: float, radius_m: float) -> FloatArray:
+    """Highest terrain [m] within ``radius_m`` of every cell centre: +inf if an unknown cell is in
+    reach (unknown terrain is an obstacle), outside-patch cells ignored."""
+    rows, cols = heights.shape
+    offsets = disc_offsets(radius_m, resolution_m, include_centre=True)
+    k = max(max(abs(di), abs(dj)) for di, dj in offsets)
+    solid = np.where(np.isnan(heights), np.inf, heights)
+    padded = np.pad(solid, k, constant_values=-np.inf)
+    result = np.full_like(heights, -np.inf)
+    for di, dj in offsets:
+        np.maximum(result, _shifted(padded, k, di, dj, rows, cols), out=result)
+    return result
+
+
+def erode(safe: BoolArray, resolution_m: float, radius_m: float) -> BoolArray:
+    """Uncertainty margin: a candidate stays safe only if every cell within ``radius_m`` is safe too
+    (outside-patch cells ignored). Binary erosion with a disc."""
+    rows, cols = safe.shape
+    offsets = disc_offsets(radius_m, resolution_m)
+    if not offsets:
+        return safe.copy()
+    k = max(max(abs(di), abs(dj)) for di, dj in offsets)
+    padded = np.pad(safe, k, constant_values=True)
+    result = safe.copy()
+    for di, dj in offsets:
+        result &= _shifted(padded, k, di, dj, rows, cols)
+    return result
+
+
+class PatchLookup:
+    """Nearest-cell look-up of a (rows, cols) grid at patch-frame points (x, y) [m]; points outside
+    the patch get ``outside_value``."""
+
+    def __init__(self, grid: FloatArray, resolution_m: float, outside_value: float = -np.inf) -> None:
+        self.rows, self.cols = grid.shape
+        self.inv_res = 1.0 / resolution_m
+        self.flat = np.append(grid.reshape(-1), outside_value)  # last entry: outside
+        self.half_r, self.half_c = 0.5 * (self.rows - 1), 0.5 * (self.cols - 1)
+
+    def __call__(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        r = np.rint(x * self.inv_res + self.half_r)
+        c = np.rint(y * self.inv_res + self.half_c)
+        inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.cols)
+        index = np.where(inside, r * self.cols + c, self.rows * self.cols).astype(np.intp)
+        return self.flat[index]
+
+
+def cell_xy(rows: int, cols: int, resolution_m: float) -> tuple[FloatArray, FloatArray]:
+    """Patch-frame x, y [m] of every cell centre, each (rows, cols)."""
+    x = (np.arange(rows) - 0.5 * (rows - 1)) * resolution_m
+    y = (np.arange(cols) - 0.5 * (cols - 1)) * resolution_m
+    return np.meshgrid(x, y, indexing="ij")
