@@ -119,11 +119,13 @@ class FootholdEvaluator:
             liftoff = inp.liftoff_xyz.copy()
         else:
             step = gait.step_length_m(hip_velocity)
-            centre_z = heights[rows // 2, cols // 2]
-            if np.isnan(centre_z):
+            liftoff = np.array([-step[0], -step[1], np.nan])
+            row, col = np.rint(-step / res + 0.5 * (np.array([rows, cols]) - 1)).astype(int)
+            if 0 <= row < rows and 0 <= col < cols:
+                liftoff[2] = heights[row, col]
+            if np.isnan(liftoff[2]):
                 known = heights[~np.isnan(heights)]
-                centre_z = float(np.median(known)) if known.size else inp.hip_height_m - g.max_reach_m
-            liftoff = np.array([-step[0], -step[1], centre_z])
+                liftoff[2] = float(np.median(known)) if known.size else inp.hip_height_m - g.max_reach_m
         liftoff[2] += self.foot_radius_m
         t_swing = gait.swing_duration_s
         t_start = t_swing - gait.swing_time_left_s

@@ -68,12 +68,17 @@ def terrain_roughness(
 
 
 def disc_max(heights: FloatArray, resolution_m: float, radius_m: float) -> FloatArray:
-    """Highest terrain [m] within ``radius_m`` of every cell centre: +inf if an unknown cell is in
-    reach (unknown terrain is an obstacle), outside-patch cells ignored."""
+    """Highest terrain [m] within ``radius_m`` of every cell centre, outside-patch cells ignored.
+
+    Unknown cells count as terrain as high as the highest known cell of the patch (a conservative
+    finite guess: an occluded hole is not a wall, an unseen wall cannot be guessed), +inf if nothing
+    is known."""
     rows, cols = heights.shape
     offsets = disc_offsets(radius_m, resolution_m, include_centre=True)
     k = max(max(abs(di), abs(dj)) for di, dj in offsets)
-    solid = np.where(np.isnan(heights), np.inf, heights)
+    unknown = np.isnan(heights)
+    fill = float(np.max(heights[~unknown])) if not unknown.all() else np.inf
+    solid = np.where(unknown, fill, heights)
     padded = np.pad(solid, k, constant_values=-np.inf)
     result = np.full_like(heights, -np.inf)
     for di, dj in offsets:

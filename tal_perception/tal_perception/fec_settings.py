@@ -147,7 +147,8 @@ class FecInput:
     the yaw rate move the hip; the base is taken level, as in the horizontal frame); gait the timing.
     Optional: hip_touchdown_xy (2,) [m] where the hip is at touchdown (default: the Raibert rule puts
     the nominal foothold half a stance ahead of it, so -v_hip T_stance / 2); liftoff_xyz (3,) [m] where
-    the swing started (default: one step length behind the nominal, at the centre cell's height).
+    the swing started (default: one step length behind the nominal, at the height of the patch there,
+    or the median known height if that is off the patch or unknown).
     """
 
     leg: Leg
