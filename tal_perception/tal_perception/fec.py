@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from tal_core.legs import Leg
 from tal_core.robot_model import RobotModel
 from tal_perception.errors import PerceptionInputError
-from tal_perception.fec_grid import PatchLookup, cell_xy, disc_max, erode, terrain_roughness
+from tal_perception.fec_grid import PatchGrids, PatchLookup
 from tal_perception.fec_settings import FecInput, FecSettings
 from tal_perception.leg_kinematics import LegKinematics
 
@@ -90,6 +90,7 @@ class FootholdEvaluator:
             model, reach_margin_m=self.settings.reach_margin_m, limit_margin_rad=self.settings.joint_limit_margin_rad
         )
         self.foot_radius_m = self.kinematics.foot_radius_m
+        self._grid_cache: dict[tuple[int, int], PatchGrids] = {}
         s = self.settings
         thigh_f = np.linspace(0.0, 1.0, s.leg_points_per_segment)
         self._segment_fractions: dict[Leg, tuple[FloatArray, FloatArray]] = {}
@@ -98,13 +99,25 @@ class FootholdEvaluator:
             shin_end = max(0.0, 1.0 - s.foot_exclusion_m / shin_length)
             self._segment_fractions[g.leg] = (thigh_f, np.linspace(0.0, shin_end, s.leg_points_per_segment))
 
+    def _grids(self, rows: int, cols: int) -> PatchGrids:
+        """Grid tables for a rows x cols patch (built on first use, then cached)."""
+        grids = self._grid_cache.get((rows, cols))
+        if grids is None:
+            s = self.settings
+            grids = PatchGrids(
+                rows, cols, s.resolution_m, s.roughness_radius_m, s.leg_radius_m, self.foot_radius_m,
+                s.uncertainty_margin_m,
+            )  # fmt: skip
+            self._grid_cache[(rows, cols)] = grids
+        return grids
+
     # -- preparation --------------------------------------------------------------------------------
     def prepare(self, inp: FecInput) -> PreparedPatch:
         """Per-input quantities shared by all candidates: grids, hip motion, lift-off, sample times."""
         s = self.settings
         rows, cols = inp.heights.shape
         res = s.resolution_m
-        x, y = cell_xy(rows, cols, res)
+        grids = self._grids(rows, cols)
         heights = inp.heights
         g = self.kinematics.geometry[inp.leg]
         r_hip = g.haa_origin[:2]
@@ -134,12 +147,12 @@ class FootholdEvaluator:
         return PreparedPatch(
             inp=inp,
             resolution_m=res,
-            cand_x=x.reshape(-1),
-            cand_y=y.reshape(-1),
+            cand_x=grids.x,
+            cand_y=grids.y,
             cand_z=heights.reshape(-1),
-            roughness_ok=terrain_roughness(heights, res, s.roughness_radius_m, s.max_mean_slope, s.max_slope_std),
-            leg_terrain=PatchLookup(disc_max(heights, res, s.leg_radius_m), res),
-            foot_terrain=PatchLookup(disc_max(heights, res, self.foot_radius_m), res),
+            roughness_ok=grids.roughness_ok(heights, s.max_mean_slope, s.max_slope_std).reshape(rows, cols),
+            leg_terrain=PatchLookup(grids.highest(heights, grids.leg), res),
+            foot_terrain=PatchLookup(grids.highest(heights, grids.foot), res),
             hip_velocity=hip_velocity,
             hip_touchdown=np.asarray(hip_td, dtype=float),
             liftoff_centre=liftoff,
@@ -160,8 +173,7 @@ class FootholdEvaluator:
         fc[everything] = self._foot_trajectory_ok(prep, everything)
         tr = prep.roughness_ok.reshape(-1)
         raw = tr & kf & lc & fc
-        s = self.settings
-        safe = erode(raw.reshape(shape), s.resolution_m, s.uncertainty_margin_m)
+        safe = self._grids(*shape).erode(raw.reshape(shape))
         return FecResult(
             tr.reshape(shape), kf.reshape(shape), lc.reshape(shape), fc.reshape(shape), raw.reshape(shape), safe
         )

@@ -124,3 +124,73 @@ def cell_xy(rows: int, cols: int, resolution_m: float) -> tuple[FloatArray, Floa
     x = (np.arange(rows) - 0.5 * (rows - 1)) * resolution_m
     y = (np.arange(cols) - 0.5 * (cols - 1)) * resolution_m
     return np.meshgrid(x, y, indexing="ij")
+
+
+class DiscGather:
+    """Precomputed neighbour gathers of a rows x cols grid for a disc of offsets: ``values(grid, fill)``
+    gives (n_offsets, rows * cols) neighbour values (``fill`` outside the grid) in one indexing
+    operation, which is much faster than one shifted view per offset on a 33 x 33 patch."""
+
+    def __init__(self, rows: int, cols: int, offsets: list[tuple[int, int]], resolution_m: float) -> None:
+        self.rows, self.cols = rows, cols
+        self.k = max([max(abs(di), abs(dj)) for di, dj in offsets] + [0])
+        width = cols + 2 * self.k
+        r, c = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+        base = ((r + self.k) * width + (c + self.k)).reshape(-1)
+        self.index = np.array([base + di * width + dj for di, dj in offsets], dtype=np.intp).reshape(len(offsets), -1)
+        rr = r.reshape(-1)[None, :] + np.array([o[0] for o in offsets], dtype=int)[:, None]
+        cc = c.reshape(-1)[None, :] + np.array([o[1] for o in offsets], dtype=int)[:, None]
+        self.inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
+        self.inv_distance = 1.0 / np.maximum(resolution_m * np.hypot(*np.array(offsets, dtype=float).T), 1e-12)
+
+    def values(self, grid: NDArray, fill: float | bool) -> NDArray:
+        padded = np.full((self.rows + 2 * self.k, self.cols + 2 * self.k), fill, dtype=grid.dtype)
+        padded[self.k : self.k + self.rows, self.k : self.k + self.cols] = grid
+        return padded.reshape(-1)[self.index]
+
+
+class PatchGrids:
+    """The FEC's grid operations for one patch shape and the settings' radii (tables built once)."""
+
+    def __init__(
+        self, rows: int, cols: int, resolution_m: float, roughness_radius_m: float, leg_radius_m: float,
+        foot_radius_m: float, margin_radius_m: float,
+    ) -> None:  # fmt: skip
+        self.shape = (rows, cols)
+        self.resolution_m = resolution_m
+        self.x, self.y = (a.reshape(-1) for a in cell_xy(rows, cols, resolution_m))
+        self.roughness = DiscGather(rows, cols, disc_offsets(roughness_radius_m, resolution_m), resolution_m)
+        self.leg = DiscGather(rows, cols, disc_offsets(leg_radius_m, resolution_m, True), resolution_m)
+        self.foot = DiscGather(rows, cols, disc_offsets(foot_radius_m, resolution_m, True), resolution_m)
+        self.margin = DiscGather(rows, cols, disc_offsets(margin_radius_m, resolution_m), resolution_m)
+
+    def roughness_ok(self, heights: FloatArray, max_mean_slope: float, max_slope_std: float) -> BoolArray:
+        """Same as ``terrain_roughness`` (flat (rows * cols,) result)."""
+        h = heights.reshape(-1)
+        unknown = np.isnan(h)
+        g = self.roughness
+        if g.index.size == 0:
+            return ~unknown
+        neighbours = g.values(heights, np.nan)
+        missing = np.isnan(neighbours)
+        unknown = unknown | np.any(g.inside & missing, axis=0)
+        use = g.inside & ~missing
+        slope = np.where(use, neighbours - h, 0.0) * g.inv_distance[:, None]
+        count = np.maximum(use.sum(axis=0), 1)
+        mean = slope.sum(axis=0) / count
+        mean_abs = np.abs(slope).sum(axis=0) / count
+        variance = np.maximum((slope * slope).sum(axis=0) / count - mean * mean, 0.0)
+        return ~unknown & (mean_abs <= max_mean_slope) & (variance <= max_slope_std * max_slope_std)
+
+    def highest(self, heights: FloatArray, gather: DiscGather) -> FloatArray:
+        """Same as ``disc_max`` with the gather's disc, shape (rows, cols)."""
+        unknown = np.isnan(heights)
+        fill = float(np.max(heights[~unknown])) if not unknown.all() else np.inf
+        solid = np.where(unknown, fill, heights)
+        return gather.values(solid, -np.inf).max(axis=0).reshape(self.shape)
+
+    def erode(self, safe: BoolArray) -> BoolArray:
+        """Same as ``erode`` with the margin disc, shape (rows, cols)."""
+        if self.margin.index.size == 0:
+            return safe.copy()
+        return safe & self.margin.values(safe, True).all(axis=0).reshape(self.shape)

@@ -23,6 +23,7 @@ from tal_perception.errors import FecConfigError
 
 TERRAIN_KINDS: tuple[str, ...] = ("flat", "bars", "gaps", "stairs", "rocks")
 _HALF_EXTENT_M = 1.0  # [m] the course spans [-1, 1] m in x and y, larger than any patch diagonal
+_MAX_SIZE_M = math.sqrt(2.0) * _HALF_EXTENT_M  # [m] edge of the largest patch whose corners stay on it
 _RIGID = {"stiffness_n_per_m": 2.0e6, "damping_ns_per_m": 400.0}
 
 
@@ -79,9 +80,10 @@ def random_terrain(
     """One random patch of ``kind`` (random kind if None) with ``cells`` x ``cells`` cells."""
     if isinstance(cells, bool) or not isinstance(cells, int) or cells < 1:
         raise FecConfigError(f"cells must be an integer >= 1, got {cells!r}")
-    if not (math.isfinite(resolution_m) and 0.0 < resolution_m and cells * resolution_m < _HALF_EXTENT_M):
+    if not (math.isfinite(resolution_m) and 0.0 < resolution_m and cells * resolution_m < _MAX_SIZE_M):
         raise FecConfigError(
-            f"resolution_m must be > 0 with cells * resolution_m < {_HALF_EXTENT_M} m, got {resolution_m!r}"
+            f"resolution_m must be > 0 with cells * resolution_m < {_MAX_SIZE_M:.3f} m (the patch, at any "
+            f"heading, must stay on the {2 * _HALF_EXTENT_M} m course), got {cells} x {resolution_m!r}"
         )
     kind = TERRAIN_KINDS[int(rng.integers(len(TERRAIN_KINDS)))] if kind is None else kind
     base_z = float(rng.uniform(-0.2, 0.2))

@@ -133,3 +133,21 @@ def test_bad_inputs_raise_precise_errors(evaluator: FootholdEvaluator, hip_heigh
         FecSettings(swing_samples=0)
     with pytest.raises(FecConfigError, match=r"FecSettings.resolution_m must be a finite number, got inf"):
         FecSettings(resolution_m=float("inf"))
+
+
+def test_gathered_grid_operations_match_the_reference_ones(evaluator: FootholdEvaluator) -> None:
+    from tal_perception.fec_grid import PatchGrids, disc_max
+    from tal_perception.terrain_samples import terrain_samples
+
+    s = evaluator.settings
+    grids = PatchGrids(33, 33, 0.02, s.roughness_radius_m, s.leg_radius_m, evaluator.foot_radius_m, 0.04)
+    rng = np.random.default_rng(1)
+    for sample in terrain_samples(seed=2, count=10):
+        heights = np.array(sample.heights, dtype=float)
+        heights[rng.uniform(size=heights.shape) < 0.03] = np.nan
+        np.testing.assert_array_equal(
+            grids.roughness_ok(heights, 0.3, 0.35).reshape(33, 33), terrain_roughness(heights, 0.02, 0.04, 0.3, 0.35)
+        )
+        np.testing.assert_array_equal(grids.highest(heights, grids.leg), disc_max(heights, 0.02, s.leg_radius_m))
+        safe = rng.uniform(size=(33, 33)) < 0.9
+        np.testing.assert_array_equal(grids.erode(safe), erode(safe, 0.02, 0.04))
