@@ -7,8 +7,9 @@ swing generator's job (``tal_control.motion.swing.SwingTrajectory.retarget``).
 
 The evaluation is lazy: candidates are visited in order of distance from the nominal (ties: row-major
 order), in growing chunks, and only the cells a chunk needs (its candidates and their neighbours within
-the uncertainty margin) are evaluated. The first safe candidate is g; the result equals a full
-evaluation followed by the argmin (``select_foothold(..., lazy=False)`` does exactly that).
+the uncertainty margin) are evaluated; candidates whose terrain roughness (known for the whole patch
+after the preparation) fails within the margin are skipped. The first safe candidate is g; the result
+equals a full evaluation followed by the argmin (``select_foothold(..., lazy=False)`` does exactly that).
 
 A leg with no safe candidate, a missing map or a stale map never raises: the nominal foothold is
 passed through and the result says why (``VfaStatus``).
@@ -32,7 +33,9 @@ from tal_perception.fec_settings import FecInput, GaitTiming
 
 FloatArray = NDArray[np.float64]
 _FUTURE_TOLERANCE_S = 1e-3  # [s] a map stamped this far after "now" is still accepted (clock jitter)
-_FIRST_CHUNK = 16  # candidates in the first lazy chunk; the chunk doubles each round
+# Lazy search schedule: the closest viable candidates in chunks of these sizes, then all the rest at once
+# (one large batch is cheaper than many small ones once the neighbourhood of the nominal is unsafe).
+_CHUNKS = (16, 64)
 
 
 class VfaStatus(Enum):
@@ -66,6 +69,8 @@ class VfaResult:
 def extract_patch(grid: HeightMapGrid, center_xy: ArrayLike, yaw: float, cells: int, resolution_m: float) -> FloatArray:
     """Heights (cells, cells) [m] around ``center_xy`` [m] (world), rows along the heading ``yaw``
     [rad]: nearest cell of ``grid`` at each patch cell centre; outside ``grid`` NaN (unknown)."""
+    if abs(math.remainder(yaw - grid.yaw, 2.0 * math.pi)) < 1e-9 and abs(resolution_m - grid.resolution_m) < 1e-12:
+        return _aligned_patch(grid, center_xy, cells)
     offsets = (np.arange(cells) - 0.5 * (cells - 1)) * resolution_m
     forward, left = np.meshgrid(offsets, offsets, indexing="ij")
     c, s = math.cos(yaw), math.sin(yaw)
@@ -75,6 +80,19 @@ def extract_patch(grid: HeightMapGrid, center_xy: ArrayLike, yaw: float, cells: 
     inside = rows >= 0
     heights = np.full((cells, cells), np.nan)
     heights[inside] = grid.heights[rows[inside], cols[inside]]
+    return heights
+
+
+def _aligned_patch(grid: HeightMapGrid, center_xy: ArrayLike, cells: int) -> FloatArray:
+    """``extract_patch`` for a patch with the grid's heading and resolution: a shifted slice."""
+    rows, cols = grid.fractional_index(np.array([center_xy[0]]), np.array([center_xy[1]]))
+    half = cells // 2
+    r0, c0 = int(np.floor(rows[0] + 0.5)) - half, int(np.floor(cols[0] + 0.5)) - half
+    heights = np.full((cells, cells), np.nan)
+    src_r = slice(max(r0, 0), min(r0 + cells, grid.rows))
+    src_c = slice(max(c0, 0), min(c0 + cells, grid.cols))
+    if src_r.start < src_r.stop and src_c.start < src_c.stop:
+        heights[src_r.start - r0 : src_r.stop - r0, src_c.start - c0 : src_c.stop - c0] = grid.heights[src_r, src_c]
     return heights
 
 
@@ -165,11 +183,18 @@ class FootholdSelector:
         self.evaluator._check_patch(inp)
         prep = self.evaluator.prepare(inp)
         n_cells = inp.heights.size
+        # TR is already known for every cell: a candidate whose eroded TR is False can never be safe,
+        # so only the others are visited (closest first).
+        viable = self.evaluator._grids(*inp.heights.shape).erode(prep.roughness_ok).reshape(-1)
+        order = self._order[viable[self._order]]
         raw = np.full(n_cells + 1, -1, dtype=np.int8)  # -1 unknown, 0 unsafe, 1 safe; last: outside
         raw[-1] = 1
-        start, chunk = 0, _FIRST_CHUNK
-        while start < n_cells:
-            candidates = self._order[start : start + chunk]
+        raw[:-1][~prep.roughness_ok.reshape(-1)] = 0
+        bounds = [0, *np.cumsum(_CHUNKS).tolist(), order.size]
+        for start, stop in zip(bounds[:-1], bounds[1:]):
+            candidates = order[start:stop]
+            if candidates.size == 0:
+                continue
             needed = self._neighbours[candidates]  # (m, k)
             todo = np.unique(needed[needed >= 0])
             todo = todo[raw[todo] < 0]
@@ -178,7 +203,6 @@ class FootholdSelector:
             safe = np.all(raw[needed] == 1, axis=1)
             if safe.any():
                 return int(candidates[np.argmax(safe)])
-            start, chunk = start + chunk, 2 * chunk
         return None
 
 

@@ -119,3 +119,12 @@ def test_bad_inputs_raise_precise_errors(selector: FootholdSelector, hip_height:
         select(selector, grid, hip_height, map_age_s=-0.5)
     with pytest.raises(FecConfigError, match=r"max_map_age_s must be a finite value > 0 \[s\], got 0"):
         FootholdSelector(selector.evaluator, max_map_age_s=0)
+
+
+def test_aligned_patch_equals_the_general_extraction() -> None:
+    rng = np.random.default_rng(4)
+    grid = HeightMapGrid(center_xy=(0.3, -0.2), yaw=0.4, resolution_m=0.02, heights=rng.uniform(size=(50, 60)))
+    for center in ((0.31, -0.19), (0.8, 0.1), (-0.5, -0.9), (5.0, 5.0)):
+        fast = extract_patch(grid, center, 0.4, 33, 0.02)
+        general = extract_patch(grid, center, 0.4 + 1e-6, 33, 0.02)  # not aligned: the per-cell look-up
+        np.testing.assert_array_equal(fast, general)
