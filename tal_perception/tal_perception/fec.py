@@ -263,7 +263,7 @@ class FootholdEvaluator:
             thigh = hfe[i] + (knee[i] - hfe[i]) * thigh_f  # (P, C, n)
             shin = knee[i] + (foot[i] - knee[i]) * shin_f
             points.append(np.concatenate([thigh, shin]))
-        px, py, pz = (np.nan_to_num(p) for p in points)
+        px, py, pz = points  # NaN where IK failed: the look-up sees "outside" there, reachable masks it
         clear = pz - (s.leg_radius_m + s.leg_clearance_m) >= prep.leg_terrain(px, py)
         reachable = ik.reachable.reshape(shape)
         lc = np.all(np.all(clear, axis=0) | ~reachable, axis=0)
