@@ -57,8 +57,8 @@ class FecResult:
 
 
 def min_jerk(s: FloatArray) -> FloatArray:
-    """Rest-to-rest quintic profile 10 s^3 - 15 s^4 + 6 s^5 on s in [0, 1] (clipped)."""
-    s = np.clip(s, 0.0, 1.0)
+    """Rest-to-rest quintic profile 10 s^3 - 15 s^4 + 6 s^5 (s in [0, 1]; not clipped, callers keep
+    s in range)."""
     return s * s * s * (10.0 + s * (-15.0 + 6.0 * s))
 
 
@@ -71,7 +71,7 @@ class PreparedPatch:
     cand_x: FloatArray  # (rows * cols,) [m]
     cand_y: FloatArray
     cand_z: FloatArray  # terrain height [m], NaN unknown
-    roughness_ok: BoolArray  # (rows, cols)
+    roughness: NDArray[np.int8]  # (rows * cols,) TR per cell: -1 not evaluated yet, 0 rough, 1 smooth
     leg_terrain: PatchLookup  # highest terrain within the leg radius
     foot_terrain: PatchLookup  # highest terrain within the foot radius
     hip_velocity: FloatArray  # (2,) [m/s]
@@ -150,7 +150,7 @@ class FootholdEvaluator:
             cand_x=grids.x,
             cand_y=grids.y,
             cand_z=heights.reshape(-1),
-            roughness_ok=grids.roughness_ok(heights, s.max_mean_slope, s.max_slope_std).reshape(rows, cols),
+            roughness=np.full(rows * cols, -1, dtype=np.int8),
             leg_terrain=PatchLookup(grids.highest(heights, grids.leg), res),
             foot_terrain=PatchLookup(grids.highest(heights, grids.foot), res),
             hip_velocity=hip_velocity,
@@ -171,18 +171,29 @@ class FootholdEvaluator:
         kf, lc, fc = (np.zeros(known.size, dtype=bool) for _ in range(3))
         kf[everything], lc[everything] = self._kinematics_and_collision(prep, everything)
         fc[everything] = self._foot_trajectory_ok(prep, everything)
-        tr = prep.roughness_ok.reshape(-1)
+        tr = self.roughness_ok(prep)
         raw = tr & kf & lc & fc
         safe = self._grids(*shape).erode(raw.reshape(shape))
         return FecResult(
             tr.reshape(shape), kf.reshape(shape), lc.reshape(shape), fc.reshape(shape), raw.reshape(shape), safe
         )
 
+    def roughness_ok(self, prep: PreparedPatch, cells: NDArray[np.intp] | None = None) -> BoolArray:
+        """TR of the flat cell indices ``cells`` (all if None), evaluated once per cell and cached."""
+        todo = np.flatnonzero(prep.roughness < 0) if cells is None else cells[prep.roughness[cells] < 0]
+        if todo.size:
+            s = self.settings
+            grids = self._grids(*prep.inp.heights.shape)
+            everything = todo.size == prep.roughness.size
+            ok = grids.roughness_ok(prep.inp.heights, s.max_mean_slope, s.max_slope_std, None if everything else todo)
+            prep.roughness[todo] = ok
+        return (prep.roughness if cells is None else prep.roughness[cells]) == 1
+
     def raw_safety(self, prep: PreparedPatch, cells: NDArray[np.intp]) -> BoolArray:
         """AND of the four criteria on the flat cell indices ``cells`` only, cheapest criteria first
         (TR, FC, then KF and LC on the survivors). For lazy searches such as the VFA's."""
         result = np.zeros(cells.size, dtype=bool)
-        alive = prep.roughness_ok.reshape(-1)[cells]
+        alive = self.roughness_ok(prep, cells)
         if alive.any():
             idx = np.flatnonzero(alive)
             alive[idx] = self._foot_trajectory_ok(prep, cells[idx])

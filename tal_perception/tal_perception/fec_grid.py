@@ -143,10 +143,11 @@ class DiscGather:
         self.inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
         self.inv_distance = 1.0 / np.maximum(resolution_m * np.hypot(*np.array(offsets, dtype=float).T), 1e-12)
 
-    def values(self, grid: NDArray, fill: float | bool) -> NDArray:
+    def values(self, grid: NDArray, fill: float | bool, cells: NDArray[np.intp] | None = None) -> NDArray:
+        """(n_offsets, n) neighbour values of all cells, or of the flat indices ``cells``."""
         padded = np.full((self.rows + 2 * self.k, self.cols + 2 * self.k), fill, dtype=grid.dtype)
         padded[self.k : self.k + self.rows, self.k : self.k + self.cols] = grid
-        return padded.reshape(-1)[self.index]
+        return padded.reshape(-1)[self.index if cells is None else self.index[:, cells]]
 
 
 class PatchGrids:
@@ -164,17 +165,22 @@ class PatchGrids:
         self.foot = DiscGather(rows, cols, disc_offsets(foot_radius_m, resolution_m, True), resolution_m)
         self.margin = DiscGather(rows, cols, disc_offsets(margin_radius_m, resolution_m), resolution_m)
 
-    def roughness_ok(self, heights: FloatArray, max_mean_slope: float, max_slope_std: float) -> BoolArray:
-        """Same as ``terrain_roughness`` (flat (rows * cols,) result)."""
+    def roughness_ok(
+        self, heights: FloatArray, max_mean_slope: float, max_slope_std: float, cells: NDArray[np.intp] | None = None
+    ) -> BoolArray:
+        """Same as ``terrain_roughness``, flat result for the flat indices ``cells`` (all if None)."""
         h = heights.reshape(-1)
-        unknown = np.isnan(h)
         g = self.roughness
+        inside = g.inside
+        if cells is not None:
+            h, inside = h[cells], inside[:, cells]
+        unknown = np.isnan(h)
         if g.index.size == 0:
             return ~unknown
-        neighbours = g.values(heights, np.nan)
+        neighbours = g.values(heights, np.nan, cells)
         missing = np.isnan(neighbours)
-        unknown = unknown | np.any(g.inside & missing, axis=0)
-        use = g.inside & ~missing
+        unknown = unknown | np.any(inside & missing, axis=0)
+        use = inside & ~missing
         slope = np.where(use, neighbours - h, 0.0) * g.inv_distance[:, None]
         count = np.maximum(use.sum(axis=0), 1)
         mean = slope.sum(axis=0) / count

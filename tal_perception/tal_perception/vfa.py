@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from tal_core.heightmap import HeightMapGrid
 from tal_core.legs import Leg
 from tal_perception.errors import FecConfigError, PerceptionInputError
-from tal_perception.fec import FootholdEvaluator
+from tal_perception.fec import FootholdEvaluator, PreparedPatch
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
 
@@ -183,27 +183,38 @@ class FootholdSelector:
         self.evaluator._check_patch(inp)
         prep = self.evaluator.prepare(inp)
         n_cells = inp.heights.size
-        # TR is already known for every cell: a candidate whose eroded TR is False can never be safe,
-        # so only the others are visited (closest first).
-        viable = self.evaluator._grids(*inp.heights.shape).erode(prep.roughness_ok).reshape(-1)
-        order = self._order[viable[self._order]]
         raw = np.full(n_cells + 1, -1, dtype=np.int8)  # -1 unknown, 0 unsafe, 1 safe; last: outside
         raw[-1] = 1
-        raw[:-1][~prep.roughness_ok.reshape(-1)] = 0
-        bounds = [0, *np.cumsum(_CHUNKS).tolist(), order.size]
+        head = self._order[: _CHUNKS[0]]
+        found = self._search_chunk(prep, head, raw)
+        if found is not None:
+            return found
+        # The nominal's neighbourhood is unsafe: TR of the whole patch now tells which candidates can
+        # never be safe (TR fails within the margin); only the others are visited, closest first.
+        smooth = self.evaluator.roughness_ok(prep)
+        raw[:-1][~smooth] = 0
+        viable = self.evaluator._grids(*inp.heights.shape).erode(smooth.reshape(inp.heights.shape)).reshape(-1)
+        rest = self._order[_CHUNKS[0] :]
+        order = rest[viable[rest]]
+        bounds = [0, *np.cumsum(_CHUNKS[1:]).tolist(), order.size]
         for start, stop in zip(bounds[:-1], bounds[1:]):
-            candidates = order[start:stop]
-            if candidates.size == 0:
-                continue
-            needed = self._neighbours[candidates]  # (m, k)
-            todo = np.unique(needed[needed >= 0])
-            todo = todo[raw[todo] < 0]
-            if todo.size:
-                raw[todo] = self.evaluator.raw_safety(prep, todo)
-            safe = np.all(raw[needed] == 1, axis=1)
-            if safe.any():
-                return int(candidates[np.argmax(safe)])
+            found = self._search_chunk(prep, order[start:stop], raw)
+            if found is not None:
+                return found
         return None
+
+    def _search_chunk(self, prep: PreparedPatch, candidates: NDArray[np.intp], raw: NDArray[np.int8]) -> int | None:
+        """Evaluate what ``candidates`` need (themselves and their margin neighbours, cached in ``raw``)
+        and return the first one (in the given order) that is safe after erosion."""
+        if candidates.size == 0:
+            return None
+        needed = self._neighbours[candidates]  # (m, k), -1 = outside the patch (index -1 of raw: safe)
+        todo = np.unique(needed[needed >= 0])
+        todo = todo[raw[todo] < 0]
+        if todo.size:
+            raw[todo] = self.evaluator.raw_safety(prep, todo)
+        safe = np.all(raw[needed] == 1, axis=1)
+        return int(candidates[np.argmax(safe)]) if safe.any() else None
 
 
 def select_foothold(

@@ -98,13 +98,16 @@ def test_map_outside_the_patch_and_rotated_heading(selector: FootholdSelector, h
 
 
 def test_lazy_search_equals_full_evaluation(selector: FootholdSelector, hip_height: float) -> None:
-    for i, sample in enumerate(terrain_samples(seed=7, count=10)):
+    rng = np.random.default_rng(11)
+    for i, sample in enumerate(terrain_samples(seed=7, count=30)):
         base = float(sample.parameters["base_height_m"])
         grid = HeightMapGrid(center_xy=(0.0, 0.0), yaw=sample.yaw, resolution_m=0.02, heights=sample.heights)
-        leg = LEGS[i % 4]
-        kwargs = {"nominal": np.array([0.0, 0.0, base]), "leg": leg}
-        lazy = select(selector, grid, hip_height + base, **kwargs)
-        full = select(selector, grid, hip_height + base, lazy=False, **kwargs)
+        twist = [rng.uniform(0, 0.5), rng.uniform(-0.1, 0.1), 0, 0, 0, rng.uniform(-0.3, 0.3)]
+        gait = GaitTiming(1.5, 0.6, rng.uniform(0.0, 0.4 / 1.5), 0.1)
+        kwargs = {"nominal": np.array([0.0, 0.0, base]), "leg": LEGS[i % 4], "twist": twist, "gait": gait}
+        hip = hip_height + base + rng.uniform(-0.05, 0.05)
+        lazy = select(selector, grid, hip, **kwargs)
+        full = select(selector, grid, hip, lazy=False, **kwargs)
         assert lazy.status == full.status, sample.kind
         np.testing.assert_allclose(lazy.selected, full.selected, err_msg=sample.kind)
 
