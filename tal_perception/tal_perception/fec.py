@@ -99,8 +99,8 @@ class FootholdEvaluator:
             shin_end = max(0.0, 1.0 - s.foot_exclusion_m / shin_length)
             self._segment_fractions[g.leg] = (thigh_f, np.linspace(0.0, shin_end, s.leg_points_per_segment))
 
-    def _grids(self, rows: int, cols: int) -> PatchGrids:
-        """Grid tables for a rows x cols patch (built on first use, then cached)."""
+    def grids(self, rows: int, cols: int) -> PatchGrids:
+        """Grid tables (``fec_grid.PatchGrids``) for a rows x cols patch, built on first use and cached."""
         grids = self._grid_cache.get((rows, cols))
         if grids is None:
             s = self.settings
@@ -117,7 +117,7 @@ class FootholdEvaluator:
         s = self.settings
         rows, cols = inp.heights.shape
         res = s.resolution_m
-        grids = self._grids(rows, cols)
+        grids = self.grids(rows, cols)
         heights = inp.heights
         g = self.kinematics.geometry[inp.leg]
         r_hip = g.haa_origin[:2]
@@ -163,7 +163,7 @@ class FootholdEvaluator:
     # -- evaluation ---------------------------------------------------------------------------------
     def evaluate(self, inp: FecInput) -> FecResult:
         """All four criteria on every candidate of the patch, their AND and the eroded result."""
-        self._check_patch(inp)
+        self.check_patch(inp)
         prep = self.prepare(inp)
         shape = inp.heights.shape
         known = ~np.isnan(prep.cand_z)
@@ -173,7 +173,7 @@ class FootholdEvaluator:
         fc[everything] = self._foot_trajectory_ok(prep, everything)
         tr = self.roughness_ok(prep)
         raw = tr & kf & lc & fc
-        safe = self._grids(*shape).erode(raw.reshape(shape))
+        safe = self.grids(*shape).erode(raw.reshape(shape))
         return FecResult(
             tr.reshape(shape), kf.reshape(shape), lc.reshape(shape), fc.reshape(shape), raw.reshape(shape), safe
         )
@@ -183,7 +183,7 @@ class FootholdEvaluator:
         todo = np.flatnonzero(prep.roughness < 0) if cells is None else cells[prep.roughness[cells] < 0]
         if todo.size:
             s = self.settings
-            grids = self._grids(*prep.inp.heights.shape)
+            grids = self.grids(*prep.inp.heights.shape)
             everything = todo.size == prep.roughness.size
             ok = grids.roughness_ok(prep.inp.heights, s.max_mean_slope, s.max_slope_std, None if everything else todo)
             prep.roughness[todo] = ok
@@ -203,7 +203,8 @@ class FootholdEvaluator:
             result[idx] = kf & lc
         return result
 
-    def _check_patch(self, inp: FecInput) -> None:
+    def check_patch(self, inp: FecInput) -> None:
+        """PerceptionInputError unless the patch has the settings' shape (patch_cells x patch_cells)."""
         n = self.settings.patch_cells
         if inp.heights.shape != (n, n):
             raise PerceptionInputError(

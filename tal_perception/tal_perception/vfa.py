@@ -180,7 +180,7 @@ class FootholdSelector:
 
     def _lazy_search(self, inp: FecInput) -> int | None:
         """Flat index of the closest candidate that is safe after erosion, or None."""
-        self.evaluator._check_patch(inp)
+        self.evaluator.check_patch(inp)
         prep = self.evaluator.prepare(inp)
         n_cells = inp.heights.size
         raw = np.full(n_cells + 1, -1, dtype=np.int8)  # -1 unknown, 0 unsafe, 1 safe; last: outside
@@ -193,7 +193,7 @@ class FootholdSelector:
         # never be safe (TR fails within the margin); only the others are visited, closest first.
         smooth = self.evaluator.roughness_ok(prep)
         raw[:-1][~smooth] = 0
-        viable = self.evaluator._grids(*inp.heights.shape).erode(smooth.reshape(inp.heights.shape)).reshape(-1)
+        viable = self.evaluator.grids(*inp.heights.shape).erode(smooth.reshape(inp.heights.shape)).reshape(-1)
         rest = self._order[_CHUNKS[0] :]
         order = rest[viable[rest]]
         bounds = [0, *np.cumsum(_CHUNKS[1:]).tolist(), order.size]
