@@ -131,3 +131,23 @@ def test_aligned_patch_equals_the_general_extraction() -> None:
         fast = extract_patch(grid, center, 0.4, 33, 0.02)
         general = extract_patch(grid, center, 0.4 + 1e-6, 33, 0.02)  # not aligned: the per-cell look-up
         np.testing.assert_array_equal(fast, general)
+
+
+@pytest.mark.parametrize("yaw", [0.0, np.pi / 2, -2.0])
+def test_given_liftoff_is_rotated_into_the_patch_frame(
+    selector: FootholdSelector, hip_height: float, yaw: float
+) -> None:
+    bar = FlatPatch(name="bar", region=Region(NOMINAL[0] - 0.12, NOMINAL[0] + 0.01, -2, 2), height_m=0.12, **RIGID)
+    grid = course_map(bar)
+    step = WALK_TWIST[0] / TROT_SWING.step_frequency_hz  # the default lift-off: one step behind, on the ground
+    behind = NOMINAL - step * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    behind[2] = grid.height_at(behind[0], behind[1])
+    default = select(selector, grid, hip_height, yaw=yaw, lazy=False)
+    given = select(selector, grid, hip_height, yaw=yaw, lazy=False, liftoff_world=behind)
+    np.testing.assert_allclose(given.selected, default.selected)
+    assert given.safe_candidates == default.safe_candidates
+    flat = course_map()
+    raised = behind + [0.0, 0.0, 0.05]  # a lift-off 5 cm higher: the leg folds more early in the swing (KF)
+    flat_default = select(selector, flat, hip_height, yaw=yaw, lazy=False).safe_candidates
+    flat_raised = select(selector, flat, hip_height, yaw=yaw, lazy=False, liftoff_world=raised).safe_candidates
+    assert 0 < flat_raised < flat_default
