@@ -147,7 +147,7 @@ def test_given_liftoff_is_rotated_into_the_patch_frame(
     np.testing.assert_allclose(given.selected, default.selected)
     assert given.safe_candidates == default.safe_candidates
     flat = course_map()
-    raised = behind + [0.0, 0.0, 0.05]  # a lift-off 5 cm higher: the leg folds more early in the swing (KF)
+    raised = np.array([behind[0], behind[1], 0.05])  # 5 cm above the flat ground: the leg folds more (KF)
     flat_default = select(selector, flat, hip_height, yaw=yaw, lazy=False).safe_candidates
     flat_raised = select(selector, flat, hip_height, yaw=yaw, lazy=False, liftoff_world=raised).safe_candidates
     assert 0 < flat_raised < flat_default
