@@ -191,7 +191,7 @@ class FootholdEvaluator:
 
     def raw_safety(self, prep: PreparedPatch, cells: NDArray[np.intp]) -> BoolArray:
         """AND of the four criteria on the flat cell indices ``cells`` only, cheapest criteria first
-        (TR, FC, then KF and LC on the survivors). For lazy searches such as the VFA's."""
+        (TR, FC, KF, then LC on the survivors). For lazy searches such as the VFA's."""
         result = np.zeros(cells.size, dtype=bool)
         alive = self.roughness_ok(prep, cells)
         if alive.any():
@@ -199,7 +199,7 @@ class FootholdEvaluator:
             alive[idx] = self._foot_trajectory_ok(prep, cells[idx])
         if alive.any():
             idx = np.flatnonzero(alive)
-            kf, lc = self._kinematics_and_collision(prep, cells[idx])
+            kf, lc = self._kinematics_and_collision(prep, cells[idx], skip_infeasible=True)
             result[idx] = kf & lc
         return result
 
@@ -245,9 +245,12 @@ class FootholdEvaluator:
         clear = z - self.foot_radius_m - s.foot_clearance_m >= prep.foot_terrain(x, y)
         return np.all(clear | near_end, axis=0)
 
-    def _kinematics_and_collision(self, prep: PreparedPatch, cells: NDArray[np.intp]) -> tuple[BoolArray, BoolArray]:
+    def _kinematics_and_collision(
+        self, prep: PreparedPatch, cells: NDArray[np.intp], skip_infeasible: bool = False
+    ) -> tuple[BoolArray, BoolArray]:
         """KF and LC over the swing samples, touchdown and next lift-off: one batched IK call and one
-        batched terrain look-up for all (instant, candidate) pairs."""
+        batched terrain look-up for all (instant, candidate) pairs. With ``skip_infeasible`` LC is only
+        evaluated where KF holds (False elsewhere)."""
         inp = prep.inp
         leg, gait = inp.leg, inp.gait
         g = self.kinematics.geometry[leg]
@@ -260,15 +263,18 @@ class FootholdEvaluator:
         dt = np.concatenate([prep.swing_times - gait.swing_duration_s, [0.0, gait.stance_duration_s]])
         hip = prep.hip_touchdown + prep.hip_velocity * dt[:, None]  # (C, 2)
         # patch frame -> base frame (level base): subtract the hip, add the HAA origin in the base frame
-        bx = (g.haa_origin[0] - hip[:, 0])[:, None]
-        by = (g.haa_origin[1] - hip[:, 1])[:, None]
-        bz = float(g.haa_origin[2]) - inp.hip_height_m
-        ik = self.kinematics.inverse_xyz(leg, (fx + bx).ravel(), (fy + by).ravel(), (fz + bz).ravel())
+        b = ((g.haa_origin[0] - hip[:, 0])[:, None], (g.haa_origin[1] - hip[:, 1])[:, None])
+        b = (*b, float(g.haa_origin[2]) - inp.hip_height_m)
+        ik = self.kinematics.inverse_xyz(leg, (fx + b[0]).ravel(), (fy + b[1]).ravel(), (fz + b[2]).ravel())
         shape = fx.shape
         kf = np.all(ik.within_limits.reshape(shape), axis=0)
-        knee = [(ik.knee[:, i].reshape(shape) - b) for i, b in enumerate((bx, by, bz))]
-        hfe = [(ik.hfe[:, i].reshape(shape) - b) for i, b in enumerate((bx, by, bz))]
-        foot = (fx, fy, fz)
+        lc = np.zeros_like(kf)
+        columns = np.flatnonzero(kf) if skip_infeasible else slice(None)
+        if skip_infeasible and columns.size == 0:
+            return kf, lc
+        knee = [ik.knee_xyz[i].reshape(shape)[:, columns] - b[i] for i in range(3)]
+        hfe = [ik.hfe_xyz[i].reshape(shape)[:, columns] - b[i] for i in range(3)]
+        foot = (fx[:, columns], fy[:, columns], fz[:, columns])
         thigh_f, shin_f = (f[:, None, None] for f in self._segment_fractions[leg])  # (P, 1, 1)
         points = []
         for i in range(3):
@@ -277,6 +283,6 @@ class FootholdEvaluator:
             points.append(np.concatenate([thigh, shin]))
         px, py, pz = points  # NaN where IK failed: the look-up sees "outside" there, reachable masks it
         clear = pz - (s.leg_radius_m + s.leg_clearance_m) >= prep.leg_terrain(px, py)
-        reachable = ik.reachable.reshape(shape)
-        lc = np.all(np.all(clear, axis=0) | ~reachable, axis=0)
+        reachable = ik.reachable.reshape(shape)[:, columns]
+        lc[columns] = np.all(np.all(clear, axis=0) | ~reachable, axis=0)
         return kf, lc

@@ -47,8 +47,18 @@ class IkResult:
     joints: FloatArray | None
     reachable: BoolArray
     within_limits: BoolArray
-    knee: FloatArray  # (N, 3) [m] base frame, KFE joint origin (NaN where unreachable)
-    hfe: FloatArray  # (N, 3) [m] base frame, HFE joint origin (NaN where unreachable)
+    knee_xyz: FloatArray  # (3, N) [m] base frame, KFE joint origins as x, y, z rows (NaN where unreachable)
+    hfe_xyz: FloatArray  # (3, N) [m] base frame, HFE joint origins as x, y, z rows (NaN where unreachable)
+
+    @property
+    def knee(self) -> FloatArray:
+        """(N, 3) [m] base frame, KFE joint origins."""
+        return self.knee_xyz.T
+
+    @property
+    def hfe(self) -> FloatArray:
+        """(N, 3) [m] base frame, HFE joint origins."""
+        return self.hfe_xyz.T
 
     @property
     def feasible(self) -> BoolArray:
@@ -227,7 +237,7 @@ class LegKinematics:
         if with_joints:
             joints = np.arctan2(np.stack(sines, axis=-1), np.stack(cosines, axis=-1))
             joints[~reachable] = np.nan
-        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee=knee.T, hfe=hfe.T)
+        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee_xyz=knee, hfe_xyz=hfe)
 
 
 @dataclass(frozen=True)

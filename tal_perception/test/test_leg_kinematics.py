@@ -22,37 +22,40 @@ def kinematics(model: RobotModel) -> LegKinematics:
     return LegKinematics(model)
 
 
-def pinocchio_points(model: RobotModel, leg: Leg, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Foot centres and KFE origins (N, 3), base frame, from Pinocchio with the base at the origin."""
+def pinocchio_points(model: RobotModel, leg: Leg, joints: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Foot centres, KFE and HFE origins (N, 3), base frame, from Pinocchio with the base at the origin."""
     description = model.description
     data = model.model.createData()
+    hfe_id = model.model.getJointId(description.leg_joint_names(leg)[1])
     knee_id = model.model.getJointId(description.leg_joint_names(leg)[2])
     foot_id = model.model.getFrameId(description.foot_frames[leg])
-    feet, knees = [], []
+    feet, knees, hfes = [], [], []
     for q_leg in joints:
         q_all = np.array(description.nominal_joint_positions_rad, dtype=float)
         q_all[description.leg_joint_slice(leg)] = q_leg
         pin.framesForwardKinematics(model.model, data, model.make_q([0, 0, 0], [0, 0, 0, 1], q_all))
         feet.append(data.oMf[foot_id].translation.copy())
         knees.append(data.oMi[knee_id].translation.copy())
-    return np.array(feet), np.array(knees)
+        hfes.append(data.oMi[hfe_id].translation.copy())
+    return np.array(feet), np.array(knees), np.array(hfes)
 
 
 @pytest.mark.parametrize("leg", LEGS, ids=lambda leg: leg.name)
 def test_forward_matches_pinocchio(model: RobotModel, kinematics: LegKinematics, leg: Leg) -> None:
     g = kinematics.geometry[leg]
     joints = np.random.default_rng(int(leg)).uniform(g.lower_rad, g.upper_rad, (50, 3))
-    feet, knees = pinocchio_points(model, leg, joints)
-    _, knee, foot = kinematics.forward(leg, joints)
+    feet, knees, hfes = pinocchio_points(model, leg, joints)
+    hfe, knee, foot = kinematics.forward(leg, joints)
     np.testing.assert_allclose(foot, feet, atol=1e-9)
     np.testing.assert_allclose(knee, knees, atol=1e-9)
+    np.testing.assert_allclose(hfe, hfes, atol=1e-9)
 
 
 @pytest.mark.parametrize("leg", LEGS, ids=lambda leg: leg.name)
 def test_inverse_recovers_pinocchio_configurations(model: RobotModel, kinematics: LegKinematics, leg: Leg) -> None:
     g = kinematics.geometry[leg]
     joints = np.random.default_rng(10 + int(leg)).uniform(g.lower_rad, g.upper_rad, (200, 3))
-    feet, knees = pinocchio_points(model, leg, joints)
+    feet, knees, hfes = pinocchio_points(model, leg, joints)
     ik = kinematics.inverse(leg, feet)
     assert ik.reachable.all()
     # Whatever branch IK picks, it reaches the target.
@@ -61,6 +64,7 @@ def test_inverse_recovers_pinocchio_configurations(model: RobotModel, kinematics
     assert ik.within_limits.mean() > 0.95
     np.testing.assert_allclose(ik.joints[ik.within_limits], joints[ik.within_limits], atol=1e-9)
     np.testing.assert_allclose(ik.knee[ik.within_limits], knees[ik.within_limits], atol=1e-9)
+    np.testing.assert_allclose(ik.hfe[ik.within_limits], hfes[ik.within_limits], atol=1e-9)
 
 
 def test_nominal_pose_is_feasible_and_far_targets_are_not(model: RobotModel, kinematics: LegKinematics) -> None:
