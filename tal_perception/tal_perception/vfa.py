@@ -6,10 +6,11 @@ nominal foothold, aligned with the horizontal frame (base yaw); (2) foothold eva
 swing generator's job (``tal_control.motion.swing.SwingTrajectory.retarget``).
 
 The evaluation is lazy: candidates are visited in order of distance from the nominal (ties: row-major
-order), in growing chunks, and only the cells a chunk needs (its candidates and their neighbours within
-the uncertainty margin) are evaluated; candidates whose terrain roughness (known for the whole patch
-after the preparation) fails within the margin are skipped. The first safe candidate is g; the result
-equals a full evaluation followed by the argmin (``select_foothold(..., lazy=False)`` does exactly that).
+order) in chunks (the 16 closest, then 64, then the rest), and only the cells a chunk needs (its
+candidates and their neighbours within the uncertainty margin) are evaluated. After the first chunk,
+the terrain roughness of the whole patch is computed and candidates that fail it within the margin are
+skipped. The first safe candidate is g; the result equals a full evaluation followed by the argmin
+(``select_foothold(..., lazy=False)`` does exactly that, and the tests check it).
 
 A leg with no safe candidate, a missing map or a stale map never raises: the nominal foothold is
 passed through and the result says why (``VfaStatus``).
