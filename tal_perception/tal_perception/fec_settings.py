@@ -79,7 +79,7 @@ class FecSettings:
                         f"FecSettings.{field.name} must be an integer >= {counts[field.name]}, got {value!r}"
                     )
                 continue
-            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+            if not (_is_finite_number(value)):
                 raise FecConfigError(f"FecSettings.{field.name} must be a finite number, got {value!r}")
             if field.name in positive and value <= 0.0:
                 raise FecConfigError(f"FecSettings.{field.name} must be > 0, got {value!r}")
@@ -109,7 +109,7 @@ class GaitTiming:
     def __post_init__(self) -> None:
         for field in fields(self):
             value = getattr(self, field.name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+            if not (_is_finite_number(value)):
                 raise PerceptionInputError(f"GaitTiming.{field.name} must be a finite number, got {value!r}")
         if self.step_frequency_hz <= 0.0:
             raise PerceptionInputError(f"GaitTiming.step_frequency_hz must be > 0, got {self.step_frequency_hz}")
@@ -182,6 +182,11 @@ class FecInput:
             object.__setattr__(self, "hip_touchdown_xy", _vector(self.hip_touchdown_xy, 2, "hip_touchdown_xy"))
         if self.liftoff_xyz is not None:
             object.__setattr__(self, "liftoff_xyz", _vector(self.liftoff_xyz, 3, "liftoff_xyz"))
+
+
+def _is_finite_number(value: object) -> bool:
+    """A finite int, float or numpy floating scalar (bool is not a number here)."""
+    return isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _vector(value: object, size: int, name: str) -> FloatArray:
