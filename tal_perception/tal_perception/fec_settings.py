@@ -34,8 +34,9 @@ class FecSettings:
     Terrain roughness (TR): for every candidate, the slopes to its neighbours within
     ``roughness_radius_m`` are (h_j - h_c) / d_j; the candidate is rough if the mean of their absolute
     values exceeds ``max_mean_slope`` or their standard deviation exceeds ``max_slope_std``. A plane of
-    inclination a gives mean |slope| = 2 tan(a) / pi and std = tan(a) / sqrt(2); the defaults accept
-    planes up to about 25 deg and reject a 3 cm step within 2 cells (our values, none in the thesis).
+    inclination a gives mean |slope| ~ 2 tan(a) / pi and std ~ tan(a) / sqrt(2); the defaults accept
+    planes up to 26 deg (28 deg fails) and reject the cells next to a 2 cm step and within two cells of
+    a 10 cm step (our values, none in the thesis).
     Leg collision (LC): thigh and shin are capsules of radius ``leg_radius_m`` sampled at
     ``leg_points_per_segment`` points each; a point collides when the terrain within ``leg_radius_m``
     of it (horizontally) is higher than the point minus ``leg_radius_m + leg_clearance_m``. Shin points

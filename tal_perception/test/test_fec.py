@@ -89,11 +89,16 @@ def test_swing_model_matches_tal_control(evaluator: FootholdEvaluator, hip_heigh
     np.testing.assert_allclose(np.column_stack([x[:, 0], y[:, 0], z[:, 0]]), expected, atol=1e-12)
 
 
-def test_roughness_thresholds_on_planes() -> None:
+def test_roughness_thresholds_on_planes_and_small_steps() -> None:
+    """The figures FecSettings' docstring and the README give for the default thresholds."""
     x = np.arange(33)[:, None] * 0.02 * np.ones((1, 33))
-    gentle, steep = np.tan(np.radians(15.0)) * x, np.tan(np.radians(40.0)) * x
-    assert terrain_roughness(gentle, 0.02, 0.04, 0.3, 0.35).all()
-    assert not terrain_roughness(steep, 0.02, 0.04, 0.3, 0.35).any()
+    gentle, steep = np.tan(np.radians(26.0)) * x, np.tan(np.radians(28.0)) * x
+    assert terrain_roughness(gentle, 0.02, 0.04, 0.3, 0.35)[2:-2, 2:-2].all()
+    assert not terrain_roughness(steep, 0.02, 0.04, 0.3, 0.35)[2:-2, 2:-2].any()
+    step = np.zeros((33, 33))
+    step[17:, :] = 0.02
+    rough_rows = np.flatnonzero(~terrain_roughness(step, 0.02, 0.04, 0.3, 0.35)[:, 16])
+    assert rough_rows.tolist() == [16, 17]  # the two cells next to the edge
 
 
 def test_erosion_ignores_cells_outside_the_patch() -> None:
