@@ -129,6 +129,7 @@ class FootholdSelector:
         yaw: float | None = None,
         map_age_s: float = 0.0,
         liftoff_world: ArrayLike | None = None,
+        hip_touchdown_world: ArrayLike | None = None,
         lazy: bool = True,
     ) -> VfaResult:
         """g: the safe foothold closest to ``nominal_world`` (3,) [m] (world frame).
@@ -136,7 +137,9 @@ class FootholdSelector:
         grid: the robot's heightmap (None: no map yet). hip_height_m [m] world z of the leg's HAA
         joint; twist (6,) base twist [m/s, rad/s] in the horizontal frame; gait the leg's timing; yaw
         [rad] heading of the horizontal frame (default: the map's); map_age_s [s] now minus the map's
-        stamp; liftoff_world (3,) [m] the foothold the swing started from (default: one step behind).
+        stamp; liftoff_world (3,) [m] the foothold the swing started from (default: one step behind);
+        hip_touchdown_world (2,) [m] where the leg's HAA joint will be at touchdown (default: half a
+        stance behind the nominal, the Raibert rule).
         """
         nominal = _vector(nominal_world, 3, "nominal_world")
         if not math.isfinite(map_age_s):
@@ -161,7 +164,12 @@ class FootholdSelector:
             lo = _vector(liftoff_world, 3, "liftoff_world")
             dx, dy = lo[0] - nominal[0], lo[1] - nominal[1]
             liftoff = np.array([c * dx + s * dy, -s * dx + c * dy, lo[2]])
-        inp = FecInput(leg, heights, hip_height_m, twist, gait, liftoff_xyz=liftoff)
+        hip_td = None
+        if hip_touchdown_world is not None:
+            hip = _vector(hip_touchdown_world, 2, "hip_touchdown_world")
+            dx, dy = hip[0] - nominal[0], hip[1] - nominal[1]
+            hip_td = np.array([c * dx + s * dy, -s * dx + c * dy])
+        inp = FecInput(leg, heights, hip_height_m, twist, gait, hip_touchdown_xy=hip_td, liftoff_xyz=liftoff)
         if lazy:
             index, count = self._lazy_search(inp), None
         else:

@@ -151,3 +151,19 @@ def test_given_liftoff_is_rotated_into_the_patch_frame(
     flat_default = select(selector, flat, hip_height, yaw=yaw, lazy=False).safe_candidates
     flat_raised = select(selector, flat, hip_height, yaw=yaw, lazy=False, liftoff_world=raised).safe_candidates
     assert 0 < flat_raised < flat_default
+
+
+@pytest.mark.parametrize("yaw", [0.0, 2.5])
+def test_given_hip_at_touchdown_is_rotated_into_the_patch_frame(
+    selector: FootholdSelector, hip_height: float, yaw: float
+) -> None:
+    grid = course_map()
+    half_stance = 0.5 * TROT_SWING.stance_duration_s * WALK_TWIST[0]  # the default: Raibert, v_hip = v here
+    heading = np.array([np.cos(yaw), np.sin(yaw)])
+    default = select(selector, grid, hip_height, yaw=yaw, lazy=False)
+    given = select(
+        selector, grid, hip_height, yaw=yaw, lazy=False, hip_touchdown_world=NOMINAL[:2] - half_stance * heading
+    )
+    assert given.safe_candidates == default.safe_candidates
+    ahead = select(selector, grid, hip_height, yaw=yaw, lazy=False, hip_touchdown_world=NOMINAL[:2] + 0.1 * heading)
+    assert ahead.safe_candidates != default.safe_candidates
