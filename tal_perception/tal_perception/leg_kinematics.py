@@ -1,0 +1,348 @@
+"""Closed-form, vectorised leg kinematics (HAA-HFE-KFE legs) derived from the Pinocchio model.
+
+Every number comes from the model: the HAA joint origin and axis, the HFE and KFE origins and axes and
+the foot frame, all read at the zero configuration with the base at the world origin (so world = base
+frame there), plus the joint limits of the robot YAML. Nothing is HyQ specific; the structure must be
+the usual one (checked at construction, ``LegKinematicsError`` otherwise):
+
+* HFE and KFE axes parallel (or anti-parallel) to each other and perpendicular to the HAA axis.
+
+Geometry used (per leg). With ``h`` the HAA origin, ``u`` its axis, ``w`` the HFE axis and
+``e2 = w x u``, a vector ``v`` in the HAA body has coordinates ``X = v.u``, ``Y = v.e2``, ``W = v.w``.
+HFE and KFE rotate the foot in the (X, Y) plane (``W`` stays the lateral offset ``d``); HAA rotates
+the (W, Y) pair about ``u``. Inverse kinematics inverts the HAA rotation first (two branches: the one
+of the nominal pose is kept), then solves the planar two-link problem (two knee branches: the nominal
+one is kept).
+
+Frames and units: positions [m] in the BASE frame (x forward, y left, z up), joint angles [rad] in
+the leg's HAA, HFE, KFE order. Arrays are vectorised over a leading batch dimension.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import ArrayLike, NDArray
+
+from tal_core.legs import LEGS, Leg, PerLeg
+from tal_core.robot_model import RobotModel
+from tal_perception.errors import LegKinematicsError, PerceptionInputError
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+_AXIS_TOLERANCE = 1e-6  # [-] |cos| tolerance for parallel / perpendicular axes
+
+
+@dataclass(frozen=True)
+class IkResult:
+    """Inverse kinematics of a batch of N foot positions.
+
+    joints (N, 3) [rad] HAA, HFE, KFE (NaN where unreachable); reachable (N,) the position lies in the
+    leg's reach (with the reach margin); within_limits (N,) the joints respect the position limits (with
+    the limit margin); feasible = reachable & within_limits.
+    """
+
+    joints: FloatArray | None
+    reachable: BoolArray
+    within_limits: BoolArray
+    knee_xyz: FloatArray  # (3, N) [m] base frame, KFE joint origins as x, y, z rows (NaN where unreachable)
+    hfe_xyz: FloatArray  # (3, N) [m] base frame, HFE joint origins as x, y, z rows (NaN where unreachable)
+
+    @property
+    def knee(self) -> FloatArray:
+        """(N, 3) [m] base frame, KFE joint origins."""
+        return self.knee_xyz.T
+
+    @property
+    def hfe(self) -> FloatArray:
+        """(N, 3) [m] base frame, HFE joint origins."""
+        return self.hfe_xyz.T
+
+    @property
+    def feasible(self) -> BoolArray:
+        return self.reachable & self.within_limits
+
+
+@dataclass(frozen=True)
+class LegGeometry:
+    """Constant geometry of one leg read from the model (base frame at zero joint angles) [m, rad]."""
+
+    leg: Leg
+    haa_origin: FloatArray  # (3,) h [m]
+    haa_axis: FloatArray  # (3,) u, unit
+    hfe_axis: FloatArray  # (3,) w, unit
+    kfe_sign: float  # +1 if the KFE axis is w, -1 if it is -w
+    hfe_xyw: FloatArray  # (3,) HFE origin - h in (X, Y, W) coordinates [m]
+    knee_xyw: FloatArray  # (3,) KFE origin - h in (X, Y, W) [m]
+    foot_xyw: FloatArray  # (3,) foot centre - h in (X, Y, W) [m]
+    lower_rad: FloatArray  # (3,) joint position lower limits
+    upper_rad: FloatArray  # (3,) joint position upper limits
+    hip_branch: float  # sign of the foot's planar Y in the nominal pose
+    knee_branch: float  # sign of the planar knee angle in the nominal pose
+
+    @property
+    def e2(self) -> FloatArray:
+        return np.cross(self.hfe_axis, self.haa_axis)
+
+    @property
+    def thigh_2d(self) -> FloatArray:
+        """(2,) HFE -> KFE in (X, Y) at zero angles [m]."""
+        return self.knee_xyw[:2] - self.hfe_xyw[:2]
+
+    @property
+    def shin_2d(self) -> FloatArray:
+        """(2,) KFE -> foot in (X, Y) at zero angles [m]."""
+        return self.foot_xyw[:2] - self.knee_xyw[:2]
+
+    @property
+    def max_reach_m(self) -> float:
+        """[m] HFE-to-foot distance in the (X, Y) plane with the leg stretched."""
+        return float(np.linalg.norm(self.thigh_2d) + np.linalg.norm(self.shin_2d))
+
+
+def _rot2(angle: FloatArray, vector: FloatArray) -> FloatArray:
+    """Rotate 2D vectors (2,) or (..., 2) by ``angle`` (...) counter-clockwise; result (..., 2)."""
+    c, s = np.cos(angle), np.sin(angle)
+    x, y = vector[..., 0], vector[..., 1]
+    return np.stack([c * x - s * y, s * x + c * y], axis=-1)
+
+
+def _wrap(angle: FloatArray) -> FloatArray:
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+class LegKinematics:
+    """Vectorised forward and inverse kinematics of the four legs of ``model``.
+
+    ``reach_margin_m`` [m]: targets closer than this to full stretch (or full fold) count as
+    unreachable; ``limit_margin_rad`` [rad]: joints closer than this to a position limit are infeasible.
+    """
+
+    def __init__(self, model: RobotModel, reach_margin_m: float = 0.0, limit_margin_rad: float = 0.0) -> None:
+        if not (np.isfinite(reach_margin_m) and reach_margin_m >= 0.0):
+            raise LegKinematicsError(f"reach_margin_m must be a finite value >= 0 [m], got {reach_margin_m!r}")
+        if not (np.isfinite(limit_margin_rad) and limit_margin_rad >= 0.0):
+            raise LegKinematicsError(f"limit_margin_rad must be a finite value >= 0 [rad], got {limit_margin_rad!r}")
+        self.reach_margin_m = float(reach_margin_m)
+        self.limit_margin_rad = float(limit_margin_rad)
+        self.foot_radius_m = float(model.description.foot_radius_m)
+        self.geometry: PerLeg[LegGeometry] = PerLeg.from_sequence([_read_leg(model, leg) for leg in LEGS])
+        self._constants = tuple(
+            _IkConstants.build(g, self.reach_margin_m, self.limit_margin_rad) for g in self.geometry
+        )
+
+    # -- forward -------------------------------------------------------------------------------------
+    def forward(self, leg: Leg, joints: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(HFE origin, KFE origin, foot centre) [m], base frame, each (N, 3), for joints (N, 3) [rad]."""
+        g = self.geometry[leg]
+        q = np.asarray(joints, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 3:
+            raise PerceptionInputError(f"leg {leg.name}: joints must have shape (N, 3), got {q.shape}")
+        theta1, theta2 = q[:, 1], g.kfe_sign * q[:, 2]
+        knee_2d = g.hfe_xyw[:2] + _rot2(theta1, g.thigh_2d)
+        foot_2d = knee_2d + _rot2(theta1 + theta2, g.shin_2d)
+        n = q.shape[0]
+        hfe_2d = np.broadcast_to(g.hfe_xyw[:2], (n, 2))
+        points = [
+            self._to_base(g, q[:, 0], xy, np.full(n, w_coord))
+            for xy, w_coord in ((hfe_2d, g.hfe_xyw[2]), (knee_2d, g.knee_xyw[2]), (foot_2d, g.foot_xyw[2]))
+        ]
+        return points[0], points[1], points[2]
+
+    @staticmethod
+    def _to_base(g: LegGeometry, q_haa: FloatArray, xy: FloatArray, w_coord: FloatArray) -> FloatArray:
+        """Base-frame positions of points with HAA-body coordinates (X, Y) and W, after the HAA rotation."""
+        c, s = np.cos(q_haa), np.sin(q_haa)
+        w_rot = w_coord * c + xy[:, 1] * s
+        y_rot = -w_coord * s + xy[:, 1] * c
+        return g.haa_origin + xy[:, 0, None] * g.haa_axis + y_rot[:, None] * g.e2 + w_rot[:, None] * g.hfe_axis
+
+    # -- inverse -------------------------------------------------------------------------------------
+    def inverse(self, leg: Leg, foot_base: ArrayLike, with_joints: bool = True) -> IkResult:
+        """Joint angles putting the foot centre at ``foot_base`` (N, 3) [m], base frame (nominal branch).
+
+        The rotations are built from normalised dot and cross products, so the knee (KFE origin)
+        positions and the joint-limit check need no trigonometry; only the joint angles themselves need
+        atan2 (skipped with ``with_joints=False``, then ``IkResult.joints`` is None).
+        """
+        p = np.asarray(foot_base, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise PerceptionInputError(f"leg {leg.name}: foot positions must have shape (N, 3), got {p.shape}")
+        return self.inverse_xyz(leg, p[:, 0], p[:, 1], p[:, 2], with_joints)
+
+    def inverse_xyz(self, leg: Leg, x: FloatArray, y: FloatArray, z: FloatArray, with_joints: bool = False) -> IkResult:
+        """``inverse`` for foot positions given as three (N,) component arrays [m], base frame.
+
+        The batch runs along the last axis of every intermediate array (numpy is an order of magnitude
+        slower on (N, 3) arrays whose inner axis has 3 elements) and every constant is a Python float
+        precomputed per leg (``_IkConstants``), which keeps the per-call overhead low.
+        """
+        c = self._constants[leg]
+        finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        rx, ry, rz = x - c.h[0], y - c.h[1], z - c.h[2]
+        if not finite.all():
+            rx, ry, rz = (np.where(finite, v, 0.0) for v in (rx, ry, rz))
+        u, e2, wa = c.u, c.e2, c.w
+        x_t = u[0] * rx + u[1] * ry + u[2] * rz
+        y_t = e2[0] * rx + e2[1] * ry + e2[2] * rz
+        w_t = wa[0] * rx + wa[1] * ry + wa[2] * rz
+        d = c.d
+        rho_sq = w_t * w_t + y_t * y_t
+        y_p = np.sqrt(np.maximum(rho_sq - d * d, 0.0))
+        if c.hip_branch < 0.0:
+            y_p = -y_p
+        # HAA angle: from (d, y_p) (foot in the unrotated HAA body) to (w_t, y_t), both of norm rho.
+        inv_rho_sq = 1.0 / np.maximum(rho_sq, 1e-12)
+        cos_haa = (d * w_t + y_p * y_t) * inv_rho_sq
+        sin_haa = (y_p * w_t - d * y_t) * inv_rho_sq
+        # Planar two-link problem from HFE to the foot.
+        tx, ty = x_t - c.hfe_x, y_p - c.hfe_y
+        dist_sq = tx * tx + ty * ty
+        cos_gamma = np.clip((dist_sq - c.l_sq_sum) * c.inv_2l1l2, -1.0, 1.0)
+        sin_gamma = np.sqrt(1.0 - cos_gamma * cos_gamma)
+        if c.knee_branch < 0.0:
+            sin_gamma = -sin_gamma
+        # The shin, rotated by the knee, is the thigh direction rotated by gamma and scaled to l2.
+        sx = c.l2_ux * cos_gamma - c.l2_uy * sin_gamma
+        sy = c.l2_ux * sin_gamma + c.l2_uy * cos_gamma
+        rx2, ry2 = sx + c.thigh[0], sy + c.thigh[1]  # HFE -> foot at theta1 = 0
+        inv_dist_sq = 1.0 / np.maximum(dist_sq, 1e-12)
+        cos_1 = (rx2 * tx + ry2 * ty) * inv_dist_sq
+        sin_1 = (rx2 * ty - ry2 * tx) * inv_dist_sq
+        cos_2 = (c.shin[0] * sx + c.shin[1] * sy) * c.inv_l2_sq  # KFE rotation: shin -> rotated shin
+        sin_2 = (c.shin[0] * sy - c.shin[1] * sx) * (c.inv_l2_sq * c.kfe_sign)
+        cosines, sines = (cos_haa, cos_1, cos_2), (sin_haa, sin_1, sin_2)
+        knee_x = c.hfe_x + cos_1 * c.thigh[0] - sin_1 * c.thigh[1]
+        knee_y = c.hfe_y + sin_1 * c.thigh[0] + cos_1 * c.thigh[1]
+        knee_e2 = knee_y * cos_haa - c.knee_w * sin_haa
+        knee_w = knee_y * sin_haa + c.knee_w * cos_haa
+        hfe_e2 = c.hfe_y * cos_haa - c.hfe_w * sin_haa
+        hfe_w = c.hfe_y * sin_haa + c.hfe_w * cos_haa
+        knee = np.empty((3, x_t.shape[0]))  # (3, N), returned transposed
+        hfe = np.empty((3, x_t.shape[0]))
+        for i in range(3):
+            knee[i] = c.h[i] + knee_x * u[i] + knee_e2 * e2[i] + knee_w * wa[i]
+            hfe[i] = (c.h[i] + c.hfe_x * u[i]) + hfe_e2 * e2[i] + hfe_w * wa[i]
+        reachable = finite & (rho_sq >= d * d) & (dist_sq <= c.max_dist_sq) & (dist_sq >= c.min_dist_sq)
+        # q in [lower + m, upper - m]  <=>  cos(q - mid) >= cos(half - m): no atan2 needed.
+        within = reachable.copy() if c.limits_nonempty else np.zeros_like(reachable)
+        for i in range(3):
+            within &= cosines[i] * c.cos_mid[i] + sines[i] * c.sin_mid[i] >= c.cos_half[i]
+        if not reachable.all():
+            knee[:, ~reachable] = np.nan
+            hfe[:, ~reachable] = np.nan
+        joints = None
+        if with_joints:
+            joints = np.arctan2(np.stack(sines, axis=-1), np.stack(cosines, axis=-1))
+            joints[~reachable] = np.nan
+        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee_xyz=knee, hfe_xyz=hfe)
+
+
+@dataclass(frozen=True)
+class _IkConstants:
+    """Per-leg constants of the inverse kinematics as Python floats (see ``LegGeometry``)."""
+
+    h: tuple[float, float, float]
+    u: tuple[float, float, float]
+    e2: tuple[float, float, float]
+    w: tuple[float, float, float]
+    d: float
+    hfe_x: float
+    hfe_y: float
+    hfe_w: float
+    knee_w: float
+    thigh: tuple[float, float]
+    shin: tuple[float, float]
+    l2_ux: float
+    l2_uy: float
+    l_sq_sum: float
+    inv_2l1l2: float
+    inv_l2_sq: float
+    kfe_sign: float
+    hip_branch: float
+    knee_branch: float
+    max_dist_sq: float
+    min_dist_sq: float
+    cos_mid: tuple[float, float, float]
+    sin_mid: tuple[float, float, float]
+    cos_half: tuple[float, float, float]
+    limits_nonempty: bool
+
+    @classmethod
+    def build(cls, g: LegGeometry, reach_margin_m: float, limit_margin_rad: float) -> _IkConstants:
+        def floats(values: ArrayLike) -> tuple[float, ...]:
+            return tuple(float(v) for v in np.asarray(values).reshape(-1))
+
+        thigh, shin = g.thigh_2d, g.shin_2d
+        l1, l2 = float(np.hypot(*thigh)), float(np.hypot(*shin))
+        max_dist = max(l1 + l2 - reach_margin_m, 0.0)
+        min_dist = abs(l1 - l2) + reach_margin_m
+        mid = 0.5 * (g.lower_rad + g.upper_rad)
+        half = 0.5 * (g.upper_rad - g.lower_rad) - limit_margin_rad
+        return cls(
+            h=floats(g.haa_origin), u=floats(g.haa_axis), e2=floats(g.e2), w=floats(g.hfe_axis),
+            d=float(g.foot_xyw[2]), hfe_x=float(g.hfe_xyw[0]), hfe_y=float(g.hfe_xyw[1]), hfe_w=float(g.hfe_xyw[2]),
+            knee_w=float(g.knee_xyw[2]), thigh=floats(thigh), shin=floats(shin),
+            l2_ux=l2 * float(thigh[0]) / l1, l2_uy=l2 * float(thigh[1]) / l1,
+            l_sq_sum=l1 * l1 + l2 * l2, inv_2l1l2=1.0 / (2.0 * l1 * l2), inv_l2_sq=1.0 / (l2 * l2),
+            kfe_sign=g.kfe_sign, hip_branch=g.hip_branch, knee_branch=g.knee_branch,
+            max_dist_sq=max_dist * max_dist, min_dist_sq=min_dist * min_dist,
+            cos_mid=floats(np.cos(mid)), sin_mid=floats(np.sin(mid)),
+            cos_half=floats(np.cos(np.maximum(half, 0.0))), limits_nonempty=bool((half >= 0.0).all()),
+        )  # fmt: skip
+
+
+def _read_leg(model: RobotModel, leg: Leg) -> LegGeometry:
+    """Read one leg's geometry from Pinocchio at the zero configuration (base at the world origin)."""
+    pin_model, data = model.model, model.model.createData()
+    description = model.description
+    q0 = pin.neutral(pin_model)
+    pin.computeJointJacobians(pin_model, data, q0)
+    pin.framesForwardKinematics(pin_model, data, q0)
+    names = description.leg_joint_names(leg)
+    origins, axes = [], []
+    for name in names:
+        joint_id = pin_model.getJointId(name)
+        jacobian = pin.getJointJacobian(pin_model, data, joint_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        axis = jacobian[3:, pin_model.joints[joint_id].idx_v]
+        if not np.isclose(np.linalg.norm(axis), 1.0, atol=_AXIS_TOLERANCE):
+            raise LegKinematicsError(f"leg {leg.name}: joint {name!r} is not a revolute joint")
+        origins.append(data.oMi[joint_id].translation.copy())
+        axes.append(axis / np.linalg.norm(axis))
+    foot = data.oMf[pin_model.getFrameId(description.foot_frames[leg])].translation.copy()
+    u, w, w_knee = axes
+    if abs(float(u @ w)) > _AXIS_TOLERANCE:
+        raise LegKinematicsError(f"leg {leg.name}: HFE axis is not perpendicular to the HAA axis (u.w = {u @ w:.3g})")
+    if abs(abs(float(w @ w_knee)) - 1.0) > _AXIS_TOLERANCE:
+        raise LegKinematicsError(
+            f"leg {leg.name}: KFE axis is not parallel to the HFE axis (w.w_kfe = {w @ w_knee:.3g})"
+        )
+    e2 = np.cross(w, u)
+    h = origins[0]
+
+    def xyw(point: FloatArray) -> FloatArray:
+        v = point - h
+        return np.array([v @ u, v @ e2, v @ w])
+
+    hfe, knee, foot_xyw = xyw(origins[1]), xyw(origins[2]), xyw(foot)
+    sl = description.leg_joint_slice(leg)
+    nominal = np.asarray(description.nominal_joint_positions_rad, dtype=float)[sl]
+    kfe_sign = float(np.sign(w @ w_knee))
+    partial = LegGeometry(
+        leg, h, u, w, kfe_sign, hfe, knee, foot_xyw,
+        np.asarray(description.position_lower_rad, dtype=float)[sl].copy(),
+        np.asarray(description.position_upper_rad, dtype=float)[sl].copy(),
+        1.0, 1.0,
+    )  # fmt: skip
+    # Branches of the nominal pose: sign of the planar foot Y and of the knee angle.
+    thigh, shin = partial.thigh_2d, partial.shin_2d
+    theta1, theta2 = nominal[1], kfe_sign * nominal[2]
+    foot_2d = hfe[:2] + _rot2(np.array(theta1), thigh) + _rot2(np.array(theta1 + theta2), shin)
+    gamma = _wrap(theta2 + np.arctan2(shin[1], shin[0]) - np.arctan2(thigh[1], thigh[0]))
+    hip_branch = 1.0 if foot_2d[1] >= 0.0 else -1.0
+    knee_branch = 1.0 if gamma >= 0.0 else -1.0
+    return LegGeometry(
+        leg, h, u, w, kfe_sign, hfe, knee, foot_xyw, partial.lower_rad, partial.upper_rad, hip_branch, knee_branch
+    )
