@@ -2,7 +2,7 @@
 """Time of the exact VFA (foothold evaluation g) per leg on HyQ, on seeded random terrains.
 
 Run after ``source scripts/env.sh``:  ``python bench/bench_vfa.py [--quick] [--samples N] [--seed S]``.
-Prints a markdown table on stdout, progress on stderr, and writes ``results/bench/bench_vfa.json``.
+Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/bench_vfa.json`` (git-ignored).
 
 Inputs (seeded, the same for every leg): ``--samples`` terrains from ``tal_perception.terrain_samples``
 cycling through flat, bars, gaps, stairs and rocks, each a 65 x 65 map of 0.02 m cells around the
@@ -48,7 +48,7 @@ except ImportError as _exc:  # environment problem, not a benchmark result
     raise SystemExit(f"bench_vfa: {_exc}; run it after `source scripts/env.sh`") from None
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT_DIR = ROOT / "results" / "bench"
+OUT_DIR = ROOT / "bench" / "out"
 JSON_PATH = OUT_DIR / "bench_vfa.json"
 THESIS_MEAN_MS = 7.5
 GOAL_MS = 1.0
