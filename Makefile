@@ -25,7 +25,8 @@ datasets: bootstrap
 experiments: bootstrap
 	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc \
 		&& python -m tal_control.experiments.stance_experiments --out results/stance \
-		&& python -m tal_control.experiments.estimation_experiments --out results/estimation
+		&& python -m tal_control.experiments.estimation_experiments --out results/estimation \
+		&& python -m tal_sim2real benchmark --out results/sim2real --data data/sim2real --count 30 --jobs 2
 
 lint: bootstrap
 	@$(ENV) && ruff check . && ruff format --check .
