@@ -108,7 +108,8 @@ class SimModel:
     @classmethod
     def from_yaml(cls, path: str | Path) -> SimModel:
         """Read a sim_bridge parameter YAML (``sim_bridge: ros__parameters: {robot, course, effects}``);
-        a relative course path is relative to the YAML's folder (written files use absolute paths)."""
+        a relative course path is relative to the YAML's folder (written files name the course file beside them;
+        for the sim_bridge node pass its path with -p course:=...)."""
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text())
@@ -140,7 +141,7 @@ class SimModel:
         for f in dataclasses.fields(ModelEffects):
             value = getattr(self.effects, f.name)
             effects[f.name] = [float(v) for v in value] if isinstance(value, tuple) else float(value)
-        params = {"robot": self.robot, "course": str(course_path.resolve()), "effects": effects}
+        params = {"robot": self.robot, "course": course_path.name, "effects": effects}
         header = (
             "# Model configuration written by tal_sim2real (sim_bridge parameters; the course file beside it\n"
             "# carries the fitted ground). Use: sim_bridge --ros-args --params-file <this file>\n"
