@@ -23,14 +23,18 @@ LOG = logging.getLogger("tal.sim2real")
 
 def run_identify(bag: Path, model: SimModel, out: Path, closed_loop: bool = True) -> Path:
     """The whole workflow on one bag; returns the report path."""
+    from tal_core.robot_description import load_robot_description
+
     from .identify import identify
+    from .measured import load_measured
     from .replay import closed_loop_rerun, holdout_overlay
     from .report import write_report
 
-    result = identify(bag, model)
+    data = load_measured(bag, load_robot_description(model.robot))  # read once for all three steps
+    result = identify(bag, model, data=data)
     model_path = result.updated.write_yaml(out / "model_updated.yaml")
-    overlay = holdout_overlay(result)
-    closed = closed_loop_rerun(result) if closed_loop else None
+    overlay = holdout_overlay(result, data)
+    closed = closed_loop_rerun(result, data) if closed_loop else None
     path = write_report(result, out, overlay, closed, model_path)
     for f in result.named:
         LOG.info("named %s: %s", f.candidate, {k: round(v, 6) for k, v in f.values.items()})

@@ -8,14 +8,23 @@ import math
 
 import numpy as np
 
+from tal_core.robot_model import RobotModel
+
 from .errors import MissingSignalsError
 from .fitting import Fit, fit_least_squares
 from .library import Candidate
-from .measured import MeasuredData
+from .measured import MeasuredData, white_noise_std
 from .model import SimModel
 from .outcomes import STIFF_GROUND_N_PER_M, Finding, Settings, SubsystemResult
-from .segments import CHANNEL_SCALES, SegmentSimulator, channel_rms, measured_vectors, plan_segments, scaled_residual
-from .torque_path import effort_noise_std
+from .segments import (
+    CHANNEL_SCALES,
+    SegmentPlan,
+    SegmentSimulator,
+    channel_rms,
+    measured_vectors,
+    plan_segments,
+    scaled_residual,
+)
 
 LOG = logging.getLogger("tal.sim2real.dynamics")
 
@@ -69,9 +78,10 @@ def _dynamics_with(
         return scaled_residual(meas[which], sim.predict(nominal.with_values(values), plans[which]))
 
     n_obs = len(fit_plan.starts) * len(fit_plan.sample_offsets) * len(CHANNEL_SCALES)
-    r0 = residual("fit", {})
+    nominal_fit_prediction = sim.predict(nominal, fit_plan)
+    r0 = scaled_residual(meas["fit"], nominal_fit_prediction)
     j0 = float(r0 @ r0)
-    floor = _noise_floor(sim, data, nominal, fit_plan, meas["fit"])
+    floor = _noise_floor(sim, data, nominal, fit_plan, nominal_fit_prediction)
     LOG.info("dynamics: nominal cost %.0f, noise floor %.0f", j0, floor)
     # screening: one probe per candidate, linearised gain
     screened: dict[str, tuple[float, dict[str, float], float]] = {}
@@ -217,20 +227,21 @@ def _ground_note(values: dict[str, float], intervals: dict[str, tuple[float, flo
     return ""
 
 
-def _noise_floor(sim: SegmentSimulator, data: MeasuredData, nominal: SimModel, plan, measured: np.ndarray) -> float:
+def _noise_floor(
+    sim: SegmentSimulator, data: MeasuredData, nominal: SimModel, plan: SegmentPlan, clean: np.ndarray
+) -> float:
     """Cost the correct model would leave: predictions from initial states and driving torques perturbed by
-    the measured noise levels (white-noise std from second differences) against unperturbed ones, plus the
-    measurement noise of the compared samples."""
-    sigma_q = _white_noise_std(data.q_rad)
-    sigma_qd = _white_noise_std(data.qd_rad_s)
+    the measured noise levels (white-noise std from second differences) against the unperturbed ones
+    (``clean``, the nominal prediction on ``plan``), plus the measurement noise of the compared samples."""
+    sigma_q = white_noise_std(data.q_rad)
+    sigma_qd = white_noise_std(data.qd_rad_s)
     rng = np.random.default_rng(0)
-    clean = sim.predict(nominal, plan)
     saved_q, saved_qd, saved_tau = data.q_rad.copy(), data.qd_rad_s.copy(), sim.torques
     try:
         data.q_rad[plan.starts] += rng.normal(0.0, sigma_q, (len(plan.starts), data.q_rad.shape[1]))
         data.qd_rad_s[plan.starts] += rng.normal(0.0, sigma_qd, (len(plan.starts), data.qd_rad_s.shape[1]))
         if sim.torque_source == "effort":  # the measured torques that drive the segments are noisy too
-            sim.torques = saved_tau + rng.normal(0.0, effort_noise_std(saved_tau), saved_tau.shape)
+            sim.torques = saved_tau + rng.normal(0.0, white_noise_std(saved_tau), saved_tau.shape)
         perturbed = sim.predict(nominal, plan)
     finally:
         data.q_rad[:], data.qd_rad_s[:] = saved_q, saved_qd
@@ -245,16 +256,9 @@ def _noise_floor(sim: SegmentSimulator, data: MeasuredData, nominal: SimModel, p
     return float(r @ r) + measurement
 
 
-def _white_noise_std(x: np.ndarray) -> float:
-    d2 = np.diff(x, n=2, axis=0).ravel()
-    return 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / math.sqrt(6.0)
-
-
 def _stiffness_from_penetration(data: MeasuredData, nominal: SimModel, description) -> float:
     """Screening guess of the ground stiffness [N/m]: weight / mean summed stance-foot sinkage (feet from
     the measured base pose and joint angles, ground height from the nominal course)."""
-    from tal_core.robot_model import RobotModel
-
     model = RobotModel(description)
     base = data.base
     assert base is not None
@@ -263,7 +267,7 @@ def _stiffness_from_penetration(data: MeasuredData, nominal: SimModel, descripti
     for i in idx:
         model.update(model.make_q(base.position_m[i], base.quat_xyzw[i], data.q_rad[i]), np.zeros(model.nv))
         feet = model.foot_positions()
-        ground = np.array([float(nominal.course.height(x, y)) for x, y in feet[:, :2]])
+        ground = np.asarray(nominal.course.height(feet[:, 0], feet[:, 1]))
         depth = ground + description.foot_radius_m - feet[:, 2]
         sinkage.append(float(np.sum(depth[depth > 0.0])))
     mean_sinkage = float(np.mean(sinkage)) if sinkage else 0.0

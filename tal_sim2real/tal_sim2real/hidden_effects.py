@@ -28,6 +28,8 @@ from tal_core.robot_description import load_robot_description
 
 from .measured import load_measured
 from .model import SimModel
+from .outcomes import STIFF_GROUND_N_PER_M
+from .torque_path import torque_limits
 
 LOG = logging.getLogger("tal.sim2real.hidden")
 
@@ -40,7 +42,6 @@ COMMANDS = (
     (6.5, 0.25, 0.0, -0.3),
 )
 JOINT_NOISE = (2e-4, 0.02, 0.3)  # [rad], [rad/s], [N m] encoder, velocity and torque-sensor noise (std)
-STIFF_GROUND_N_PER_M = 1e5  # above this the data cannot identify the ground stiffness
 EFFECT_TYPES = (
     "ground",
     "foot_friction",
@@ -188,8 +189,7 @@ def _detectability(effect: HiddenEffect, bag: Path) -> dict[str, object]:
     if effect.kind == "torque_limit":
         scale = effect.values["torque_limit_scale"]
         command = data.command_in_force()
-        low, high = zip(*(description.torque_limits(q) for q in data.q_rad[::10]))
-        low, high = np.array(low), np.array(high)
+        low, high = torque_limits(description, data.q_rad[::10])
         cmd = command[::10]
         clipped = int(((cmd > scale * high) | (cmd < scale * low)).sum())
         return {

@@ -24,7 +24,7 @@ from tal_core.robot_description import load_robot_description
 
 from .dynamics import dynamics_subsystem
 from .library import CANDIDATES, missing_signals
-from .measured import load_measured
+from .measured import MeasuredData, load_measured
 from .model import SimModel
 from .outcomes import Finding, Identification, Settings, SubsystemResult
 from .subsystems import imu_subsystem, torque_path_subsystem
@@ -32,12 +32,16 @@ from .subsystems import imu_subsystem, torque_path_subsystem
 __all__ = ["Finding", "Identification", "Settings", "SubsystemResult", "identify"]
 
 
-def identify(bag: str | Path, nominal: SimModel, settings: Settings | None = None) -> Identification:
-    """Run the whole identification on ``bag`` against the ``nominal`` model."""
+def identify(
+    bag: str | Path, nominal: SimModel, settings: Settings | None = None, data: MeasuredData | None = None
+) -> Identification:
+    """Run the whole identification on ``bag`` against the ``nominal`` model (``data``: the bag already
+    read with ``load_measured``, so that a caller who needs it too reads it once)."""
     settings = settings or Settings()
     started = time.perf_counter()
     description = load_robot_description(nominal.robot)
-    data = load_measured(bag, description)
+    if data is None:
+        data = load_measured(bag, description)
     t0, t_end = float(data.t_s[0]), float(data.t_s[-1])
     fit_start = t0 + settings.settle_s
     holdout_start = t_end - settings.holdout_fraction * (t_end - t0)
@@ -81,7 +85,7 @@ def identify(bag: str | Path, nominal: SimModel, settings: Settings | None = Non
         for f in found:
             if f.status == "named":
                 values.update(f.values)
-    updated = nominal.with_values({k: v for k, v in values.items()})
+    updated = nominal.with_values(values)
     order = {c.name: i for i, c in enumerate(CANDIDATES)}
     findings.sort(key=lambda f: order[f.candidate])
     return Identification(

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .measured import GRAVITY_M_S2, MeasuredData, rotation_from_quat_xyzw_batch
+from .measured import GRAVITY_M_S2, MeasuredData
 
 BLOCK_S = 0.1  # [s] block length for the standard error of the mean (correlated residuals)
 
@@ -28,8 +28,7 @@ class BiasEstimate:
 def imu_residuals(data: MeasuredData, window: slice) -> tuple[np.ndarray, np.ndarray]:
     """(gyro residual [rad/s], accel residual [m/s^2]), each (n, 3), base frame, over the window."""
     assert data.base is not None and data.gyro_rad_s is not None and data.accel_m_s2 is not None
-    rotations = rotation_from_quat_xyzw_batch(data.base.quat_xyzw)
-    base_R_world = np.transpose(rotations, (0, 2, 1))
+    base_R_world = np.transpose(data.base.world_R_base, (0, 2, 1))
     omega_base = np.einsum("nij,nj->ni", base_R_world, data.base.ang_vel_world_rad_s)
     acc_world = np.gradient(data.base.lin_vel_world_m_s, data.t_s, axis=0)
     gravity = np.array([0.0, 0.0, -GRAVITY_M_S2])

@@ -25,7 +25,6 @@ import numpy as np
 
 from tal_core.bag_io import BagError, BagReader
 from tal_core.robot_description import RobotDescription
-from tal_core.rotations import rotation_from_quat_xyzw
 
 from .errors import MeasuredDataError
 
@@ -47,10 +46,12 @@ GRAVITY_M_S2 = 9.81
 @dataclass
 class BaseTrajectory:
     """Base state sampled on the joint-state grid: position [m] and quaternion (x, y, z, w) in the world
-    frame, linear [m/s] and angular [rad/s] velocity in the world frame; source topic."""
+    frame, world_R_base (N, 3, 3) of that quaternion, linear [m/s] and angular [rad/s] velocity in the world
+    frame; source topic."""
 
     position_m: np.ndarray
     quat_xyzw: np.ndarray
+    world_R_base: np.ndarray
     lin_vel_world_m_s: np.ndarray
     ang_vel_world_rad_s: np.ndarray
     source: str
@@ -280,18 +281,14 @@ def _attach_base(data: MeasuredData, messages: list, topic: str) -> None:
     # Nearest sample for the orientation (the grids coincide in practice), interpolation for the rest.
     nearest = np.clip(np.searchsorted(t, data.t_s), 0, len(t) - 1)
     quat_g = quat[nearest]
-    rotations = rotation_from_quat_xyzw_batch(quat_g)
+    rotations = rotations_from_quat_xyzw(quat_g)
     lin_w = np.einsum("nij,nj->ni", rotations, _resample(t, lin_b, data.t_s))
     ang_w = np.einsum("nij,nj->ni", rotations, _resample(t, ang_b, data.t_s))
-    data.base = BaseTrajectory(_resample(t, pos, data.t_s), quat_g, lin_w, ang_w, topic)
+    data.base = BaseTrajectory(_resample(t, pos, data.t_s), quat_g, rotations, lin_w, ang_w, topic)
 
 
-def rotation_from_quat_xyzw_batch(quat: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) world_R_base from (N, 4) quaternions (x, y, z, w)."""
-    return np.stack([rotation_from_quat_xyzw(qv) for qv in quat]) if len(quat) < 64 else _batch(quat)
-
-
-def _batch(quat: np.ndarray) -> np.ndarray:
+def rotations_from_quat_xyzw(quat: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices of (N, 4) unit quaternions (x, y, z, w), vectorised."""
     x, y, z, w = (quat[:, i] for i in range(4))
     return np.stack(
         [
@@ -341,3 +338,12 @@ def _attach_contacts(data: MeasuredData, messages: list) -> None:
 def _resample(t_src: np.ndarray, values: np.ndarray, t_dst: np.ndarray) -> np.ndarray:
     """Linear interpolation per column onto t_dst (held at the ends)."""
     return np.stack([np.interp(t_dst, t_src, values[:, k]) for k in range(values.shape[1])], axis=1)
+
+
+def white_noise_std(x: np.ndarray) -> float:
+    """White-noise level of a signal sampled much faster than it changes (joint angles, rates, torques),
+    from its second differences: std(d2 x) = sqrt(6) sigma for white noise. The median absolute deviation
+    keeps the occasional step (a 250 Hz command update) from counting as noise."""
+    d2 = np.diff(x, n=2, axis=0).ravel()
+    mad = float(np.median(np.abs(d2 - np.median(d2))))
+    return 1.4826 * mad / math.sqrt(6.0)

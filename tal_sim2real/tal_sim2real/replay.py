@@ -3,6 +3,8 @@ and the closed loop with the same controller (sWBC on ground truth) and the reco
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from tal_control.experiments.closed_loop import ClosedLoopConfig, run_closed_loop
@@ -17,10 +19,11 @@ from .segments import SegmentSimulator, measured_vectors, plan_segments
 def holdout_overlay(result: Identification, data: MeasuredData | None = None, joint: int = 8) -> dict[str, np.ndarray]:
     """Back-to-back 0.1 s open-loop segments over the first second of the held-out window."""
     description = load_robot_description(result.nominal.robot)
-    data = data or load_measured(result.bag, description)
+    if data is None:
+        data = load_measured(result.bag, description)
     start = result.windows_s["holdout"][0]
     plan = plan_segments(data, start, min(start + 1.0, result.windows_s["holdout"][1]), 0.1, 0.1)
-    plan = type(plan)(plan.starts, plan.horizon_steps, 1)
+    plan = dataclasses.replace(plan, sample_every=1)  # every step, for a continuous plot
     sim = SegmentSimulator(description, data, "effort" if data.effort_nm is not None else "command")
     try:
         before = sim.predict(result.nominal, plan)
@@ -40,7 +43,8 @@ def closed_loop_rerun(result: Identification, data: MeasuredData | None = None) 
     """The whole experiment re-run in closed loop with the nominal and the updated model; base position
     [m] over time and its RMS error against the measured base."""
     description = load_robot_description(result.nominal.robot)
-    data = data or load_measured(result.bag, description)
+    if data is None:
+        data = load_measured(result.bag, description)
     if data.cmd_vel is None or data.base is None:
         return {}
     commands = [

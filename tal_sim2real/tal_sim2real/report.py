@@ -22,6 +22,13 @@ def _fmt(value: float) -> str:
     return f"{value:.4g}"
 
 
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def plot_channels(result: Identification, path: Path) -> Path:
     """Bar chart: held-out RMS error per channel before and after adding the named effects."""
     names, before, after = [], [], []
@@ -39,10 +46,7 @@ def plot_channels(result: Identification, path: Path) -> Path:
     ax.set_ylabel("held-out RMS error (channel units)")
     ax.set_title(f"Sim-vs-measured gap per channel: {Path(result.bag).name}")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_overlay(overlay: dict[str, np.ndarray], path: Path) -> Path:
@@ -56,10 +60,7 @@ def plot_overlay(overlay: dict[str, np.ndarray], path: Path) -> Path:
     axes[1].set_ylabel("base height [m]")
     axes[1].set_xlabel("time [s] (segments restart from the measured state every 0.1 s)")
     axes[0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_closed_loop(closed: dict[str, np.ndarray], path: Path) -> Path:
@@ -73,10 +74,7 @@ def plot_closed_loop(closed: dict[str, np.ndarray], path: Path) -> Path:
             axes[i].set_ylabel(f"base {label}")
     axes[0].legend(fontsize=8)
     axes[2].set_xlabel("time [s]")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def write_report(

@@ -25,16 +25,15 @@ from .torque_path import TorquePathProblem
 def torque_path_subsystem(
     data: MeasuredData, description, candidates: list[Candidate], id_slice: slice, ho_slice: slice, settings: Settings
 ) -> tuple[SubsystemResult, list[Finding]]:
-    problem = TorquePathProblem(data, description, id_slice)
-    holdout = TorquePathProblem(data, description, ho_slice)
-    r0 = problem.residual({})
+    problem = TorquePathProblem(data, description)
+    r0 = problem.residual({}, id_slice)
     n = len(r0)
-    floor = problem.noise_std_nm**2 * n
+    floor = problem.noise_std_nm(id_slice) ** 2 * n
     nominal_cost = float(r0 @ r0)
     dt = data.dt_s
 
     def cost_of(vals: dict[str, float]) -> float:
-        r = problem.residual(vals)
+        r = problem.residual(vals, id_slice)
         return float(r @ r)
 
     fits: dict[str, Fit] = {}
@@ -57,7 +56,7 @@ def torque_path_subsystem(
             if pair.bic() < best.bic() - settings.min_bic_drop:
                 best = pair
     accepted = best is not nominal_fit and best.bic() < nominal_fit.bic() - settings.min_bic_drop
-    exc = problem.excitation()
+    reached = problem.max_limit_fraction(id_slice)
     findings = []
     for c in candidates:
         fit = fits[c.name]
@@ -72,18 +71,14 @@ def torque_path_subsystem(
                     best.cost / nominal_cost,
                 )
             )
-        elif (
-            c.name == "torque_limit"
-            and exc["max_limit_fraction"] < 1.0
-            and fit.values["torque_limit_scale"] >= exc["max_limit_fraction"] * 0.99
-        ):
+        elif c.name == "torque_limit" and reached < 1.0 and fit.values["torque_limit_scale"] >= reached * 0.99:
             findings.append(
                 Finding(
                     c.name,
                     c.subsystem,
                     "not_excited",
                     note=(
-                        f"commands reached only {100 * exc['max_limit_fraction']:.0f}% of the nominal limits: "
+                        f"commands reached only {100 * reached:.0f}% of the nominal limits: "
                         f"a limit above that leaves no trace; to test it: {c.experiment}"
                     ),
                 )
@@ -93,8 +88,8 @@ def torque_path_subsystem(
                 Finding(c.name, c.subsystem, "rejected", fit.values, fit.intervals, fit.cost / nominal_cost)
             )
     named_values = best.values if accepted else {}
-    r_ho0 = holdout.residual({})
-    r_ho1 = holdout.residual(named_values)
+    r_ho0 = problem.residual({}, ho_slice)
+    r_ho1 = problem.residual(named_values, ho_slice)
     result = SubsystemResult(
         "torque_path",
         floor,
@@ -102,7 +97,7 @@ def torque_path_subsystem(
         best.cost if accepted else nominal_cost,
         float(r_ho0 @ r_ho0),
         float(r_ho1 @ r_ho1),
-        holdout.noise_std_nm**2 * len(r_ho0),
+        problem.noise_std_nm(ho_slice) ** 2 * len(r_ho0),
         best.candidates if accepted else (),
     )
     result.verdict = (

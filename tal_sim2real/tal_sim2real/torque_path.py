@@ -15,7 +15,7 @@ from scipy.signal import lfilter
 
 from tal_core.robot_description import RobotDescription
 
-from .measured import MeasuredData
+from .measured import MeasuredData, white_noise_std
 
 
 def torque_limits(description: RobotDescription, q_rad: np.ndarray, every: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -54,20 +54,23 @@ def delivered_torque(
 
 
 class TorquePathProblem:
-    """Residuals of the measured joint torques against the re-simulated torque path on a sample window."""
+    """Residuals of the measured joint torques against the re-simulated torque path. The commands in force
+    and the torque limits are computed once; every residual runs the path from the first sample (the lag
+    and delay start from rest there, as on the robot) and returns the requested window."""
 
-    PARAMETERS = ("actuator_delay_s", "actuator_lag_s", "torque_gain", "torque_limit_scale")
-
-    def __init__(self, data: MeasuredData, description: RobotDescription, window: slice) -> None:
+    def __init__(self, data: MeasuredData, description: RobotDescription) -> None:
         if data.effort_nm is None:
             raise ValueError("no measured joint torques")
         self.data = data
-        self.window = window
+        self.effort = data.effort_nm
         self.command = data.command_in_force()
         self.low, self.high = torque_limits(description, data.q_rad, every=5)
-        self.noise_std_nm = effort_noise_std(data.effort_nm[window])
 
-    def residual(self, values: dict[str, float]) -> np.ndarray:
+    def noise_std_nm(self, window: slice) -> float:
+        """White-noise level [N m] of the measured torques in the window."""
+        return white_noise_std(self.effort[window])
+
+    def residual(self, values: dict[str, float], window: slice) -> np.ndarray:
         """Flattened (measured - predicted) joint torques [N m] over the window."""
         predicted = delivered_torque(
             self.command,
@@ -79,21 +82,10 @@ class TorquePathProblem:
             gain=values.get("torque_gain", 1.0),
             limit_scale=values.get("torque_limit_scale", 1.0),
         )
-        return (self.data.effort_nm[self.window] - predicted[self.window]).ravel()
+        return (self.effort[window] - predicted[window]).ravel()
 
-    def excitation(self) -> dict[str, float]:
-        """How much of each actuator effect the data can show: the largest commanded torque as a fraction
-        of the nominal limit, and the command's rate of change [N m/s] (delay and lag need it)."""
-        cmd = self.command[self.window]
-        frac = np.max(np.maximum(cmd / self.high[self.window], cmd / self.low[self.window]))
-        rate = float(np.sqrt(np.mean(np.diff(cmd, axis=0) ** 2)) / self.data.dt_s)
-        return {"max_limit_fraction": float(frac), "rms_torque_rate_nm_s": rate}
-
-
-def effort_noise_std(effort_nm: np.ndarray) -> float:
-    """White-noise level [N m] of a torque signal from its second differences (std(d2 x) = sqrt(6) sigma
-    for white noise; the torque itself is smooth at 1 kHz between control ticks). Uses the median
-    absolute deviation so that the 250 Hz command steps do not count as noise."""
-    d2 = np.diff(effort_nm, n=2, axis=0).ravel()
-    mad = float(np.median(np.abs(d2 - np.median(d2))))
-    return 1.4826 * mad / math.sqrt(6.0)
+    def max_limit_fraction(self, window: slice) -> float:
+        """Largest commanded torque in the window as a fraction of the nominal limit: a torque limit above
+        it leaves no trace in the data."""
+        cmd = self.command[window]
+        return float(np.max(np.maximum(cmd / self.high[window], cmd / self.low[window])))

@@ -10,9 +10,9 @@ from tal_core.robot_description import load_robot_description
 from tal_core.terrain import load_course
 from tal_sim2real.errors import MeasuredDataError, ModelConfigError
 from tal_sim2real.library import CANDIDATES, missing_signals
-from tal_sim2real.measured import _keep_increasing
+from tal_sim2real.measured import _keep_increasing, white_noise_std
 from tal_sim2real.model import PARAMETER_NAMES, SimModel
-from tal_sim2real.torque_path import delivered_torque, effort_noise_std
+from tal_sim2real.torque_path import delivered_torque
 from tal_sim_bridge.effects import ActuatorModel, ModelEffects
 from tal_sim_bridge.physics import Simulation
 
@@ -38,7 +38,7 @@ def test_effort_noise_estimate_of_a_smooth_torque_with_small_command_steps() -> 
     t = np.arange(2000) * 1e-3
     smooth = 40.0 * np.sin(2 * np.pi * 2.0 * t)[:, None] * np.ones((1, 12))
     steps = np.repeat(rng.normal(0.0, 0.5, (500, 12)), 4, axis=0)  # 250 Hz command updates
-    assert effort_noise_std(smooth + steps + rng.normal(0.0, 0.3, steps.shape)) == pytest.approx(0.3, rel=0.2)
+    assert white_noise_std(smooth + steps + rng.normal(0.0, 0.3, steps.shape)) == pytest.approx(0.3, rel=0.2)
 
 
 def test_model_parameters_round_trip_through_the_sim_bridge_yaml(tmp_path: Path) -> None:
