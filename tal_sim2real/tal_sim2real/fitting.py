@@ -93,9 +93,11 @@ def fit_scalar(
     n_obs: int,
     grid: np.ndarray | None = None,
     integer_step: float | None = None,
+    max_refinements: int = 500,
 ) -> Fit:
-    """One-parameter fit: a coarse grid then bounded Brent refinement (or the grid alone for a parameter
-    on steps of ``integer_step``, e.g. a delay in physics steps). Interval from the cost's curvature."""
+    """One-parameter fit: a coarse grid then bounded Brent refinement between the best grid point's
+    neighbours (at most ``max_refinements`` evaluations; or the grid alone for a parameter on steps of
+    ``integer_step``, e.g. a delay in physics steps). Interval from the cost's curvature."""
     p = candidate.parameters[0]
     count = [0]
 
@@ -112,7 +114,8 @@ def fit_scalar(
         half = integer_step
     else:
         lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
-        res = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 1e-6 * (p.upper - p.lower)})
+        options = {"xatol": 1e-6 * (p.upper - p.lower), "maxiter": max_refinements}
+        res = minimize_scalar(f, bounds=(lo, hi), method="bounded", options=options)
         value, best_cost = (
             (float(res.x), float(res.fun)) if res.fun < costs[best] else (float(grid[best]), float(costs[best]))
         )

@@ -4,7 +4,9 @@ library, fits by re-simulation, choice by information criterion and a check on v
 Time windows of the bag: the first ``settle_s`` are skipped (start-up transients), the last
 ``holdout_fraction`` are held out (never used to fit or choose, only to report the gap before/after),
 and the rest is the identification window. Within it, open-loop segments alternate between fitting and
-validation.
+validation. The torque path (no simulation, so no drift) holds out every ``torque_holdout_every``-th block
+of ``torque_block_s`` instead: its excitation (the peak torques) changes over a recording, and a tail can
+hold torques the identification window never reached (a torque limit seen only in the held-out part).
 
 Decisions per subsystem (torque path, IMU, dynamics):
   * named: the fitted effect lowers the Bayesian information criterion by more than ``min_bic_drop`` and
@@ -19,6 +21,8 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+
+import numpy as np
 
 from tal_core.robot_description import load_robot_description
 
@@ -48,6 +52,7 @@ def identify(
     windows = {"identification": (fit_start, holdout_start), "holdout": (holdout_start, t_end)}
     id_slice = slice(data.index_at(fit_start), data.index_at(holdout_start))
     ho_slice = slice(data.index_at(holdout_start), len(data.t_s))
+    torque_id, torque_ho = _interleaved_blocks(data, fit_start, settings)
     available = data.signals()
     findings: list[Finding] = []
     subsystems: dict[str, SubsystemResult] = {}
@@ -65,7 +70,7 @@ def identify(
 
     torque = [c for c in usable if c.subsystem == "torque_path"]
     if torque:
-        result, found = torque_path_subsystem(data, description, torque, id_slice, ho_slice, settings)
+        result, found = torque_path_subsystem(data, description, torque, torque_id, torque_ho, settings)
         subsystems["torque_path"] = result
         findings += found
     imu = [c for c in usable if c.subsystem == "imu"]
@@ -99,3 +104,12 @@ def identify(
         steps,
         dict(data.rejected),
     )
+
+
+def _interleaved_blocks(data: MeasuredData, start_s: float, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
+    """Sample indices from ``start_s`` [s] on, split into blocks of ``torque_block_s``: every
+    ``torque_holdout_every``-th block held out, the rest for identification."""
+    index = np.arange(data.index_at(start_s), len(data.t_s))
+    block = ((data.t_s[index] - start_s) // settings.torque_block_s).astype(int)
+    held = block % settings.torque_holdout_every == settings.torque_holdout_every - 1
+    return index[~held], index[held]

@@ -59,6 +59,18 @@ CANDIDATES: tuple[Candidate, ...] = (
         "Kelvin-Voigt ground (stiffness and damping per contact point)",
     ),
     Candidate(
+        "ground_nonlinear",
+        "dynamics",
+        (
+            Parameter("ground_stiffness_n_per_m", 1e3, 1e7, 3e4, True, "N/m"),
+            Parameter("ground_damping_ns_per_m", 20.0, 2e4, 600.0, True, "N s/m"),
+            Parameter("ground_contact_exponent", 0.7, 2.5, 1.5, False, "-"),
+        ),
+        ("joint_states.effort", "base_state"),
+        "standing still and shifting weight between legs (stance penetration under known loads)",
+        "power-law (Hunt-Crossley-type) ground: stiffness and damping grow as (sinkage / 0.01 m)^(n-1)",
+    ),
+    Candidate(
         "foot_friction",
         "dynamics",
         (Parameter("foot_friction", 0.05, 1.0, 0.35, False, "-"),),

@@ -28,6 +28,8 @@ class Settings:
     min_validation_gain: float = 0.1
     floor_factor: float = 1.5
     max_pair_candidates: int = 3
+    torque_block_s: float = 0.5
+    torque_holdout_every: int = 4
 
 
 @dataclass

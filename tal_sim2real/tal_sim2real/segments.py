@@ -104,17 +104,7 @@ class SegmentSimulator:
             self._sim = Simulation(self.description, model.course, effects=effects, initial_xy=start_xy)
             self._urdf_key = key
         sim = self._sim
-        ground = model.course.default
-        for body in sim.ground_bodies:
-            sim.client.changeDynamics(
-                body,
-                -1,
-                contactStiffness=ground.stiffness_n_per_m,
-                contactDamping=ground.damping_ns_per_m,
-                lateralFriction=ground.friction,
-            )
-        sim.effects = effects
-        sim.actuators = dataclasses.replace(sim.actuators, effects=effects)
+        sim.set_contact_model(model.course, effects)
         return sim
 
     def predict(self, model: SimModel, plan: SegmentPlan) -> np.ndarray:

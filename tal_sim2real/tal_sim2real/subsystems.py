@@ -23,8 +23,15 @@ from .torque_path import TorquePathProblem
 
 # -- torque path ------------------------------------------------------------------------------------------
 def torque_path_subsystem(
-    data: MeasuredData, description, candidates: list[Candidate], id_slice: slice, ho_slice: slice, settings: Settings
+    data: MeasuredData,
+    description,
+    candidates: list[Candidate],
+    id_slice: slice | np.ndarray,
+    ho_slice: slice | np.ndarray,
+    settings: Settings,
 ) -> tuple[SubsystemResult, list[Finding]]:
+    """Fit the torque-path candidates on the ``id_slice`` samples (a slice or sample indices) and report the
+    gap on ``ho_slice``."""
     problem = TorquePathProblem(data, description)
     r0 = problem.residual({}, id_slice)
     n = len(r0)
@@ -46,10 +53,10 @@ def torque_path_subsystem(
             fits[c.name] = fit_scalar(c, lambda v, name=p.name: cost_of({name: v}), n)
     nominal_fit = Fit((), {}, {}, nominal_cost, n)
     best = min([nominal_fit, *fits.values()], key=lambda f: f.bic())
-    # pairs: the best single plus each other candidate, coordinate descent from the single fits
-    ranked = sorted(fits.values(), key=lambda f: f.bic())[: settings.max_pair_candidates]
+    # pairs: the best single plus every other candidate (the library has four here, and a single fit of the
+    # second effect can rank low while the first one is unmodelled), coordinate descent from the single fits
     if best is not nominal_fit and best.cost > 2.0 * floor:
-        for other in ranked:
+        for other in sorted(fits.values(), key=lambda f: f.bic()):
             if other.candidates == best.candidates:
                 continue
             pair = _coordinate_descent([best, other], candidates, cost_of, n, dt)

@@ -66,11 +66,11 @@ class TorquePathProblem:
         self.command = data.command_in_force()
         self.low, self.high = torque_limits(description, data.q_rad, every=5)
 
-    def noise_std_nm(self, window: slice) -> float:
+    def noise_std_nm(self, window: slice | np.ndarray) -> float:
         """White-noise level [N m] of the measured torques in the window."""
         return white_noise_std(self.effort[window])
 
-    def residual(self, values: dict[str, float], window: slice) -> np.ndarray:
+    def residual(self, values: dict[str, float], window: slice | np.ndarray) -> np.ndarray:
         """Flattened (measured - predicted) joint torques [N m] over the window."""
         predicted = delivered_torque(
             self.command,
@@ -84,7 +84,7 @@ class TorquePathProblem:
         )
         return (self.effort[window] - predicted[window]).ravel()
 
-    def max_limit_fraction(self, window: slice) -> float:
+    def max_limit_fraction(self, window: slice | np.ndarray) -> float:
         """Largest commanded torque in the window as a fraction of the nominal limit: a torque limit above
         it leaves no trace in the data."""
         cmd = self.command[window]

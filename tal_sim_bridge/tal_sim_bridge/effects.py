@@ -14,6 +14,10 @@ import numpy as np
 from .errors import BridgeConfigError
 
 COULOMB_SMOOTHING_RAD_S = 0.01  # joint speed at which Coulomb friction reaches 76% of its magnitude
+GROUND_REFERENCE_DEPTH_M = 0.01
+"""[m] sinkage at which a power-law (Hunt-Crossley-type) ground has its patch's stiffness and damping."""
+GROUND_MIN_DEPTH_M = 1e-3
+"""[m] depth used for the power-law scale at first contact (the scale of a zero depth would be zero)."""
 
 
 @dataclass(frozen=True)
@@ -31,6 +35,11 @@ class ModelEffects:
         payload_offset_m: position of the payload relative to the trunk's CoM, base frame [m].
         imu_gyro_bias_rad_s: constant gyroscope bias, base frame [rad/s].
         imu_accel_bias_m_s2: constant accelerometer bias, base frame [m/s^2].
+        ground_contact_exponent: exponent n of a power-law (Hunt-Crossley-type) ground [-]: the normal force
+            is (delta / delta_ref)^(n - 1) * (k * delta + d * delta_dot) with the patch's stiffness k and
+            damping d, delta the sinkage and delta_ref = GROUND_REFERENCE_DEPTH_M; so, as in Hunt and
+            Crossley's model, stiffness and damping vanish at first contact and grow with depth when n > 1.
+            1 = the linear Kelvin-Voigt ground (nominal).
     """
 
     actuator_delay_s: float = 0.0
@@ -43,6 +52,7 @@ class ModelEffects:
     payload_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     imu_gyro_bias_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     imu_accel_bias_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ground_contact_exponent: float = 1.0
 
     def __post_init__(self) -> None:
         nonneg = ("actuator_delay_s", "actuator_lag_s", "joint_viscous_friction_nms_per_rad",
@@ -55,6 +65,9 @@ class ModelEffects:
             value = getattr(self, name)
             if not math.isfinite(value) or value <= 0.0:
                 raise BridgeConfigError(f"effect '{name}' must be a finite number > 0, got {value!r}")
+        n = self.ground_contact_exponent
+        if not math.isfinite(n) or not 0.5 <= n <= 3.0:
+            raise BridgeConfigError(f"effect 'ground_contact_exponent' must be in [0.5, 3], got {n!r}")
         for name in ("payload_offset_m", "imu_gyro_bias_rad_s", "imu_accel_bias_m_s2"):
             value = getattr(self, name)
             if len(value) != 3 or not all(math.isfinite(v) for v in value):
@@ -133,3 +146,10 @@ class ActuatorModel:
         # tanh instead of sign: a 1 kHz explicit step would chatter around zero velocity.
         coulomb = self.effects.joint_coulomb_friction_nm * np.tanh(qd / COULOMB_SMOOTHING_RAD_S)
         return -self.effects.joint_viscous_friction_nms_per_rad * qd - coulomb
+
+
+def power_law_ground_scale(depth_m: np.ndarray, exponent: float) -> np.ndarray:
+    """Factor (delta / delta_ref)^(n - 1) on a power-law ground's stiffness and damping [-] for sinkage
+    ``depth_m`` [m] (floored at GROUND_MIN_DEPTH_M; see ``ModelEffects.ground_contact_exponent``)."""
+    depth = np.maximum(np.asarray(depth_m, dtype=float), GROUND_MIN_DEPTH_M)
+    return (depth / GROUND_REFERENCE_DEPTH_M) ** (exponent - 1.0)

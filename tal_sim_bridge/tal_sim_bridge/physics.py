@@ -7,6 +7,10 @@ No ROS here. One ``Simulation`` owns one PyBullet physics client. Conventions:
     Bullet combines two bodies' contact stiffness in series (1/k = 1/k_a + 1/k_b) and adds damping, so
     the feet's own URDF <contact> (30000 N/m, 1000 N s/m on HyQ) is overridden with a stiffness far above
     any ground (FOOT_CONTACT_STIFFNESS) and zero damping: the ground is then the only compliance.
+  * power-law ground (``ModelEffects.ground_contact_exponent`` != 1): the boxes become rigid and each
+    foot carries, every step, the secant stiffness and damping of its patch's power law at its current
+    sinkage (geometric: course height + foot radius - foot centre height). Bullet re-combines the two bodies'
+    contact parameters whenever it refreshes a contact point, so the change acts on the next step.
   * shins: HyQ's lower-leg collision cylinder ends at the foot centre, so on soft ground (T1: ~6 cm static
     sinkage) it would touch the ground and carry load that belongs to the foot. Lower-leg/ground
     collisions are therefore filtered out; the foot sphere is the only leg contact. Trunk, hip and
@@ -29,7 +33,7 @@ from tal_core.robot_description import RobotDescription, find_example_robot_data
 from tal_core.terrain import Course
 
 from ._pybullet import BulletClient, pybullet, quiet_c_output
-from .effects import ActuatorModel, ModelEffects
+from .effects import ActuatorModel, ModelEffects, power_law_ground_scale
 from .errors import BridgeConfigError
 
 GRAVITY_M_S2 = 9.81
@@ -182,11 +186,35 @@ class Simulation:
                 baseMass=0.0, baseCollisionShapeIndex=shape, baseVisualShapeIndex=visual,
                 basePosition=list(box.center_xyz),
                 baseOrientation=self.client.getQuaternionFromEuler(list(box.rpy)))
-            self.client.changeDynamics(body, -1, contactStiffness=box.stiffness_n_per_m,
-                                       contactDamping=box.damping_ns_per_m, lateralFriction=1.0 * box.friction,
-                                       rollingFriction=0.0, spinningFriction=0.0, restitution=0.0)
+            self._apply_box_contact(body, box.stiffness_n_per_m, box.damping_ns_per_m, box.friction)
             bodies.append(body)
         return bodies
+
+    def _apply_box_contact(self, body: int, stiffness: float, damping: float, friction: float) -> None:
+        if self.effects.ground_contact_exponent != 1.0:  # the feet carry the compliance (module docstring)
+            stiffness, damping = FOOT_CONTACT_STIFFNESS, 0.0
+        self.client.changeDynamics(body, -1, contactStiffness=stiffness, contactDamping=damping,
+                                   lateralFriction=1.0 * friction, rollingFriction=0.0, spinningFriction=0.0,
+                                   restitution=0.0)
+
+    def set_contact_model(self, course: Course, effects: ModelEffects) -> None:
+        """Switch to the contact parameters of ``course`` (same geometry as the built one; e.g. another
+        stiffness, damping or friction) and to ``effects`` (all but the payload, which is built into the
+        URDF): tal_sim2real re-simulates many candidate models without rebuilding the world."""
+        boxes = course.primitives()
+        if len(boxes) != len(self.ground_bodies):
+            raise BridgeConfigError(f"course '{course.name}' has {len(boxes)} boxes, the simulation "
+                                    f"{len(self.ground_bodies)}: only contact parameters can be switched")
+        if (effects.payload_mass_kg, effects.payload_offset_m) != (self.effects.payload_mass_kg,
+                                                                   self.effects.payload_offset_m):
+            raise BridgeConfigError("the payload is part of the loaded URDF; build a new Simulation to change it")
+        self.course = course
+        self.effects = effects
+        self.actuators = ActuatorModel(effects, self.time_step_s, self.actuators.tau_min, self.actuators.tau_max)
+        for body, box in zip(self.ground_bodies, boxes):
+            self._apply_box_contact(body, box.stiffness_n_per_m, box.damping_ns_per_m, box.friction)
+        for link in self.foot_links:  # undo a power-law ground's per-step foot parameters
+            self.client.changeDynamics(self.robot, link, contactStiffness=FOOT_CONTACT_STIFFNESS, contactDamping=0.0)
 
     def _index_links(self) -> None:
         names: dict[str, int] = {}
@@ -309,6 +337,8 @@ class Simulation:
         ``joint_state`` (q [rad], qd [rad/s]) of this step when the caller already read it.
         """
         q, qd = self.joint_state() if joint_state is None else joint_state
+        if self.effects.ground_contact_exponent != 1.0:
+            self._apply_power_law_ground()
         tau_min, tau_max = self.description.torque_limits(q)
         delivered = self.actuators.delivered_torque(np.asarray(commanded_torque_nm, dtype=float), tau_min, tau_max)
         applied = delivered + self.actuators.friction_torque(qd)
@@ -320,6 +350,20 @@ class Simulation:
         vel = self.base_velocity()[0]
         self._base_acc = (vel - self._prev_base_vel) / self.time_step_s
         self._prev_base_vel = vel
+
+    def _apply_power_law_ground(self) -> None:
+        """Give each foot the secant stiffness [N/m] and damping [N s/m] of its patch's power law at its
+        current sinkage (the boxes are rigid, so the foot's parameters are the contact's)."""
+        states = self.client.getLinkStates(self.robot, self.foot_links, computeForwardKinematics=1)
+        feet = np.array([s[4] for s in states])
+        ground = np.asarray(self.course.height(feet[:, 0], feet[:, 1]), dtype=float)
+        depth = np.nan_to_num(ground + self.description.foot_radius_m - feet[:, 2], nan=0.0)
+        props = self.course.properties_array(feet[:, 0], feet[:, 1])
+        scale = power_law_ground_scale(depth, self.effects.ground_contact_exponent)
+        stiffness = np.nan_to_num(props.stiffness_n_per_m, nan=FOOT_CONTACT_STIFFNESS) * scale
+        damping = np.nan_to_num(props.damping_ns_per_m, nan=0.0) * scale
+        for link, k, d in zip(self.foot_links, stiffness, damping):
+            self.client.changeDynamics(self.robot, link, contactStiffness=float(k), contactDamping=float(d))
 
     def robot_state(self) -> RobotState:
         position, quat = self.base_pose()

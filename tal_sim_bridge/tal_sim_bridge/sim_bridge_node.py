@@ -58,6 +58,7 @@ EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
     "payload_offset_m": ([0.0, 0.0, 0.0], "[m] payload position relative to the trunk CoM, base frame"),
     "imu_gyro_bias_rad_s": ([0.0, 0.0, 0.0], "[rad/s] gyroscope bias, base frame"),
     "imu_accel_bias_m_s2": ([0.0, 0.0, 0.0], "[m/s^2] accelerometer bias, base frame"),
+    "ground_contact_exponent": (1.0, "[-] power-law (Hunt-Crossley-type) ground exponent; 1 = Kelvin-Voigt"),
 }
 
 

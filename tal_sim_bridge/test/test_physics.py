@@ -19,7 +19,7 @@ from tal_core.robot_description import RobotDescription, load_robot_description
 from tal_core.robot_model import RobotModel
 from tal_core.terrain import load_course
 from tal_sim_bridge.bridge_core import BridgeCore, ImuModel
-from tal_sim_bridge.effects import ModelEffects
+from tal_sim_bridge.effects import GROUND_REFERENCE_DEPTH_M, ModelEffects
 from tal_sim_bridge.errors import BridgeConfigError
 from tal_sim_bridge.physics import GRAVITY_M_S2, FootContact, RobotState, Simulation
 
@@ -143,6 +143,59 @@ def test_soft_ground_penetration_matches_force_over_stiffness(request: pytest.Fi
     # At rest the feet carry the weight, so the mean penetration is the static expectation m*g/(n*K).
     assert force.sum() == pytest.approx(run.total_mass_kg * GRAVITY_M_S2, rel=0.01)
     assert penetration.mean() == pytest.approx(static[0], rel=0.02)
+
+
+@pytest.fixture(scope="module")
+def stand_flat_t1_power_law(description: RobotDescription, hold: StandHold) -> Run:
+    return simulate(description, "flat_t1", STAND_STEPS, hold=hold, effects=ModelEffects(ground_contact_exponent=1.6))
+
+
+def test_power_law_ground_sinks_as_its_law_says(stand_flat_t1_power_law: Run, stand_flat_t1: Run) -> None:
+    """F_n = k delta (delta / delta_ref)^(n - 1) at rest, per foot; a different sinkage than the linear ground."""
+    run = stand_flat_t1_power_law
+    assert run.body_contacts == []
+    force = normal_forces(run.contacts)
+    depth = np.array([c.penetration_m for c in run.contacts])
+    n = 1.6
+    from_law = (force / run.stiffness_n_per_m * GROUND_REFERENCE_DEPTH_M ** (n - 1.0)) ** (1.0 / n)
+    np.testing.assert_allclose(depth, from_law, rtol=0.05)
+    assert force.sum() == pytest.approx(run.total_mass_kg * GRAVITY_M_S2, rel=0.01)
+    linear_depth = np.mean([c.penetration_m for c in stand_flat_t1.contacts])
+    assert abs(depth.mean() - linear_depth) > 0.1 * linear_depth
+
+
+def test_ground_exponent_outside_its_range_is_rejected() -> None:
+    for bad in (0.0, 5.0, float("nan")):
+        with pytest.raises(BridgeConfigError, match="ground_contact_exponent"):
+            ModelEffects(ground_contact_exponent=bad)
+
+
+def test_switching_the_contact_model_equals_building_it(description: RobotDescription, hold: StandHold) -> None:
+    """set_contact_model (used to re-simulate many candidate models) gives what a fresh Simulation gives."""
+    course = load_course("flat_t1")
+    power_law = ModelEffects(ground_contact_exponent=1.6)
+
+    def stand(sim: Simulation) -> np.ndarray:
+        sim.reset()
+        for _ in range(300):
+            q, qd = sim.joint_state()
+            sim.step(hold.command(q)["effort"] + 1500.0 * (hold.command(q)["position"] - q) - 40.0 * qd, (q, qd))
+        return np.array([c.penetration_m for c in sim.foot_contacts()])
+
+    fresh = Simulation(description, course, effects=power_law)
+    switched = Simulation(description, course)
+    try:
+        expected = stand(fresh)
+        linear = stand(switched)
+        switched.set_contact_model(course, power_law)
+        np.testing.assert_allclose(stand(switched), expected, atol=1e-6)
+        switched.set_contact_model(course, ModelEffects())
+        np.testing.assert_allclose(stand(switched), linear, atol=1e-6)
+        with pytest.raises(BridgeConfigError, match="payload"):
+            switched.set_contact_model(course, ModelEffects(payload_mass_kg=3.0))
+    finally:
+        fresh.close()
+        switched.close()
 
 
 def test_normals_and_forces_point_out_of_flat_ground(stand_flat_t2: Run) -> None:
