@@ -195,3 +195,50 @@ def test_invalid_parameters_are_refused_at_start(context) -> None:
         VfaNode(context=context, parameter_overrides=[Parameter("max_map_age_s", value=-1.0)])
     with pytest.raises(ValueError, match=r"parameter 'min_swing_time_left_s'"):
         VfaNode(context=context, parameter_overrides=[Parameter("min_swing_time_left_s", value=1)])  # int, not float
+
+
+@pytest.mark.slow
+def test_closed_loop_on_stairs_the_wbc_takes_adapted_footholds(context, spin_until) -> None:
+    """sim_bridge (stairs course) + wbc (ground-truth base) + vfa + cmd_vel_script in one executor: HyQ
+    trots from 0.5 m before the first riser; the vfa moves footholds off the step edges and the wbc swings
+    to them (its gait_state target of that swing equals the selection). 2 s of sim time: 25-40 s of wall
+    time on the loaded 2-core machine (8 of 8 adapted footholds accepted when measured)."""
+    from tal_control.cmd_vel_script_node import CmdVelScriptNode
+    from tal_control.wbc_node import WbcNode
+    from tal_sim_bridge.sim_bridge_node import SimBridgeNode
+
+    bridge = SimBridgeNode(context=context, parameter_overrides=[
+        Parameter("duration_s", value=2.0), Parameter("course", value="stairs"), Parameter("initial_x_m", value=0.5),
+        Parameter("heightmap_rows", value=121), Parameter("heightmap_cols", value=121)])
+    wbc = WbcNode(context=context, parameter_overrides=[Parameter("state_source", value="ground_truth")])
+    vfa = VfaNode(context=context)
+    script = CmdVelScriptNode(context=context, parameter_overrides=[
+        Parameter("profile", value=[0.0, 0.0, 0.0, 0.0, 0.5, 0.3, 0.0, 0.0])])
+    probe = rclpy.create_node("probe", context=context)
+    footholds: list[FootholdArray] = []
+    gaits: list[GaitState] = []
+    probe.create_subscription(FootholdArray, "footholds", footholds.append, 100)
+    probe.create_subscription(GaitState, "gait_state", gaits.append, 1000)
+    executor = SingleThreadedExecutor(context=context)
+    nodes = (bridge, wbc, vfa, script, probe)
+    for node in nodes:
+        executor.add_node(node)
+    try:
+        assert spin_until(executor, lambda: bridge.finished, 300.0)
+        spin_until(executor, lambda: False, 0.3)
+        end = bridge.core.sim.robot_state().base_position_m.copy()
+    finally:
+        stop(executor, *nodes)
+    assert bridge.final_summary["lockstep_timeouts"] == 0 and bridge.final_summary["body_ground_contact"] == []
+    adapted = [(ns_from_stamp(m.header.stamp), f) for m in footholds for f in m.footholds
+               if math.hypot(f.selected.x - f.nominal.x, f.selected.y - f.nominal.y) > 1e-6]
+    assert adapted, vfa.counters()
+
+    def accepted(stamp_ns: int, foothold) -> bool:
+        return any(ns_from_stamp(g.header.stamp) > stamp_ns and g.swing[foothold.leg]
+                   and g.step_count[foothold.leg] == foothold.step_count
+                   and math.hypot(g.target_foothold[foothold.leg].x - foothold.selected.x,
+                                  g.target_foothold[foothold.leg].y - foothold.selected.y) < 1e-6 for g in gaits)
+    assert sum(accepted(stamp, f) for stamp, f in adapted) >= 1
+    assert wbc.rejected_inputs == 0 and sum(vfa.rejections.values()) == 0, vfa.rejections
+    assert end[0] > 0.7 and end[2] > 0.5  # walked forward onto the first step and still standing

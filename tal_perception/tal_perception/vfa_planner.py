@@ -255,11 +255,13 @@ class VfaPlanner:
         return self._decisions.get(Leg(leg))
 
     # -- inputs -------------------------------------------------------------------------------------
-    def set_map(self, grid: HeightMapGrid, stamp_s: float) -> None:
-        """Use ``grid`` (world heights [m], NaN unknown) sampled at ``stamp_s`` [s] from now on.
+    def set_map(self, grid: HeightMapGrid, stamp_s: float) -> bool:
+        """Use ``grid`` (world heights [m], NaN unknown) sampled at ``stamp_s`` [s] from now on. Returns
+        False (and keeps the map in use) for a repeated map: the same stamp as the one in use (the
+        simulator repeats its first sample until the controller answers).
 
-        Raises VfaInputError: stamp not after the previous map's (``heightmap_out_of_order``; a jump
-        back of more than ``CLOCK_RESET_S`` restarts the planner instead), heights of +-inf
+        Raises VfaInputError: stamp before the previous map's (``heightmap_out_of_order``; a jump back
+        of more than ``CLOCK_RESET_S`` restarts the planner instead), heights of +-inf
         (``heightmap_invalid``)."""
         if not isinstance(grid, HeightMapGrid):
             raise VfaInputError("heightmap_invalid", f"heightmap must be a HeightMapGrid, got {type(grid).__name__}")
@@ -269,13 +271,16 @@ class VfaPlanner:
             raise VfaInputError("heightmap_invalid", f"heightmap has {int(np.isinf(grid.heights).sum())} infinite "
                                 "height(s) (unknown cells must be NaN)")
         last = self._map_stamp_s
-        if last is not None and stamp_s <= last:
+        if last is not None and stamp_s == last:
+            return False
+        if last is not None and stamp_s < last:
             if stamp_s + CLOCK_RESET_S < last:
                 self._restart()
             else:
-                raise VfaInputError("heightmap_out_of_order", f"heightmap stamp {stamp_s:.6f} s is not after the "
+                raise VfaInputError("heightmap_out_of_order", f"heightmap stamp {stamp_s:.6f} s is before the "
                                     f"previous map's {last:.6f} s")
         self._grid, self._map_stamp_s = grid, float(stamp_s)
+        return True
 
     def update(self, gait: GaitSnapshot) -> list[FootholdDecision]:
         """New or changed decisions for the swinging legs at the gait state's tick (empty: no news).
