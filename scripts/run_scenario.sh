@@ -9,8 +9,13 @@
 #                   sim_bridge + state_estimator + wbc (sWBC on the estimate) + cmd_vel_script; prints
 #                   tracking errors, estimator drift and whether it fell
 #   crawl           the same with a crawl at 0.1 m/s
+#   stairs          ViTAL's VFA: HyQ trots at 0.3 m/s over the stairs course (5 steps up, rise 0.1 m, go 0.3 m,
+#                   plateau, 5 steps down) for 30 s of sim time (lockstep): the trot graph on the ground-truth
+#                   base state (the vfa has no map z alignment to the estimate yet) with a 121x121 heightmap
+#                   and the vfa node adapting the footholds; VFA=0 runs the same without the vfa
 #   stand           HyQ stands 10 s in lockstep (joint PD hold), first on rigid ground, then on T1 soft
 #   stand_realtime  the same, following the wall clock
+# VFA=1 adds the vfa node (and a 121x121 heightmap) to trot and crawl too; its counters go to vfa_summary.json.
 # Results: runs/<timestamp>/<part>/ (one log per node, summary.json), runs/<timestamp>/report.md and, for the
 # walking scenarios, runs/<timestamp>/bag (the run recorded by bag_recorder).
 set -euo pipefail
@@ -24,24 +29,37 @@ RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/cont
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
 
 walk() {
-    local gait="$1" speed="$2" duration="${DURATION_S:-20.0}"
-    local dir="$RUN_ROOT"
-    echo "[run] $SCENARIO: HyQ ${gait}s at $speed m/s on rigid ground for $duration s of sim time (lockstep)"
+    local gait="$1" speed="$2" course="${3:-flat_rigid}" state_source="${4:-estimate}" duration="${DURATION_S:-20.0}"
+    local dir="$RUN_ROOT" topics="$RECORDED_TOPICS"
+    local nodes=(tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc tal_control/cmd_vel_script
+                 tal_sim_bridge/bag_recorder)
+    local vfa=()
+    if [ "${VFA:-0}" = 1 ]; then
+        # The map must reach the footholds (~0.5 m ahead of the base) plus half a 33-cell FEC patch.
+        nodes+=(tal_perception/vfa)
+        vfa=(-s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121"
+             -s "vfa.use_sim_time:=true" -s "vfa.summary_path:=$dir/vfa_summary.json")
+        topics="${topics%]}, 'footholds']"
+    fi
+    echo "[run] $SCENARIO: HyQ ${gait}s at $speed m/s on '$course' for $duration s of sim time (lockstep)," \
+         "base state from $state_source, vfa ${VFA:-0}"
     bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge \
-        -s "sim_bridge.course:=flat_rigid" -s "sim_bridge.duration_s:=$duration" \
+        -s "sim_bridge.course:=$course" -s "sim_bridge.duration_s:=$duration" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
-        -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" \
+        -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.state_source:=$state_source" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
-        -s "bag_recorder.topics:=$RECORDED_TOPICS" \
+        -s "bag_recorder.topics:=$topics" \
         -s "bag_recorder.summary_path:=$dir/recorder_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
-        tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc tal_control/cmd_vel_script \
-        tal_sim_bridge/bag_recorder \
+        "${vfa[@]+"${vfa[@]}"}" "${nodes[@]}" \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
     python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
         --estimator "$dir/estimator_summary.json" \
-        --title "HyQ $gait at $speed m/s, rigid ground, control on the state estimate" --output "$RUN_ROOT/report.md"
+        --title "HyQ $gait at $speed m/s on '$course', control on the $state_source base state" --output "$RUN_ROOT/report.md"
+    if [ -f "$dir/vfa_summary.json" ]; then
+        { echo; echo "## vfa (footholds)"; echo; echo '```json'; cat "$dir/vfa_summary.json"; echo '```'; } >> "$RUN_ROOT/report.md"
+    fi
 }
 
 stance() {
@@ -91,9 +109,10 @@ case "$SCENARIO" in
     stance) stance ;;
     trot) walk trot 0.3 ;;
     crawl) walk crawl 0.1 ;;
+    stairs) VFA="${VFA:-1}" DURATION_S="${DURATION_S:-30.0}" walk trot 0.3 stairs ground_truth ;;
     stand) stand lockstep ;;
     stand_realtime) stand realtime ;;
-    *) echo "unknown SCENARIO '$SCENARIO'; known: stance, trot, crawl, stand, stand_realtime" >&2; exit 2 ;;
+    *) echo "unknown SCENARIO '$SCENARIO'; known: stance, trot, crawl, stairs, stand, stand_realtime" >&2; exit 2 ;;
 esac
 echo "[run] report: $RUN_ROOT/report.md"
 if [ -d "$RUN_ROOT/bag" ]; then echo "[run] bag (rosbag2 MCAP): $RUN_ROOT/bag"; fi

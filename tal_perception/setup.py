@@ -23,6 +23,8 @@ setup(
     description=open("README.md", encoding="utf-8").read().splitlines()[2],
     license="BSD-3-Clause",
     entry_points={
-        "console_scripts": [],
+        "console_scripts": [
+            "vfa = tal_perception.vfa_node:main",
+        ],
     },
 )

@@ -23,3 +23,15 @@ class FecConfigError(TalPerceptionError, ValueError):
 
 class LegKinematicsError(TalPerceptionError):
     """The robot's leg structure does not fit the closed-form HAA-HFE-KFE inverse kinematics."""
+
+
+class VfaInputError(PerceptionInputError):
+    """A gait state or heightmap given to the VFA planner is malformed or out of order.
+
+    ``reason`` is a short category (``gait_state_nan``, ``heightmap_out_of_order``, ...) the ``vfa`` node
+    counts rejections by.
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason

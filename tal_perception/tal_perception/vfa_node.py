@@ -1,0 +1,216 @@
+"""Node ``vfa``: ViTAL's Vision-based Foothold Adaptation, a thin adapter over ``vfa_planner``.
+
+Subscribes: ``gait_state`` (tal_msgs/GaitState, from the wbc), ``terrain/heightmap`` (tal_msgs/HeightMap).
+Publishes: ``footholds`` (tal_msgs/FootholdArray: the new or changed decisions of one gait-state tick,
+header stamp = that gait state's stamp, frame "world"; nothing when there is no news) and
+``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s`` of node time:
+decisions by status and trigger, rejections by reason, selection time median/max).
+
+The selection runs in the gait-state callback (the exact lazy selection took a median of 2-6 ms per
+swinging leg in the closed loop on this loaded machine, at most ~13 ms; it is measured and reported).
+Bad input (NaN, wrong array sizes, wrong frame, stamps
+going backwards) is rejected, counted by reason and logged at most once per second; it never stops
+the node. A heightmap with the stamp of the one in use is a duplicate: ignored, counted apart. A clock
+that jumps back by more than 0.5 s (a restarted simulation) restarts the planner. A missing or stale
+map, or a patch without a safe candidate, publishes the nominal foothold with ``safe_candidate_found``
+false (see ``vfa_planner``).
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point
+from rclpy.node import Node
+
+from tal_core.errors import InputError
+from tal_core.node_utils import declare, ns_from_stamp, run_node, write_summary
+from tal_core.robot_model import RobotModel
+from tal_core.ros_conversions import heightmap_grid
+from tal_msgs.msg import Foothold, FootholdArray, GaitState, HeightMap
+
+from .errors import VfaInputError
+from .vfa import VfaStatus
+from .vfa_planner import SELECTORS, FootholdDecision, GaitSnapshot, PlannerSettings, VfaPlanner
+
+FRAME = "world"
+TIMING_WINDOW = 1000  # selections kept for the timing statistics (the latest ones)
+
+
+def gait_snapshot_from_message(msg: GaitState) -> GaitSnapshot:
+    """GaitSnapshot (plain arrays, world frame) of a tal_msgs/GaitState; VfaInputError on bad content."""
+    if msg.header.frame_id != FRAME:
+        raise VfaInputError("gait_state_frame", f"gait_state frame_id must be '{FRAME}', got "
+                            f"'{msg.header.frame_id}'")
+    linear, angular = msg.base_twist.linear, msg.base_twist.angular
+    return GaitSnapshot(
+        stamp_s=ns_from_stamp(msg.header.stamp) * 1e-9, step_frequency_hz=msg.step_frequency,
+        duty_factor=msg.duty_factor, step_height_m=msg.step_height,
+        base_twist=np.array([linear.x, linear.y, linear.z, angular.x, angular.y, angular.z]),
+        swing=np.array(msg.swing, dtype=bool), time_to_touchdown_s=np.array(msg.time_to_touchdown, dtype=float),
+        step_count=np.array(msg.step_count, dtype=np.int64), liftoff_position=_points(msg.liftoff_position),
+        nominal_foothold=_points(msg.nominal_foothold), hip_position=_points(msg.hip_position))
+
+
+def foothold_message(decision: FootholdDecision) -> Foothold:
+    """tal_msgs/Foothold of a decision. safe_candidates: the count when the selector knows it, otherwise
+    a lower bound (1 when a safe candidate was found, 0 when none was or nothing was evaluated)."""
+    count = decision.safe_candidates
+    if count is None:
+        count = 1 if decision.safe_candidate_found else 0
+    return Foothold(leg=int(decision.leg), step_count=int(decision.step_count), nominal=_point(decision.nominal),
+                    selected=_point(decision.selected), safe_candidate_found=decision.safe_candidate_found,
+                    safe_candidates=int(count), score=float(decision.score))
+
+
+class VfaNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__("vfa", **kwargs)
+        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True)
+        selector = declare(self, "selector", "exact", f"foothold selector: one of {', '.join(SELECTORS)} "
+                           "(exact: lazy exact evaluation of the foothold evaluation criteria)", read_only=True)
+        settings = PlannerSettings(
+            max_map_age_s=declare(self, "max_map_age_s", 0.5, "[s] a heightmap further than this from the gait "
+                                  "state's stamp is stale (nominal passed through)", low=0.001, high=60.0,
+                                  read_only=True),
+            min_swing_time_left_s=declare(self, "min_swing_time_left_s", 0.08, "[s] no (re-)decision with less "
+                                          "swing time left (the wbc accepts footholds until 0.05 s)", low=0.0,
+                                          high=2.0, read_only=True),
+            nominal_shift_threshold_m=declare(self, "nominal_shift_threshold_m", 0.02, "[m] re-decide when the "
+                                              "nominal foothold moved this far since the last decision", low=0.0,
+                                              high=1.0, read_only=True),
+            reevaluate_on_new_map=declare(self, "reevaluate_on_new_map", True, "re-decide when a newer heightmap "
+                                          "arrives during a swing", read_only=True))
+        self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
+                                            "clock: sim time with use_sim_time)", low=0.05, high=60.0,
+                                            read_only=True)
+        self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
+                                    "('' = none)", read_only=True)
+        self.planner = VfaPlanner.for_robot(RobotModel.from_name(robot), selector, settings)
+        self.selector_name = selector
+        warm_up_s = self.planner.warm_up()  # the first selections build caches (~30 ms): not in a callback
+        self.rejections: Counter[str] = Counter()
+        self.selection_ms: deque[float] = deque(maxlen=TIMING_WINDOW)
+        self.max_selection_ms = 0.0
+        self.gait_states = 0
+        self.maps = 0
+        self.duplicate_maps = 0
+        self.published_messages = 0
+        self.published_footholds = 0
+
+        self.pub_footholds = self.create_publisher(FootholdArray, "footholds", 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(GaitState, "gait_state", self._on_gait_state, 10)
+        self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
+        self.create_timer(self.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(f"vfa ready: robot '{robot}', selector '{selector}', maps stale after "
+                               f"{settings.max_map_age_s} s, warm-up {warm_up_s * 1e3:.0f} ms")
+
+    # -- inputs -------------------------------------------------------------------------------------
+    def _reject(self, reason: str, message: str) -> None:
+        self.rejections[reason] += 1
+        self.get_logger().warn(f"rejected ({reason}, {self.rejections[reason]} so far): {message}",
+                               throttle_duration_sec=1.0)
+
+    def _on_heightmap(self, msg: HeightMap) -> None:
+        try:
+            if msg.header.frame_id != FRAME:
+                raise VfaInputError("heightmap_frame", f"heightmap frame_id must be '{FRAME}', got "
+                                    f"'{msg.header.frame_id}'")
+            if len(msg.heights) != msg.rows * msg.cols:
+                raise VfaInputError("heightmap_size", f"heightmap has {len(msg.heights)} heights for "
+                                    f"{msg.rows} x {msg.cols} cells")
+            try:
+                grid = heightmap_grid(msg)
+            except InputError as exc:  # NaN centre, yaw or resolution
+                raise VfaInputError("heightmap_invalid", str(exc)) from None
+            fresh = self.planner.set_map(grid, ns_from_stamp(msg.header.stamp) * 1e-9)
+        except VfaInputError as exc:
+            self._reject(exc.reason, str(exc))
+            return
+        if fresh:
+            self.maps += 1
+        else:
+            self.duplicate_maps += 1  # the simulator repeats its first sample until the wbc answers
+
+    def _on_gait_state(self, msg: GaitState) -> None:
+        try:
+            decisions = self.planner.update(gait_snapshot_from_message(msg))
+        except VfaInputError as exc:
+            self._reject(exc.reason, str(exc))
+            return
+        except InputError as exc:  # a selector's own input check (should not happen on a valid snapshot)
+            self._reject("selector_input", str(exc))
+            return
+        self.gait_states += 1
+        for decision in decisions:
+            self._note(decision)
+        if not decisions:
+            return
+        out = FootholdArray(footholds=[foothold_message(d) for d in decisions])
+        out.header.stamp = msg.header.stamp
+        out.header.frame_id = FRAME
+        self.pub_footholds.publish(out)
+        self.published_messages += 1
+        self.published_footholds += len(decisions)
+
+    def _note(self, decision: FootholdDecision) -> None:
+        """Timing statistics of evaluated selections; throttled logs of the flagged outcomes."""
+        if decision.status in (VfaStatus.SELECTED, VfaStatus.NO_SAFE_CANDIDATE):
+            elapsed_ms = decision.elapsed_s * 1e3
+            self.selection_ms.append(elapsed_ms)
+            self.max_selection_ms = max(self.max_selection_ms, elapsed_ms)
+        if decision.status is not VfaStatus.SELECTED:
+            self.get_logger().warn(f"{decision.leg.name} step {decision.step_count}: {decision.status.value}, "
+                                   "nominal foothold passed through", throttle_duration_sec=1.0)
+
+    # -- outputs ------------------------------------------------------------------------------------
+    def counters(self) -> dict[str, int | float | str]:
+        """Every counter of the node and the planner (the diagnostics' key-value pairs)."""
+        c = self.planner.counters
+        timing = np.array(self.selection_ms)
+        return {
+            "selector": self.selector_name, "gait_states": self.gait_states, "heightmaps": self.maps,
+            "duplicate_heightmaps": self.duplicate_maps,
+            "published_messages": self.published_messages, "published_footholds": self.published_footholds,
+            **{f"decisions_{k}": v for k, v in c.by_status.items()},
+            **{f"trigger_{k}": v for k, v in c.by_trigger.items()},
+            "adapted": c.adapted, "late_swings": c.late_swings, "restarts": c.restarts,
+            **{f"rejected_{k}": v for k, v in sorted(self.rejections.items())},
+            "selection_time_median_ms": round(float(np.median(timing)), 3) if timing.size else 0.0,
+            "selection_time_max_ms": round(float(timing.max()), 3) if timing.size else 0.0,
+            "selection_time_max_ever_ms": round(self.max_selection_ms, 3), "selection_time_samples": int(timing.size),
+        }
+
+    def _publish_diagnostics(self) -> None:
+        values = self.counters()
+        rejected = sum(self.rejections.values())
+        status = DiagnosticStatus(name=self.get_fully_qualified_name(), hardware_id="tal")
+        status.level = DiagnosticStatus.OK if rejected == 0 else DiagnosticStatus.WARN
+        status.message = "ok" if rejected == 0 else f"{rejected} inputs rejected"
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
+
+    def destroy_node(self) -> None:
+        write_summary(self.summary_path, self.counters())
+        super().destroy_node()
+
+
+def _points(points) -> np.ndarray:
+    return np.array([[p.x, p.y, p.z] for p in points], dtype=float)
+
+
+def _point(xyz: np.ndarray) -> Point:
+    return Point(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2]))
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(lambda: VfaNode(), args, name="vfa")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

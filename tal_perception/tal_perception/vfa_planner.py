@@ -1,0 +1,414 @@
+"""VFA planner: when to select a foothold for which leg, from the gait state and the latest heightmap.
+
+The ``vfa`` node is a thin adapter over this module (no rclpy here). Per swinging leg the planner
+decides once per swing (the swing's ``step_count``) and re-decides during the swing, while at least
+``min_swing_time_left_s`` of it is left, when
+
+* a newer heightmap arrived (``reevaluate_on_new_map``; the thesis' VFA adapts the footholds
+  continuously as the map is updated), or
+* the nominal foothold moved horizontally by more than ``nominal_shift_threshold_m`` since the last
+  decision (the motion generator keeps re-planning its Raibert foothold as the velocity changes; once it
+  was given an external foothold it stops following the nominal itself, so the VFA must).
+
+A re-decision is reported only when it changes something (the selection by more than
+``selection_tolerance_m``, or the status), so the consumer re-targets the swing only when needed.
+
+Inputs: ``GaitSnapshot`` (the ``tal_msgs/GaitState`` as arrays, world frame) and a ``HeightMapGrid`` with
+its stamp. Derived per leg: the heading of the horizontal frame (from the hip positions, so no base
+pose is needed), the hip height (world z of the HAA joint, from the gait state), the hip at touchdown
+(current hip moved by the commanded hip velocity over the time to touchdown) and the lift-off foothold
+(the lift-off foot centre minus the foot radius). Now is the gait state's stamp (sim time): the map's
+age is measured against the control tick the decision is for.
+
+A missing or stale map (``|gait stamp - map stamp| > max_map_age_s``) passes the nominal through
+flagged (``VfaStatus.NO_MAP`` / ``STALE_MAP``), so does a patch without any safe candidate
+(``NO_SAFE_CANDIDATE``); neither raises. A malformed gait state or map raises ``VfaInputError`` with a
+reason the node counts.
+
+Selectors: anything with ``FootholdSelector.select``'s signature (``SelectorLike``); ``make_selector``
+builds one by name ("exact" now; the CNN approximation is wired there).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tal_core.heightmap import HeightMapGrid
+from tal_core.legs import LEGS, NUM_LEGS, Leg
+from tal_core.robot_model import RobotModel
+from tal_perception.errors import FecConfigError, VfaInputError
+from tal_perception.fec import FootholdEvaluator
+from tal_perception.fec_settings import FecSettings, GaitTiming
+from tal_perception.vfa import FootholdSelector, VfaStatus
+
+FloatArray = NDArray[np.float64]
+SELECTORS: tuple[str, ...] = ("exact",)  # "cnn" joins when the CNN selector exists (make_selector)
+CLOCK_RESET_S = 0.5  # [s] a stamp this far behind the last one is a restarted clock, not reordering
+
+
+class SelectorLike(Protocol):
+    """What the planner needs from a foothold selector (``tal_perception.vfa.FootholdSelector``'s
+    interface). Its result has ``selected``, ``any_safe``, ``status``, ``safe_candidates`` and, when it
+    is an approximation, ``score`` [-] (a result without it is an exact evaluation: score 1)."""
+
+    def select(self, leg: Leg, nominal_world: ArrayLike, grid: HeightMapGrid | None, *, hip_height_m: float,
+               twist: ArrayLike, gait: GaitTiming, yaw: float | None = None, map_age_s: float = 0.0,
+               liftoff_world: ArrayLike | None = None,
+               hip_touchdown_world: ArrayLike | None = None) -> Any: ...
+
+
+def make_selector(name: str, model: RobotModel, *, max_map_age_s: float,
+                  fec_settings: FecSettings | None = None) -> SelectorLike:
+    """The foothold selector called ``name`` for ``model``: "exact" is the lazy exact FEC evaluation
+    (``FootholdSelector``). The single place where further selectors (the CNN) are wired."""
+    if name == "exact":
+        return FootholdSelector(FootholdEvaluator(model, fec_settings), max_map_age_s=max_map_age_s)
+    # "cnn": build the CNN selector here (same select(...) interface) and add "cnn" to SELECTORS.
+    raise FecConfigError(f"selector must be one of {list(SELECTORS)}, got {name!r}")
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """When the planner (re-)decides; SI units, see the module docstring."""
+
+    max_map_age_s: float = 0.5  # [s] a map further than this from the gait state's stamp is stale
+    min_swing_time_left_s: float = 0.08  # [s] no (re-)decision later in a swing (the wbc needs 0.05 s)
+    nominal_shift_threshold_m: float = 0.02  # [m] re-decide when the nominal moved this far (one cell)
+    reevaluate_on_new_map: bool = True  # re-decide when a newer map arrives during the swing
+    selection_tolerance_m: float = 1e-3  # [m] a re-decision closer than this to the last is not news
+
+    def __post_init__(self) -> None:
+        for name in ("max_map_age_s", "min_swing_time_left_s", "nominal_shift_threshold_m", "selection_tolerance_m"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise FecConfigError(f"PlannerSettings.{name} must be a finite number, got {value!r}")
+            if value < 0.0 or (name == "max_map_age_s" and value == 0.0):
+                raise FecConfigError(f"PlannerSettings.{name} must be {'> 0' if name == 'max_map_age_s' else '>= 0'}"
+                                     f", got {value!r}")
+        if not isinstance(self.reevaluate_on_new_map, bool):
+            raise FecConfigError(f"PlannerSettings.reevaluate_on_new_map must be a bool, got "
+                                 f"{self.reevaluate_on_new_map!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class GaitSnapshot:
+    """The gait state of one control tick (``tal_msgs/GaitState``), world frame, legs LF, RF, LH, RH.
+
+    stamp_s [s] the control tick; step_frequency_hz [Hz]; duty_factor [-]; step_height_m [m];
+    base_twist (6,) [m/s, rad/s] commanded, horizontal frame; swing (4,) bool; time_to_touchdown_s (4,)
+    [s]; step_count (4,) [-]; liftoff_position (4, 3) [m] foot centres at the last lift-off;
+    nominal_foothold (4, 3) [m] terrain points; hip_position (4, 3) [m] HAA joints.
+    """
+
+    stamp_s: float
+    step_frequency_hz: float
+    duty_factor: float
+    step_height_m: float
+    base_twist: FloatArray
+    swing: NDArray[np.bool_]
+    time_to_touchdown_s: FloatArray
+    step_count: NDArray[np.int64]
+    liftoff_position: FloatArray
+    nominal_foothold: FloatArray
+    hip_position: FloatArray
+
+    def __post_init__(self) -> None:
+        shapes = {"base_twist": (6,), "time_to_touchdown_s": (NUM_LEGS,), "liftoff_position": (NUM_LEGS, 3),
+                  "nominal_foothold": (NUM_LEGS, 3), "hip_position": (NUM_LEGS, 3)}
+        for name, shape in shapes.items():
+            object.__setattr__(self, name, _finite_array(getattr(self, name), shape, name))
+        for name in ("stamp_s", "step_frequency_hz", "duty_factor", "step_height_m"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) or not math.isfinite(value):
+                raise VfaInputError("gait_state_nan", f"gait state: {name} must be a finite number, got {value!r}")
+        swing = np.asarray(self.swing)
+        counts = np.asarray(self.step_count)
+        for name, array in (("swing", swing), ("step_count", counts)):
+            if array.shape != (NUM_LEGS,):
+                raise VfaInputError("gait_state_size", f"gait state: {name} must have {NUM_LEGS} values "
+                                    f"(LF, RF, LH, RH), got shape {array.shape}")
+        if swing.dtype != np.bool_:
+            raise VfaInputError("gait_state_invalid", f"gait state: swing must be booleans, got {swing.dtype}")
+        if not np.issubdtype(counts.dtype, np.integer) or (counts < 0).any():
+            raise VfaInputError("gait_state_invalid", f"gait state: step_count must be integers >= 0, got {counts}")
+        object.__setattr__(self, "swing", swing.copy())
+        object.__setattr__(self, "step_count", counts.astype(np.int64))
+        if swing.any():
+            if self.step_frequency_hz <= 0.0 or not 0.0 < self.duty_factor < 1.0 or self.step_height_m < 0.0:
+                raise VfaInputError("gait_state_invalid", "gait state: a leg swings, so step_frequency_hz must be "
+                                    f"> 0 (got {self.step_frequency_hz}), duty_factor in (0, 1) (got "
+                                    f"{self.duty_factor}) and step_height_m >= 0 (got {self.step_height_m})")
+            negative = [leg.name for leg in LEGS if swing[leg] and self.time_to_touchdown_s[leg] < 0.0]
+            if negative:
+                raise VfaInputError("gait_state_invalid", f"gait state: time_to_touchdown_s < 0 for swinging "
+                                    f"leg(s) {', '.join(negative)}")
+
+
+@dataclass(frozen=True, eq=False)
+class FootholdDecision:
+    """The foothold for one swing of one leg. Positions (3,) [m] world frame, terrain points.
+
+    safe_candidates: the number of safe candidates when the selector knows it (None: lazy search or not
+    evaluated); score [-]: the selector's confidence (1 for the exact evaluation, 0 when nothing was
+    evaluated: no map or a stale one); trigger: why it was decided ("swing_start", "new_map",
+    "nominal_moved"); elapsed_s [s] wall time of the selection.
+    """
+
+    leg: Leg
+    step_count: int
+    nominal: FloatArray
+    selected: FloatArray
+    safe_candidate_found: bool
+    safe_candidates: int | None
+    score: float
+    status: VfaStatus
+    trigger: str
+    map_stamp_s: float | None
+    elapsed_s: float
+
+    @property
+    def adapted(self) -> bool:
+        """True if the selection differs from the nominal foothold (by more than 1 um)."""
+        return bool(np.linalg.norm(self.selected - self.nominal) > 1e-6)
+
+
+@dataclass
+class PlannerCounters:
+    """Counts since start: decisions by status and trigger, swings first seen too late to decide."""
+
+    by_status: dict[str, int] = field(default_factory=lambda: {s.value: 0 for s in VfaStatus})
+    by_trigger: dict[str, int] = field(default_factory=lambda: {"swing_start": 0, "new_map": 0, "nominal_moved": 0})
+    adapted: int = 0
+    late_swings: int = 0
+    restarts: int = 0
+
+
+class VfaPlanner:
+    """Per-leg foothold decisions for the swinging legs (see the module docstring).
+
+    hip_offsets_base (4, 3) [m]: the HAA joints in the base frame (they give the heading and the base's
+    rotation centre); foot_radius_m [m]: lift-off foot centre -> terrain point.
+    """
+
+    def __init__(self, selector: SelectorLike, hip_offsets_base: ArrayLike, foot_radius_m: float,
+                 settings: PlannerSettings | None = None) -> None:
+        self.selector = selector
+        self.settings = settings if settings is not None else PlannerSettings()
+        hips = np.asarray(hip_offsets_base, dtype=float)
+        if hips.shape != (NUM_LEGS, 3) or not np.isfinite(hips).all():
+            raise FecConfigError(f"hip_offsets_base must be (4, 3) finite values [m], got shape {hips.shape}")
+        front_to_hind = _front_minus_hind(hips[:, :2])
+        if np.linalg.norm(front_to_hind) < 1e-3:
+            raise FecConfigError("hip_offsets_base: the front and hind hips coincide, no heading can be derived")
+        if not (math.isfinite(foot_radius_m) and foot_radius_m >= 0.0):
+            raise FecConfigError(f"foot_radius_m must be a finite value >= 0 [m], got {foot_radius_m!r}")
+        self._hip_heading_base = math.atan2(front_to_hind[1], front_to_hind[0])
+        self._hip_centre_base = hips[:, :2].mean(axis=0)
+        self.foot_radius_m = float(foot_radius_m)
+        self.counters = PlannerCounters()
+        self.reset()
+
+    @classmethod
+    def for_robot(cls, model: RobotModel, selector: str = "exact", settings: PlannerSettings | None = None,
+                  fec_settings: FecSettings | None = None) -> VfaPlanner:
+        """A planner for ``model`` with the selector called ``selector`` (``make_selector``)."""
+        settings = settings if settings is not None else PlannerSettings()
+        chosen = make_selector(selector, model, max_map_age_s=settings.max_map_age_s, fec_settings=fec_settings)
+        neutral = RobotModel(model.description)  # private copy: updating it must not disturb the caller's
+        height = neutral.nominal_base_height_m
+        neutral.update(neutral.neutral_q(height), np.zeros(neutral.nv))
+        hips = neutral.hip_positions() - np.array([0.0, 0.0, height])
+        return cls(chosen, hips, float(model.description.foot_radius_m), settings)
+
+    def warm_up(self) -> float:
+        """One selection per leg on a flat synthetic map under the standing robot, not counted: builds the
+        selector's caches so that the first real swing does not pay for them. Returns its wall time [s]."""
+        start = time.perf_counter()
+        height = 0.5  # [m] a plausible hip height above the flat map (the result is not used)
+        grid = HeightMapGrid(center_xy=(0.0, 0.0), yaw=0.0, resolution_m=0.02, heights=np.zeros((81, 81)))
+        timing = GaitTiming(step_frequency_hz=1.5, duty_factor=0.6, swing_time_left_s=0.2, step_height_m=0.1)
+        for leg in LEGS:
+            self.selector.select(leg, np.zeros(3), grid, hip_height_m=height, twist=np.zeros(6), gait=timing)
+        return time.perf_counter() - start
+
+    def reset(self) -> None:
+        """Forget the map, the last stamps and every decision (a restarted clock)."""
+        self._grid: HeightMapGrid | None = None
+        self._map_stamp_s: float | None = None
+        self._gait_stamp_s: float | None = None
+        self._decisions: dict[Leg, FootholdDecision] = {}
+        self._late_step: dict[Leg, int] = {}  # the swing of each leg first seen with too little time left
+
+    @property
+    def map_stamp_s(self) -> float | None:
+        """[s] stamp of the map in use (None: no map yet)."""
+        return self._map_stamp_s
+
+    def decision(self, leg: Leg) -> FootholdDecision | None:
+        """The current decision for ``leg``'s swing (None in stance or before the first decision)."""
+        return self._decisions.get(Leg(leg))
+
+    # -- inputs -------------------------------------------------------------------------------------
+    def set_map(self, grid: HeightMapGrid, stamp_s: float) -> bool:
+        """Use ``grid`` (world heights [m], NaN unknown) sampled at ``stamp_s`` [s] from now on. Returns
+        False (and keeps the map in use) for a repeated map: the same stamp as the one in use (the
+        simulator repeats its first sample until the controller answers).
+
+        Raises VfaInputError: stamp before the previous map's (``heightmap_out_of_order``; a jump back
+        of more than ``CLOCK_RESET_S`` restarts the planner instead), heights of +-inf
+        (``heightmap_invalid``)."""
+        if not isinstance(grid, HeightMapGrid):
+            raise VfaInputError("heightmap_invalid", f"heightmap must be a HeightMapGrid, got {type(grid).__name__}")
+        if not math.isfinite(stamp_s):
+            raise VfaInputError("heightmap_invalid", f"heightmap stamp must be finite [s], got {stamp_s!r}")
+        if np.isinf(grid.heights).any():
+            raise VfaInputError("heightmap_invalid", f"heightmap has {int(np.isinf(grid.heights).sum())} infinite "
+                                "height(s) (unknown cells must be NaN)")
+        last = self._map_stamp_s
+        if last is not None and stamp_s == last:
+            return False
+        if last is not None and stamp_s < last:
+            if stamp_s + CLOCK_RESET_S < last:
+                self._restart()
+            else:
+                raise VfaInputError("heightmap_out_of_order", f"heightmap stamp {stamp_s:.6f} s is before the "
+                                    f"previous map's {last:.6f} s")
+        self._grid, self._map_stamp_s = grid, float(stamp_s)
+        return True
+
+    def update(self, gait: GaitSnapshot) -> list[FootholdDecision]:
+        """New or changed decisions for the swinging legs at the gait state's tick (empty: no news).
+
+        Raises VfaInputError when the gait state is not a GaitSnapshot or its stamp is not after the
+        previous one (``gait_state_out_of_order``; a jump back of more than ``CLOCK_RESET_S``
+        restarts the planner instead)."""
+        if not isinstance(gait, GaitSnapshot):
+            raise VfaInputError("gait_state_invalid", f"gait state must be a GaitSnapshot, got {type(gait).__name__}")
+        last = self._gait_stamp_s
+        if last is not None and gait.stamp_s <= last:
+            if gait.stamp_s + CLOCK_RESET_S < last:
+                self._restart()
+            else:
+                raise VfaInputError("gait_state_out_of_order", f"gait state stamp {gait.stamp_s:.6f} s is not "
+                                    f"after the previous one's {last:.6f} s")
+        self._gait_stamp_s = gait.stamp_s
+        news: list[FootholdDecision] = []
+        for leg in LEGS:
+            if not gait.swing[leg]:
+                self._decisions.pop(leg, None)
+                continue
+            trigger = self._trigger(leg, gait)
+            if trigger is None:
+                continue
+            previous = self._decisions.get(leg)
+            decision = self._decide(leg, gait, trigger)
+            self._decisions[leg] = decision
+            self._count(decision)
+            if previous is None or self._differs(previous, decision):
+                news.append(decision)
+        return news
+
+    # -- decisions ----------------------------------------------------------------------------------
+    def _trigger(self, leg: Leg, gait: GaitSnapshot) -> str | None:
+        """Why ``leg`` needs a (new) decision now, or None."""
+        s = self.settings
+        step = int(gait.step_count[leg])
+        previous = self._decisions.get(leg)
+        if previous is not None and previous.step_count != step:
+            previous = None  # a new swing began without a stance tick in between (e.g. a skipped tick)
+        if gait.time_to_touchdown_s[leg] < s.min_swing_time_left_s:
+            if previous is None and self._late_step.get(leg) != step:
+                self._late_step[leg] = step
+                self.counters.late_swings += 1
+            return None
+        if previous is None:
+            return "swing_start"
+        if s.reevaluate_on_new_map and self._map_stamp_s is not None and previous.map_stamp_s != self._map_stamp_s:
+            return "new_map"
+        if np.linalg.norm(gait.nominal_foothold[leg, :2] - previous.nominal[:2]) > s.nominal_shift_threshold_m:
+            return "nominal_moved"
+        return None
+
+    def _decide(self, leg: Leg, gait: GaitSnapshot, trigger: str) -> FootholdDecision:
+        timing = GaitTiming(
+            step_frequency_hz=float(gait.step_frequency_hz), duty_factor=float(gait.duty_factor),
+            swing_time_left_s=0.0, step_height_m=float(gait.step_height_m))
+        # The scheduler's time to touchdown may exceed (1 - D) / f by rounding or during a gait switch.
+        time_left = float(np.clip(gait.time_to_touchdown_s[leg], 0.0, timing.swing_duration_s))
+        timing = GaitTiming(timing.step_frequency_hz, timing.duty_factor, time_left, timing.step_height_m)
+        yaw = self._heading(gait.hip_position)
+        hip = gait.hip_position[leg]
+        liftoff = gait.liftoff_position[leg] - np.array([0.0, 0.0, self.foot_radius_m])
+        map_age = math.inf if self._map_stamp_s is None else abs(gait.stamp_s - self._map_stamp_s)
+        start = time.perf_counter()
+        result = self.selector.select(
+            leg, gait.nominal_foothold[leg], self._grid, hip_height_m=float(hip[2]), twist=gait.base_twist,
+            gait=timing, yaw=yaw, map_age_s=0.0 if self._grid is None else map_age, liftoff_world=liftoff,
+            hip_touchdown_world=self._hip_at_touchdown(leg, gait, yaw, time_left))
+        elapsed = time.perf_counter() - start
+        evaluated = result.status in (VfaStatus.SELECTED, VfaStatus.NO_SAFE_CANDIDATE)
+        score = float(getattr(result, "score", 1.0)) if evaluated else 0.0
+        count = result.safe_candidates
+        return FootholdDecision(
+            leg=leg, step_count=int(gait.step_count[leg]), nominal=gait.nominal_foothold[leg].copy(),
+            selected=np.asarray(result.selected, dtype=float).copy(), safe_candidate_found=bool(result.any_safe),
+            safe_candidates=None if count is None else int(count), score=score, status=result.status,
+            trigger=trigger, map_stamp_s=self._map_stamp_s, elapsed_s=elapsed)
+
+    def _heading(self, hip_world: FloatArray) -> float:
+        """[rad] world yaw of the base: direction of the front hips seen from the hind hips, minus the same
+        direction in the base frame (exact for any roll and pitch: it is the base x axis' projection)."""
+        d = _front_minus_hind(hip_world[:, :2])
+        return math.remainder(math.atan2(d[1], d[0]) - self._hip_heading_base, 2.0 * math.pi)
+
+    def _hip_at_touchdown(self, leg: Leg, gait: GaitSnapshot, yaw: float, time_left_s: float) -> FloatArray:
+        """(2,) [m] world x, y of ``leg``'s HAA joint at touchdown: moved by the commanded hip velocity
+        v + w_z x r (r from the base origin, on the level base) over the time left."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        rotation = np.array([[c, -s], [s, c]])
+        base_xy = gait.hip_position[:, :2].mean(axis=0) - rotation @ self._hip_centre_base
+        r = gait.hip_position[leg, :2] - base_xy
+        velocity = rotation @ gait.base_twist[:2] + gait.base_twist[5] * np.array([-r[1], r[0]])
+        return gait.hip_position[leg, :2] + velocity * time_left_s
+
+    def _differs(self, previous: FootholdDecision, decision: FootholdDecision) -> bool:
+        moved = np.linalg.norm(decision.selected - previous.selected) > self.settings.selection_tolerance_m
+        return bool(moved or decision.status is not previous.status)
+
+    def _count(self, decision: FootholdDecision) -> None:
+        self.counters.by_status[decision.status.value] += 1
+        self.counters.by_trigger[decision.trigger] += 1
+        self.counters.adapted += int(decision.adapted)
+
+    def _restart(self) -> None:
+        self.counters.restarts += 1
+        self.reset()
+
+
+def _front_minus_hind(hips_xy: FloatArray) -> FloatArray:
+    """(2,) mean of the front hips (LF, RF) minus mean of the hind hips (LH, RH)."""
+    return 0.5 * (hips_xy[Leg.LF] + hips_xy[Leg.RF] - hips_xy[Leg.LH] - hips_xy[Leg.RH])
+
+
+def _finite_array(value: object, shape: tuple[int, ...], name: str) -> FloatArray:
+    try:
+        array = np.array(value, dtype=float)
+    except (TypeError, ValueError) as error:
+        raise VfaInputError("gait_state_invalid", f"gait state: {name}: not a float array ({error})") from None
+    if array.shape != shape:
+        raise VfaInputError("gait_state_size", f"gait state: {name} must have shape {shape}, got {array.shape}")
+    if not np.isfinite(array).all():
+        bad = sorted({int(i) for i in np.argwhere(~np.isfinite(array))[:, 0]})
+        where = [LEGS[i].name for i in bad] if shape[0] == NUM_LEGS and name != "base_twist" else bad
+        raise VfaInputError("gait_state_nan", f"gait state: {name} has NaN/inf at {where}")
+    return array
+
+
+__all__ = ["CLOCK_RESET_S", "SELECTORS", "FootholdDecision", "GaitSnapshot", "PlannerCounters", "PlannerSettings",
+           "SelectorLike", "VfaPlanner", "make_selector"]

@@ -1,0 +1,241 @@
+"""VFA planner: one decision per swing (re-decided on a new map or a moved nominal), adaptation around
+gaps, flagged pass-through without a usable map, precise errors on malformed gait states and maps."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from tal_core.errors import InputError
+from tal_core.heightmap import HeightMapGrid, extract_heightmap
+from tal_core.legs import Leg
+from tal_core.robot_model import RobotModel
+from tal_core.terrain import Course, DefaultGround, GapPatch, Region
+from tal_perception.errors import FecConfigError, VfaInputError
+from tal_perception.vfa import FootholdSelector, VfaStatus
+from tal_perception.vfa_planner import GaitSnapshot, PlannerSettings, VfaPlanner, make_selector
+
+RIGID = {"stiffness_n_per_m": 2e6, "damping_ns_per_m": 400.0}
+TROT = {"step_frequency_hz": 1.5, "duty_factor": 0.6, "step_height_m": 0.1}  # swing 0.267 s, stance 0.4 s
+SPEED = 0.3  # [m/s] forward
+
+
+@pytest.fixture(scope="module")
+def hips_base(hyq: RobotModel) -> np.ndarray:
+    """(4, 3) [m] HAA joints in the base frame."""
+    model = RobotModel(hyq.description)
+    height = model.nominal_base_height_m
+    model.update(model.neutral_q(height), np.zeros(model.nv))
+    return model.hip_positions() - np.array([0.0, 0.0, height])
+
+
+@pytest.fixture
+def planner(selector: FootholdSelector, hips_base: np.ndarray, hyq: RobotModel) -> VfaPlanner:
+    return VfaPlanner(selector, hips_base, hyq.description.foot_radius_m)
+
+
+def snapshot(hips_base: np.ndarray, hip_height: float, *, stamp_s: float = 1.0, swing=(True, False, False, True),
+             time_left_s: float = 0.2, step_count=(3, 2, 2, 3), base_xy=(0.0, 0.0), yaw: float = 0.0,
+             nominal_shift_m=(0.0, 0.0), **overrides) -> GaitSnapshot:
+    """A trotting HyQ heading ``yaw``, at ``base_xy`` at 1 s and moving at SPEED, LF and RH swinging:
+    Raibert nominals (the hip moved over the time left plus half a stance), lift-off one step behind,
+    feet on z = 0. Stamps and times left that advance together keep the nominals in place."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    velocity = rotation @ np.array([SPEED, 0.0, 0.0])
+    hips = np.array([*base_xy, 0.0]) + velocity * (stamp_s - 1.0) + hips_base @ rotation.T
+    hips[:, 2] = hip_height
+    ahead = velocity * (time_left_s + 0.5 * TROT["duty_factor"] / TROT["step_frequency_hz"])
+    nominal = hips + ahead
+    nominal[:, 2] = 0.0
+    nominal[:, :2] += np.asarray(nominal_shift_m)
+    liftoff = nominal - velocity / TROT["step_frequency_hz"]
+    liftoff[:, 2] = 0.02175  # foot centre on the ground
+    fields = {
+        "stamp_s": stamp_s, **TROT, "base_twist": np.array([SPEED, 0.0, 0.0, 0.0, 0.0, 0.0]),
+        "swing": np.array(swing), "time_to_touchdown_s": np.where(swing, time_left_s, 0.0),
+        "step_count": np.array(step_count), "liftoff_position": liftoff, "nominal_foothold": nominal,
+        "hip_position": hips,
+    }
+    fields.update(overrides)
+    return GaitSnapshot(**fields)
+
+
+def course_map(*patches, center=(0.0, 0.0), yaw: float = 0.0, cells: int = 121) -> HeightMapGrid:
+    course = Course("test", Region(-3, 3, -3, 3), DefaultGround(height_m=0.0, **RIGID), tuple(patches))
+    return extract_heightmap(course, center, yaw, cells, cells, 0.02)
+
+
+def gap_across_x(x: float, half_width_m: float = 0.06) -> GapPatch:
+    return GapPatch(name="gap", region=Region(x - half_width_m, x + half_width_m, -3, 3), depth_m=0.3,
+                    start_height_m=0.0, **RIGID)
+
+
+def test_flat_ground_keeps_the_nominal_with_one_decision_per_swing(planner, hips_base, hip_height) -> None:
+    planner.set_map(course_map(), 0.98)
+    first = snapshot(hips_base, hip_height)
+    decisions = planner.update(first)
+    assert [d.leg for d in decisions] == [Leg.LF, Leg.RH]
+    for d in decisions:
+        assert d.status is VfaStatus.SELECTED and d.safe_candidate_found and d.score == 1.0
+        assert d.trigger == "swing_start" and d.step_count == first.step_count[d.leg] and not d.adapted
+        np.testing.assert_allclose(d.selected, first.nominal_foothold[d.leg], atol=1e-9)
+        assert d.elapsed_s > 0.0
+    # Later ticks of the same swings (same map, same nominal): no news, no new evaluation.
+    for k in range(1, 5):
+        assert planner.update(snapshot(hips_base, hip_height, stamp_s=1.0 + 0.004 * k, time_left_s=0.2 - 0.004 * k)) == []
+    assert planner.counters.by_trigger == {"swing_start": 2, "new_map": 0, "nominal_moved": 0}
+    # Stance, then the next swing of LF (step 4): a new decision.
+    planner.update(snapshot(hips_base, hip_height, stamp_s=1.3, swing=(False, False, False, False)))
+    assert planner.decision(Leg.LF) is None
+    nxt = planner.update(snapshot(hips_base, hip_height, stamp_s=1.31, swing=(True, False, False, False),
+                                  step_count=(4, 2, 2, 3)))
+    assert [(d.leg, d.step_count) for d in nxt] == [(Leg.LF, 4)]
+
+
+def test_gap_under_the_nominal_moves_the_foothold_to_safe_ground(planner, hips_base, hip_height) -> None:
+    gait = snapshot(hips_base, hip_height)
+    lf_nominal = gait.nominal_foothold[Leg.LF]
+    grid = course_map(gap_across_x(lf_nominal[0]))
+    planner.set_map(grid, 1.0)
+    lf = {d.leg: d for d in planner.update(gait)}[Leg.LF]
+    assert lf.status is VfaStatus.SELECTED and lf.safe_candidate_found and lf.adapted
+    assert lf.selected[2] == pytest.approx(0.0)  # on the ground, not in the gap (-0.3 m)
+    assert abs(lf.selected[0] - lf_nominal[0]) >= 0.06 + 0.03  # beyond the gap edge and the margins
+    assert lf.selected[1] == pytest.approx(lf_nominal[1], abs=0.02)
+
+
+def test_robot_heading_comes_from_the_hips(planner, hips_base, hip_height) -> None:
+    """Walking along +y (yaw pi/2) towards a gap across y: the foothold moves along y, off the gap."""
+    gait = snapshot(hips_base, hip_height, yaw=math.pi / 2, base_xy=(1.0, -0.5))
+    lf_nominal = gait.nominal_foothold[Leg.LF]
+    gap = GapPatch(name="gap", region=Region(-3, 3, lf_nominal[1] - 0.06, lf_nominal[1] + 0.06), depth_m=0.3,
+                   start_height_m=0.0, **RIGID)
+    planner.set_map(course_map(gap, center=(1.0, -0.5), yaw=math.pi / 2), 1.0)
+    lf = {d.leg: d for d in planner.update(gait)}[Leg.LF]
+    assert lf.adapted and lf.selected[2] == pytest.approx(0.0)
+    assert abs(lf.selected[1] - lf_nominal[1]) >= 0.09 and lf.selected[0] == pytest.approx(lf_nominal[0], abs=0.02)
+
+
+def test_missing_or_stale_map_passes_the_nominal_through_flagged(planner, hips_base, hip_height) -> None:
+    gait = snapshot(hips_base, hip_height)
+    for d in planner.update(gait):
+        assert d.status is VfaStatus.NO_MAP and not d.safe_candidate_found and d.score == 0.0
+        np.testing.assert_array_equal(d.selected, gait.nominal_foothold[d.leg])
+    # A map 1 s older than the gait state (max age 0.5 s): re-decided (new map), stale.
+    planner.set_map(course_map(), 0.0)
+    stale = planner.update(snapshot(hips_base, hip_height, stamp_s=1.004, time_left_s=0.196))
+    assert planner.counters.by_trigger["new_map"] == 2 and planner.counters.by_status["stale_map"] == 2
+    assert [d.status for d in stale] == [VfaStatus.STALE_MAP] * 2
+    # A fresh map: evaluated.
+    planner.set_map(course_map(), 1.0)
+    fresh = planner.update(snapshot(hips_base, hip_height, stamp_s=1.008, time_left_s=0.192))
+    assert [d.status for d in fresh] == [VfaStatus.SELECTED] * 2 and all(d.score == 1.0 for d in fresh)
+
+
+def test_unknown_cells_are_never_selected(planner, hips_base, hip_height) -> None:
+    gait = snapshot(hips_base, hip_height)
+    heights = np.array(course_map().heights)
+    lf = gait.nominal_foothold[Leg.LF]
+    row, col = int(round(lf[0] / 0.02)) + 60, int(round(lf[1] / 0.02)) + 60
+    heights[row - 4:row + 5, col - 4:col + 5] = np.nan  # 9 x 9 unknown cells around LF's nominal
+    grid = HeightMapGrid(center_xy=(0.0, 0.0), yaw=0.0, resolution_m=0.02, heights=heights)
+    planner.set_map(grid, 1.0)
+    decision = {d.leg: d for d in planner.update(gait)}[Leg.LF]
+    assert decision.safe_candidate_found and decision.adapted and np.isfinite(decision.selected).all()
+    assert np.max(np.abs(decision.selected[:2] - lf[:2])) >= 5 * 0.02  # out of the block and its margin
+    # Nothing known at all: no safe candidate, the nominal passes through flagged, nothing raises.
+    planner.set_map(HeightMapGrid(center_xy=(0.0, 0.0), yaw=0.0, resolution_m=0.02,
+                                  heights=np.full((121, 121), np.nan)), 1.002)
+    blind = planner.update(snapshot(hips_base, hip_height, stamp_s=1.004, time_left_s=0.196))
+    assert {d.status for d in blind} == {VfaStatus.NO_SAFE_CANDIDATE}
+    assert not any(d.safe_candidate_found for d in blind) and all(d.score == 1.0 for d in blind)
+
+
+def test_new_map_or_moved_nominal_re_decides_during_the_swing(planner, hips_base, hip_height) -> None:
+    gait = snapshot(hips_base, hip_height)
+    planner.set_map(course_map(), 1.0)
+    planner.update(gait)
+    # A newer, identical map: re-evaluated, nothing changed, nothing to report.
+    planner.set_map(course_map(), 1.05)
+    assert planner.update(snapshot(hips_base, hip_height, stamp_s=1.05, time_left_s=0.15)) == []
+    assert planner.counters.by_trigger["new_map"] == 2
+    # A map showing a gap under LF's nominal: re-decided and reported (adapted) for LF only.
+    planner.set_map(course_map(gap_across_x(gait.nominal_foothold[Leg.LF, 0])), 1.1)
+    news = planner.update(snapshot(hips_base, hip_height, stamp_s=1.1, time_left_s=0.1))
+    assert [(d.leg, d.trigger, d.adapted) for d in news] == [(Leg.LF, "new_map", True)]
+    # The nominal moves 3 cm sideways (> 2 cm threshold) on flat ground: re-decided, follows it.
+    planner.set_map(course_map(), 1.104)
+    planner.update(snapshot(hips_base, hip_height, stamp_s=1.104, time_left_s=0.096))
+    moved = snapshot(hips_base, hip_height, stamp_s=1.108, time_left_s=0.092, nominal_shift_m=(0.0, 0.03))
+    news = planner.update(moved)
+    assert {d.trigger for d in news} == {"nominal_moved"}
+    for d in news:
+        np.testing.assert_allclose(d.selected, moved.nominal_foothold[d.leg], atol=1e-9)
+
+
+def test_swings_with_too_little_time_left_are_not_decided(planner, hips_base, hip_height) -> None:
+    planner.set_map(course_map(), 1.0)
+    assert planner.update(snapshot(hips_base, hip_height, time_left_s=0.05)) == []
+    assert planner.update(snapshot(hips_base, hip_height, stamp_s=1.004, time_left_s=0.046)) == []
+    assert planner.counters.late_swings == 2  # LF and RH, each counted once per swing
+    assert sum(planner.counters.by_status.values()) == 0
+
+
+def test_malformed_gait_states_raise_precise_input_errors(hips_base, hip_height) -> None:
+    good = snapshot(hips_base, hip_height)
+    nominal = good.nominal_foothold.copy()
+    nominal[Leg.RH, 1] = np.nan
+    cases = [
+        ({"nominal_foothold": nominal}, "gait_state_nan", r"nominal_foothold has NaN/inf at \['RH'\]"),
+        ({"hip_position": good.hip_position[:3]}, "gait_state_size", r"hip_position must have shape \(4, 3\)"),
+        ({"base_twist": [0.3, 0.0, math.inf, 0.0, 0.0, 0.0]}, "gait_state_nan", r"base_twist has NaN/inf at \[2\]"),
+        ({"swing": np.array([True, False, False])}, "gait_state_size", r"swing must have 4 values"),
+        ({"stamp_s": math.nan}, "gait_state_nan", r"stamp_s must be a finite number"),
+        ({"duty_factor": 1.0}, "gait_state_invalid", r"duty_factor in \(0, 1\) \(got 1.0\)"),
+        ({"time_to_touchdown_s": np.array([-0.1, 0.0, 0.0, 0.2])}, "gait_state_invalid",
+         r"time_to_touchdown_s < 0 for swinging leg\(s\) LF"),
+        ({"step_count": np.array([1, 2, -1, 3])}, "gait_state_invalid", r"step_count must be integers >= 0"),
+    ]
+    for change, reason, message in cases:
+        fields = {f.name: getattr(good, f.name) for f in dataclasses.fields(GaitSnapshot)}
+        fields.update(change)
+        with pytest.raises(InputError, match=message) as info:
+            GaitSnapshot(**fields)
+        assert info.value.reason == reason
+
+
+def test_out_of_order_stamps_are_rejected_and_a_restarted_clock_restarts(planner, hips_base, hip_height) -> None:
+    grid = course_map()
+    planner.set_map(grid, 1.0)
+    with pytest.raises(VfaInputError, match=r"heightmap stamp 0.950000 s is before the previous map's 1.000000 s") as info:
+        planner.set_map(grid, 0.95)
+    assert info.value.reason == "heightmap_out_of_order" and planner.map_stamp_s == 1.0
+    assert planner.set_map(course_map(gap_across_x(0.5)), 1.0) is False  # a repeated map: the first one stays
+    assert not np.isnan(planner._grid.heights).any() and planner._grid.heights.min() == 0.0
+    planner.update(snapshot(hips_base, hip_height, stamp_s=1.0))
+    with pytest.raises(VfaInputError, match=r"gait state stamp 0.996000 s is not after") as info:
+        planner.update(snapshot(hips_base, hip_height, stamp_s=0.996))
+    assert info.value.reason == "gait_state_out_of_order"
+    inf_heights = np.array(grid.heights)
+    inf_heights[0, 0] = np.inf
+    with pytest.raises(VfaInputError, match=r"1 infinite height\(s\)"):
+        planner.set_map(HeightMapGrid(center_xy=(0.0, 0.0), yaw=0.0, resolution_m=0.02, heights=inf_heights), 2.0)
+    # The simulation restarted (stamps 1 s back): the planner starts afresh instead of rejecting forever.
+    planner.set_map(grid, 0.0)
+    assert planner.counters.restarts == 1 and planner.decision(Leg.LF) is None
+    assert len(planner.update(snapshot(hips_base, hip_height, stamp_s=0.004))) == 2
+
+
+def test_selector_and_settings_are_validated(hyq: RobotModel) -> None:
+    with pytest.raises(FecConfigError, match=r"selector must be one of \['exact'\], got 'cnn'"):
+        make_selector("cnn", hyq, max_map_age_s=0.5)
+    with pytest.raises(FecConfigError, match=r"PlannerSettings.max_map_age_s must be > 0, got 0.0"):
+        PlannerSettings(max_map_age_s=0.0)
+    with pytest.raises(FecConfigError, match=r"PlannerSettings.nominal_shift_threshold_m must be a finite number"):
+        PlannerSettings(nominal_shift_threshold_m=math.nan)
+    planner = VfaPlanner.for_robot(hyq, "exact", PlannerSettings(max_map_age_s=0.2))
+    assert isinstance(planner.selector, FootholdSelector) and planner.selector.max_map_age_s == 0.2
