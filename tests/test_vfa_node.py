@@ -1,6 +1,6 @@
 """The vfa node in a real rclpy graph: it adapts footholds around a gap in the heightmap, passes the
 nominal through flagged without a map, rejects (and counts) bad messages without stopping, reports on
-/diagnostics and refuses invalid parameters at start-up."""
+vfa/diagnostics and refuses invalid parameters at start-up."""
 
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ class FakeWbc:
         self.footholds: list[FootholdArray] = []
         self.diagnostics: list[DiagnosticArray] = []
         self.node.create_subscription(FootholdArray, "footholds", self.footholds.append, 10)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
+        self.node.create_subscription(DiagnosticArray, "vfa/diagnostics", self.diagnostics.append, 10)
 
     def matched(self) -> bool:
         return (self.gait.get_subscription_count() >= 1 and self.maps.get_subscription_count() >= 1
@@ -136,7 +136,7 @@ def test_passes_the_nominal_through_without_a_map_and_adapts_around_a_gap(contex
         assert lf.safe_candidate_found and lf.score == 1.0 and lf.safe_candidates >= 1
         assert abs(lf.selected.x - wbc.nominal(0)[0]) >= 0.09 and lf.selected.z == pytest.approx(0.0)
         assert (rh.selected.x, rh.selected.y, rh.selected.z) == pytest.approx(tuple(wbc.nominal(3)))
-        # Diagnostics on /diagnostics: decisions by status and the selection time.
+        # Diagnostics on vfa/diagnostics: decisions by status and the selection time.
         assert spin_until(executor, lambda: any(
             dict((kv.key, kv.value) for kv in d.status[0].values).get("decisions_selected") == "2"
             for d in wbc.diagnostics), 5.0)

@@ -3,7 +3,7 @@
 Subscribes: ``gait_state`` (tal_msgs/GaitState, from the wbc), ``terrain/heightmap`` (tal_msgs/HeightMap).
 Publishes: ``footholds`` (tal_msgs/FootholdArray: the new or changed decisions of one gait-state tick,
 header stamp = that gait state's stamp, frame "world"; nothing when there is no news) and
-``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s`` of node time:
+``vfa/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s`` of node time:
 decisions by status and trigger, rejections by reason, selection time median/max).
 
 The selection runs in the gait-state callback (the exact lazy selection took a median of 2-6 ms per
@@ -101,7 +101,7 @@ class VfaNode(Node):
         self.published_footholds = 0
 
         self.pub_footholds = self.create_publisher(FootholdArray, "footholds", 10)
-        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "vfa/diagnostics", 10)
         self.create_subscription(GaitState, "gait_state", self._on_gait_state, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         self.create_timer(self.diagnostics_period_s, self._publish_diagnostics)
