@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -99,32 +100,52 @@ def encode(
     heights = np.asarray(heights, dtype=np.float32)
     hip = np.asarray(hip_height_m, dtype=np.float32)
     b = heights.shape[0]
+    coordinates, twist_scale, gait_centre, gait_scale = _constants(cfg)
     unknown = np.isnan(heights)
-    relative = heights - (hip - cfg.nominal_hip_height_m)[:, None, None]
-    relative = np.clip(np.where(unknown, 0.0, relative), -cfg.height_clip_m, cfg.height_clip_m) / cfg.height_scale_m
-    # Channels 2 and 3: row and column offset of the cell from the centre in [-1, 1] ("CoordConv"): the
-    # optimum is defined by its distance from the centre, which convolutions alone do not see.
-    offsets = (np.arange(cfg.cells, dtype=np.float32) - cfg.cells // 2) / (cfg.cells // 2)
-    rows = np.broadcast_to(offsets[:, None], relative.shape[1:])
-    cols = np.broadcast_to(offsets[None, :], relative.shape[1:])
     image = np.empty((b, IMAGE_CHANNELS, cfg.cells, cfg.cells), np.float32)
-    image[:, 0], image[:, 1], image[:, 2], image[:, 3] = relative, unknown, rows, cols
-    known_counts = (~unknown).reshape(b, -1).sum(axis=1)
-    median = np.zeros(b, np.float32)
-    has_known = known_counts > 0
-    if has_known.any():
-        median[has_known] = np.nanmedian(heights[has_known].reshape(int(has_known.sum()), -1), axis=1)
-    hip_above = np.where(has_known, hip - median - cfg.nominal_hip_height_m, 0.0) / cfg.hip_scale_m
+    relative = image[:, 0]
+    np.subtract(heights, (hip - cfg.nominal_hip_height_m)[:, None, None], out=relative)
+    relative[unknown] = 0.0
+    np.minimum(np.maximum(relative, -cfg.height_clip_m, out=relative), cfg.height_clip_m, out=relative)
+    relative /= cfg.height_scale_m
+    image[:, 1] = unknown
+    image[:, 2:] = coordinates
+    hip_above = np.zeros(b, np.float32)  # 0 when nothing is known
+    for i in range(b):
+        known = heights[i][~unknown[i]]
+        if known.size:
+            hip_above[i] = (hip[i] - _median(known) - cfg.nominal_hip_height_m) / cfg.hip_scale_m
     twist = np.asarray(twist, dtype=np.float32)
     gait = np.asarray(gait, dtype=np.float32)
-    swing = (1.0 - gait[:, 1]) / gait[:, 0]
-    scalars = np.empty((b, cfg.scalar_count), np.float32)
+    scalars = np.zeros((b, cfg.scalar_count), np.float32)
     scalars[:, 0] = hip_above
-    scalars[:, 1:4] = twist[:, [0, 1, 5]] / np.array(cfg.twist_scale, np.float32)
-    scalars[:, 4:8] = (gait - np.array(cfg.gait_centre, np.float32)) / np.array(cfg.gait_scale, np.float32)
-    scalars[:, 8] = gait[:, 2] / swing  # fraction of the swing still to go
-    scalars[:, 9:] = np.eye(len(LEGS), dtype=np.float32)[np.asarray(leg, dtype=np.intp)]
+    scalars[:, 1:4] = twist[:, [0, 1, 5]] / twist_scale
+    scalars[:, 4:8] = (gait - gait_centre) / gait_scale
+    scalars[:, 8] = gait[:, 2] / ((1.0 - gait[:, 1]) / gait[:, 0])  # fraction of the swing still to go
+    scalars[np.arange(b), 9 + np.asarray(leg, dtype=np.intp)] = 1.0  # one-hot leg
     return image, scalars
+
+
+@lru_cache(maxsize=4)
+def _constants(cfg: EncodingConfig) -> tuple[NDArray[np.float32], ...]:
+    """Per-configuration constants of ``encode``: the coordinate channels (2, n, n) and the scalar scales.
+
+    Channels 2 and 3 are the cell's row and column offset from the centre in [-1, 1] ("CoordConv"): the
+    optimum is defined by its distance from the centre, which convolutions alone do not see."""
+    offsets = (np.arange(cfg.cells, dtype=np.float32) - cfg.cells // 2) / (cfg.cells // 2)
+    rows, cols = np.meshgrid(offsets, offsets, indexing="ij")
+    coordinates = np.stack([rows, cols]).astype(np.float32)
+    scales = (np.array(v, np.float32) for v in (cfg.twist_scale, cfg.gait_centre, cfg.gait_scale))
+    return (coordinates, *scales)
+
+
+def _median(values: NDArray[np.float32]) -> float:
+    """Median of a non-empty 1-D array (np.median's result, without its overhead: ~10 us instead of ~50)."""
+    k = values.size // 2
+    if values.size % 2:
+        return float(np.partition(values, k)[k])
+    middle = np.partition(values, (k - 1, k))
+    return float(0.5 * (middle[k - 1] + middle[k]))
 
 
 class VfaNet(nn.Module):
