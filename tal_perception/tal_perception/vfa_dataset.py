@@ -180,7 +180,7 @@ def closest_safe_index(safe: NDArray[np.bool_], order: NDArray[np.intp] | None =
 
 
 def random_tuple(
-    rng: np.random.Generator, leg: Leg, cells: int, resolution_m: float
+    rng: np.random.Generator, cells: int, resolution_m: float
 ) -> tuple[str, NDArray[np.float32], float, NDArray[np.float64], GaitTiming]:
     """One random VFA tuple (kind, heights float32 [m], hip height [m], twist (6,), gait); see the module doc."""
     kinds = tuple(TERRAIN_MIX)
@@ -230,7 +230,7 @@ def generate(
     label = np.empty(total, np.int16)
     for i, (leg, k) in enumerate(tqdm(jobs, desc=description, unit="sample", disable=not progress)):
         rng = np.random.default_rng([seed, LEGS.index(leg), k])
-        kind, h, z_hip, tw, timing = random_tuple(rng, leg, n, s.resolution_m)
+        kind, h, z_hip, tw, timing = random_tuple(rng, n, s.resolution_m)
         # Round the stored inputs to float32 first, so that the label is exactly that of the stored sample.
         heights[i], hip[i], twist[i] = h, z_hip, tw
         gait[i] = (timing.step_frequency_hz, timing.duty_factor, timing.swing_time_left_s, timing.step_height_m)
@@ -274,7 +274,8 @@ def load_or_generate(
     if path.exists():
         data = VfaDataset.load(path)
         if data.seed == seed and len(data) >= count * len(LEGS):
-            LOG.info("using the cached dataset %s (%d of its %d samples, seed %d)", path, count * 4, len(data), seed)
+            used = count * len(LEGS)
+            LOG.info("using the cached dataset %s (%d of its %d samples, seed %d)", path, used, len(data), seed)
             return data if len(data) == count * len(LEGS) else data.subset(np.arange(count * len(LEGS)))
         LOG.info("cached %s has another seed or size; regenerating", path)
     data = generate(evaluator, seed, count, description=description)
