@@ -1,0 +1,193 @@
+#!/usr/bin/env python3
+"""Time of the CNN-approximated VFA (g_hat) per leg on HyQ, on the seeded terrains of bench_vfa.
+
+Run after ``source scripts/env.sh``:  ``python bench/bench_vfa_cnn.py [--quick] [--samples N] [--seed S]``.
+Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/bench_vfa_cnn.json``.
+
+Inputs: the same cases as ``bench_vfa.py`` (``make_cases``: 65 x 65 maps of 0.02 m around the nominal
+foothold at random headings, random hip height, twist and time left in a trot swing). The committed
+weights (``tal_perception/models/vfa_cnn.pt``), torch on one CPU thread, ``torch.inference_mode``.
+Per call we time (time.perf_counter, after a warm-up call), in ``--rounds`` alternating rounds pooled:
+
+* ``cnn``: ``CnnFootholdSelector.select`` for one leg, no verification (patch extraction, encoding, one
+  forward pass, the argmax and the result);
+* ``cnn_4legs``: ``select_legs`` for the four legs on one map (one batched forward pass); the time per
+  leg is the call's time / 4;
+* ``cnn_verified``: ``select`` with the verification the node uses (the exact FEC on the chosen candidate,
+  the exact lazy search if it is unsafe); the table counts how often it fell back.
+
+Thesis figure: CNN VFA 3.5 ms +- 1 ms per leg (mean); goal <= 0.5 ms. A benchmark, never a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_vfa import _cpu_snapshot, _other_cores_busy, make_cases, stats, wait_for_quiet_machine
+from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+
+try:
+    import torch
+
+    from tal_core.legs import LEGS
+    from tal_core.robot_model import RobotModel
+    from tal_perception.fec import FootholdEvaluator
+    from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, CnnFootholdSelector, FootholdRequest, load_model
+except ImportError as _exc:  # environment problem, not a benchmark result
+    raise SystemExit(f"bench_vfa_cnn: {_exc}; run it after `source scripts/env.sh`") from None
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT_DIR = ROOT / "bench" / "out"
+JSON_PATH = OUT_DIR / "bench_vfa_cnn.json"
+THESIS_MEAN_MS = 3.5
+GOAL_MS = 0.5
+DEFAULT_SAMPLES = 200
+QUICK_SAMPLES = 40
+DEFAULT_SEED = 20240601  # bench_vfa's seed: the same inputs as the exact VFA's bench
+MODES = ("cnn", "cnn_4legs", "cnn_verified")
+
+
+def progress(message: str) -> None:
+    print(f"[bench_vfa_cnn] {message}", file=sys.stderr, flush=True)
+
+
+def _kwargs(case: dict) -> dict:
+    return {"hip_height_m": case["hip"], "twist": case["twist"], "gait": case["gait"], "yaw": case["grid"].yaw}
+
+
+def run_single(selector: CnnFootholdSelector, cases: list[dict], verify: bool) -> dict[str, dict]:
+    """One ``select`` call per leg and case; times [ms] per leg."""
+    selector.verify = verify
+    out: dict[str, dict] = {}
+    for leg in LEGS:
+        first = cases[0]
+        selector.select(leg, first["nominal"], first["grid"], **_kwargs(first))  # warm-up
+        before = selector.counters.rejected
+        times, adapted = [], 0
+        for case in cases:
+            start = time.perf_counter()
+            result = selector.select(leg, case["nominal"], case["grid"], **_kwargs(case))
+            times.append((time.perf_counter() - start) * 1e3)
+            adapted += int(result.adapted)
+        out[leg.name] = {"ms": times, "adapted": adapted, "fallbacks": selector.counters.rejected - before}
+    return out
+
+
+def run_batch(selector: CnnFootholdSelector, cases: list[dict]) -> dict[str, dict]:
+    """One ``select_legs`` call for the 4 legs per case; times [ms] per call and per leg."""
+    selector.verify = False
+
+    def requests(case: dict) -> list[FootholdRequest]:
+        return [FootholdRequest(leg, case["nominal"], case["hip"], case["twist"], case["gait"]) for leg in LEGS]
+
+    selector.select_legs(requests(cases[0]), cases[0]["grid"], yaw=cases[0]["grid"].yaw)  # warm-up
+    times = []
+    for case in cases:
+        batch = requests(case)
+        start = time.perf_counter()
+        selector.select_legs(batch, case["grid"], yaw=case["grid"].yaw)
+        times.append((time.perf_counter() - start) * 1e3)
+    return {"4legs": {"ms": times, "ms_per_leg": [t / len(LEGS) for t in times]}}
+
+
+def report(summary: dict, n: int) -> str:
+    lines = [
+        "| leg | CNN median [ms] | p99 [ms] | CNN + verification median [ms] | p99 [ms] | fallbacks to exact |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for leg in LEGS:
+        cnn, ver = summary["cnn"][leg.name], summary["cnn_verified"][leg.name]
+        lines.append(
+            f"| {leg.name} | {cnn['stats']['median']:.3f} | {cnn['stats']['p99']:.3f} | "
+            f"{ver['stats']['median']:.3f} | {ver['stats']['p99']:.3f} | {ver['fallbacks']}/{ver['stats']['n']} |"
+        )
+    batch = summary["cnn_4legs"]["4legs"]
+    lines.append(
+        f"\n4-leg batch (`select_legs`): median {batch['stats']['median']:.3f} ms per call "
+        f"(p99 {batch['stats']['p99']:.3f}), i.e. {batch['per_leg_stats']['median']:.3f} ms per leg "
+        f"(p99 {batch['per_leg_stats']['p99']:.3f}); {n} terrains."
+    )
+    lines.append(f"Thesis: CNN VFA {THESIS_MEAN_MS} ms +- 1 ms per leg (mean); goal <= {GOAL_MS} ms.")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help=f"{QUICK_SAMPLES} terrains instead of {DEFAULT_SAMPLES}")
+    parser.add_argument("--samples", type=int, default=None, help="number of terrains (per leg)")
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the modes, pooled (default 3)")
+    parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
+    parser.add_argument(
+        "--wait-quiet", type=float, default=0.0, metavar="S",
+        help="first wait up to S seconds for 5 s in which other processes use < 0.15 cores (shared machines)",
+    )  # fmt: skip
+    args = parser.parse_args()
+    n = args.samples or (QUICK_SAMPLES if args.quick else DEFAULT_SAMPLES)
+    if n < 5 or args.rounds < 1:
+        parser.error("need --samples >= 5 and --rounds >= 1")
+    torch.set_num_threads(1)
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    if args.wait_quiet > 0:
+        busy_before = wait_for_quiet_machine(args.wait_quiet)
+        progress(f"other processes keep {busy_before if busy_before is None else round(busy_before, 2)} cores busy")
+    load_at_start = [round(v, 2) for v in os.getloadavg()]
+    model = RobotModel.from_name("hyq")
+    selector = CnnFootholdSelector(FootholdEvaluator(model), load_model(args.weights))
+    progress(f"{n} terrains (seed {args.seed}), 4 legs, weights {args.weights.name}")
+    cases = make_cases(model, n, args.seed)
+    pooled: dict[str, dict[str, dict]] = {mode: {} for mode in MODES}
+    round_medians: dict[str, dict[str, list[float]]] = {mode: {} for mode in MODES}
+    others_busy = []
+    for r in range(1, args.rounds + 1):
+        for mode in MODES:
+            progress(f"round {r}/{args.rounds}: {mode}")
+            start = _cpu_snapshot()
+            if mode == "cnn_4legs":
+                result = run_batch(selector, cases)
+            else:
+                result = run_single(selector, cases, verify=mode == "cnn_verified")
+            others_busy.append(_other_cores_busy(start, _cpu_snapshot()))
+            for key, value in result.items():
+                entry = pooled[mode].setdefault(key, {k: [] if isinstance(v, list) else 0 for k, v in value.items()})
+                for k, v in value.items():
+                    entry[k] = entry[k] + v  # lists extend, counts add up over the rounds
+                round_medians[mode].setdefault(key, []).append(float(np.median(value["ms"])))
+    summary = {mode: {key: {**r, "stats": stats(r["ms"]), "round_medians_ms": round_medians[mode][key]}
+                      for key, r in value.items()} for mode, value in pooled.items()}  # fmt: skip
+    batch = summary["cnn_4legs"]["4legs"]
+    batch["per_leg_stats"] = stats(batch["ms_per_leg"])
+    busy = [b for b in others_busy if b is not None]
+    progress(f"other processes kept {np.mean(busy):.2f} cores busy on average" if busy else "CPU use unknown")
+    print(report(summary, n))
+    document = {
+        "benchmark": "bench_vfa_cnn",
+        "machine": machine_info(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "load_average_at_start": load_at_start,
+        "weights": args.weights.name,
+        "other_processes_cores_busy": others_busy,
+        "rounds": args.rounds,
+        "inputs": {"samples": n, "seed": args.seed},
+        "thesis_mean_ms": THESIS_MEAN_MS,
+        "goal_ms": GOAL_MS,
+        "results": {
+            mode: {key: {k: v for k, v in r.items() if k not in ("ms", "ms_per_leg")} for key, r in value.items()}
+            for mode, value in summary.items()
+        },
+        "samples_ms": {mode: {key: r["ms"] for key, r in value.items()} for mode, value in summary.items()},
+    }
+    JSON_PATH.write_text(json.dumps(document, indent=1))
+    progress(f"wrote {JSON_PATH.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,414 @@
+"""CNN approximation g_hat of the VFA's foothold evaluation (thesis, ViTAL chapter, appendix "CNN
+approximation in the VFA and the VPA").
+
+Architecture (thesis): the 33 x 33 heightmap passes through three convolutional layers (5 x 5 kernels,
+padding 2, Leaky ReLU, 2 x 2 max-pooling); the flattened features are concatenated with the other
+entries of the tuple (hip height, twist, gait parameters; the nominal foothold is the patch centre by
+construction) and pass through two fully connected layers (Leaky ReLU, then softmax over the 33 x 33
+candidates), trained with cross-entropy against the exact optimum g. Ours adds, optionally, a second
+output block of the last layer that predicts the exact safe mask (sigmoid per candidate); it is only a
+training signal (denser than one class per sample) and never used to select.
+
+Input encoding (``encode``), chosen so that it is exactly invariant where the FEC is: the FEC depends
+on heights and hip height only through their difference, so
+
+* channel 0: (h - (z_hip - d_nom)) / 0.1 m, clipped to +-0.5 m first, where d_nom is the robot's nominal
+  hip height above flat ground (HyQ: 0.587 m); 0 = ground on which the robot would stand nominally,
+  positive = higher (an obstacle), negative = lower (a gap or a step down). Unknown (NaN) cells are 0;
+* channel 1: 1 on unknown (NaN) cells, else 0 (the exact FEC never selects them);
+* channels 2, 3: the cell's row and column offset from the centre (the nominal), in [-1, 1];
+* scalars: hip height above the median known patch height minus d_nom [0.05 m]; vx [0.5 m/s], vy
+  [0.15 m/s], yaw rate [0.4 rad/s] (horizontal frame; the other twist entries do not enter the FEC);
+  step frequency, duty factor, time left until touchdown (as a fraction of the swing and in [0.1 s]),
+  step height, each centred on the trot's values; the leg as a one-hot vector (LF, RF, LH, RH).
+
+Patch frame as in ``fec_settings`` (x forward, y left, origin at the nominal foothold, world z).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+from numpy.typing import ArrayLike, NDArray
+from torch import nn
+
+from tal_core.heightmap import HeightMapGrid
+from tal_core.legs import LEGS, Leg
+from tal_perception.errors import FecConfigError, PerceptionInputError
+from tal_perception.fec import FootholdEvaluator
+from tal_perception.fec_grid import disc_offsets
+from tal_perception.fec_settings import FecInput, GaitTiming
+from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, extract_patch
+
+FloatArray = NDArray[np.float64]
+MODEL_DIR = Path(__file__).resolve().parent / "models"
+DEFAULT_WEIGHTS = MODEL_DIR / "vfa_cnn.pt"
+_FUTURE_TOLERANCE_S = 1e-3  # [s] as the exact VFA: a map stamped this far after "now" is accepted
+LEAKY_SLOPE = 0.01  # negative slope of the Leaky ReLUs (PyTorch's default)
+IMAGE_CHANNELS = 4  # relative height, unknown mask, row offset, column offset
+
+
+@dataclass(frozen=True)
+class EncodingConfig:
+    """Constants of the input encoding (stored with the weights so that training and inference agree)."""
+
+    cells: int = 33  # [-] patch edge (thesis: 33)
+    resolution_m: float = 0.02  # [m] cell edge (thesis: 0.02)
+    nominal_hip_height_m: float = 0.587  # [m] the robot's HAA height above flat ground when standing
+    height_scale_m: float = 0.1  # [m] one unit of channel 0
+    height_clip_m: float = 0.5  # [m] relative heights are clipped to +- this (beyond: unreachable anyway)
+    hip_scale_m: float = 0.05  # [m]
+    twist_scale: tuple[float, float, float] = (0.5, 0.15, 0.4)  # [m/s, m/s, rad/s] vx, vy, yaw rate
+    gait_centre: tuple[float, float, float, float] = (1.5, 0.6, 0.13, 0.11)  # [Hz, -, s, m]
+    gait_scale: tuple[float, float, float, float] = (0.3, 0.1, 0.1, 0.03)  # [Hz, -, s, m]
+
+    @property
+    def scalar_count(self) -> int:
+        return 1 + 3 + 5 + len(LEGS)
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Layer sizes of ``VfaNet``."""
+
+    channels: tuple[int, int, int] = (8, 16, 32)
+    hidden: int = 256
+    safe_head: bool = True  # the last layer also predicts the safe mask (training signal only)
+    encoding: EncodingConfig = field(default_factory=EncodingConfig)
+
+
+def encode(
+    cfg: EncodingConfig,
+    heights: NDArray[np.floating],
+    hip_height_m: NDArray[np.floating],
+    twist: NDArray[np.floating],
+    gait: NDArray[np.floating],
+    leg: NDArray[np.integer],
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Network inputs of B tuples (see the module docstring): image (B, 4, n, n), scalars (B, S).
+
+    heights (B, n, n) [m] world z, NaN unknown; hip_height_m (B,) [m] world z of the HAA joint; twist
+    (B, 6) [m/s, rad/s] horizontal frame; gait (B, 4): step frequency [Hz], duty factor [-], time left
+    until touchdown [s], step height [m]; leg (B,) index into LEGS.
+    """
+    heights = np.asarray(heights, dtype=np.float32)
+    hip = np.asarray(hip_height_m, dtype=np.float32)
+    b = heights.shape[0]
+    coordinates, twist_scale, gait_centre, gait_scale = _constants(cfg)
+    unknown = np.isnan(heights)
+    image = np.empty((b, IMAGE_CHANNELS, cfg.cells, cfg.cells), np.float32)
+    relative = image[:, 0]
+    np.subtract(heights, (hip - cfg.nominal_hip_height_m)[:, None, None], out=relative)
+    relative[unknown] = 0.0
+    np.minimum(np.maximum(relative, -cfg.height_clip_m, out=relative), cfg.height_clip_m, out=relative)
+    relative /= cfg.height_scale_m
+    image[:, 1] = unknown
+    image[:, 2:] = coordinates
+    hip_above = np.zeros(b, np.float32)  # 0 when nothing is known
+    for i in range(b):
+        known = heights[i][~unknown[i]]
+        if known.size:
+            hip_above[i] = (hip[i] - _median(known) - cfg.nominal_hip_height_m) / cfg.hip_scale_m
+    twist = np.asarray(twist, dtype=np.float32)
+    gait = np.asarray(gait, dtype=np.float32)
+    scalars = np.zeros((b, cfg.scalar_count), np.float32)
+    scalars[:, 0] = hip_above
+    scalars[:, 1:4] = twist[:, [0, 1, 5]] / twist_scale
+    scalars[:, 4:8] = (gait - gait_centre) / gait_scale
+    scalars[:, 8] = gait[:, 2] / ((1.0 - gait[:, 1]) / gait[:, 0])  # fraction of the swing still to go
+    scalars[np.arange(b), 9 + np.asarray(leg, dtype=np.intp)] = 1.0  # one-hot leg
+    return image, scalars
+
+
+@lru_cache(maxsize=4)
+def _constants(cfg: EncodingConfig) -> tuple[NDArray[np.float32], ...]:
+    """Per-configuration constants of ``encode``: the coordinate channels (2, n, n) and the scalar scales.
+
+    Channels 2 and 3 are the cell's row and column offset from the centre in [-1, 1] ("CoordConv"): the
+    optimum is defined by its distance from the centre, which convolutions alone do not see."""
+    offsets = (np.arange(cfg.cells, dtype=np.float32) - cfg.cells // 2) / (cfg.cells // 2)
+    rows, cols = np.meshgrid(offsets, offsets, indexing="ij")
+    coordinates = np.stack([rows, cols]).astype(np.float32)
+    scales = (np.array(v, np.float32) for v in (cfg.twist_scale, cfg.gait_centre, cfg.gait_scale))
+    return (coordinates, *scales)
+
+
+def _median(values: NDArray[np.float32]) -> float:
+    """Median of a non-empty 1-D array (np.median's result, without its overhead: ~10 us instead of ~50)."""
+    k = values.size // 2
+    if values.size % 2:
+        return float(np.partition(values, k)[k])
+    middle = np.partition(values, (k - 1, k))
+    return float(0.5 * (middle[k - 1] + middle[k]))
+
+
+class VfaNet(nn.Module):
+    """The thesis' VFA CNN: 3 x (conv 5x5 pad 2, Leaky ReLU, max-pool 2x2) -> concat scalars -> FC, Leaky
+    ReLU -> FC -> logits over the n x n candidates (softmax in the loss / at selection), plus optionally
+    logits of the safe mask."""
+
+    def __init__(self, config: NetConfig) -> None:
+        super().__init__()
+        self.config = config
+        enc = config.encoding
+        layers: list[nn.Module] = []
+        in_channels, size = IMAGE_CHANNELS, enc.cells
+        for out_channels in config.channels:
+            layers += [
+                nn.Conv2d(in_channels, out_channels, kernel_size=5, padding=2),
+                nn.LeakyReLU(LEAKY_SLOPE),
+                nn.MaxPool2d(2, ceil_mode=True),  # 33 -> 17 -> 9 -> 5: the border cells keep their own pool
+            ]
+            in_channels, size = out_channels, math.ceil(size / 2)
+        self.features = nn.Sequential(*layers, nn.Flatten())
+        self.candidates = enc.cells * enc.cells
+        outputs = self.candidates * (2 if config.safe_head else 1)
+        self.head = nn.Sequential(
+            nn.Linear(in_channels * size * size + enc.scalar_count, config.hidden),
+            nn.LeakyReLU(LEAKY_SLOPE),
+            nn.Linear(config.hidden, outputs),
+        )
+
+    def forward(self, image: torch.Tensor, scalars: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(optimum logits (B, n*n), safe-mask logits (B, n*n) or None); row-major candidate order."""
+        out = self.head(torch.cat([self.features(image), scalars], dim=1))
+        if self.config.safe_head:
+            return out[:, : self.candidates], out[:, self.candidates :]
+        return out, None
+
+    def optimum_logits(self, image: torch.Tensor, scalars: torch.Tensor) -> torch.Tensor:
+        """Only the optimum logits, computing only their rows of the last layer (inference)."""
+        hidden = self.head[1](self.head[0](torch.cat([self.features(image), scalars], dim=1)))
+        last = self.head[2]
+        return nn.functional.linear(hidden, last.weight[: self.candidates], last.bias[: self.candidates])
+
+
+def save_model(net: VfaNet, path: Path, metadata: dict[str, object] | None = None) -> None:
+    """Weights in float16 (half the size; the loaded model computes in float32) with the config."""
+    cfg = net.config
+    document = {
+        "format": "tal_perception.vfa_cnn/1",
+        "net": {"channels": list(cfg.channels), "hidden": cfg.hidden, "safe_head": cfg.safe_head},
+        "encoding": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg.encoding).items()},
+        "state_dict": {k: v.detach().to(torch.float16) for k, v in net.state_dict().items()},
+        "metadata": metadata or {},
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(document, path)
+
+
+def load_model(path: Path = DEFAULT_WEIGHTS) -> VfaNet:
+    """The network saved by ``save_model`` (float32, eval mode)."""
+    if not path.exists():
+        raise FecConfigError(f"VFA CNN weights not found: {path} (train them with python -m tal_perception.train_vfa)")
+    document = torch.load(path, map_location="cpu", weights_only=True)
+    if document.get("format") != "tal_perception.vfa_cnn/1":
+        raise FecConfigError(f"{path} is not a tal_perception VFA CNN file (format {document.get('format')!r})")
+    enc = {k: tuple(v) if isinstance(v, list) else v for k, v in document["encoding"].items()}
+    net_cfg = document["net"]
+    config = NetConfig(tuple(net_cfg["channels"]), int(net_cfg["hidden"]), bool(net_cfg["safe_head"]),
+                       EncodingConfig(**enc))  # fmt: skip
+    net = VfaNet(config)
+    net.load_state_dict({k: v.to(torch.float32) for k, v in document["state_dict"].items()})
+    net.eval()
+    return net
+
+
+@dataclass
+class CnnVfaCounters:
+    """What the CNN selector did since construction (selections with a map)."""
+
+    selections: int = 0
+    verified: int = 0  # CNN choices checked with the exact FEC
+    rejected: int = 0  # ... of which were unsafe: the exact lazy search ran instead
+
+
+@dataclass(frozen=True, eq=False)
+class FootholdRequest:
+    """One leg's VFA inputs (the arguments of ``FootholdSelector.select`` for that leg)."""
+
+    leg: Leg
+    nominal_world: ArrayLike  # (3,) [m] world frame
+    hip_height_m: float  # [m] world z of the leg's HAA joint
+    twist: ArrayLike  # (6,) [m/s, rad/s] horizontal frame
+    gait: GaitTiming
+    liftoff_world: ArrayLike | None = None  # (3,) [m]; only the exact verification / fallback uses it
+    hip_touchdown_world: ArrayLike | None = None  # (2,) [m]; only the exact verification / fallback uses it
+
+
+class CnnFootholdSelector:
+    """g_hat: the VFA's foothold evaluation by the CNN, with the interface and results of
+    ``FootholdSelector`` (same patch extraction, same NO_MAP / STALE_MAP pass-through).
+
+    verify: check the CNN's choice with the exact FEC on that one candidate (and its uncertainty-margin
+    neighbours); if it is unsafe, run the exact lazy search instead (``counters`` say how often). Off,
+    the CNN's choice is returned as is (``any_safe`` then means "predicted safe"); a choice on an
+    unknown cell is never returned (NO_SAFE_CANDIDATE, nominal passed through).
+    The CNN was trained with the default lift-off and hip-at-touchdown; given values reach only the
+    exact verification and fallback.
+    """
+
+    def __init__(
+        self, evaluator: FootholdEvaluator, net: VfaNet | None = None, max_map_age_s: float = 0.5, verify: bool = True
+    ) -> None:
+        self.exact = FootholdSelector(evaluator, max_map_age_s)  # validates max_map_age_s
+        self.evaluator = evaluator
+        self.net = net if net is not None else load_model()
+        self.net.eval()
+        self.verify = bool(verify)
+        self.counters = CnnVfaCounters()
+        s, enc = evaluator.settings, self.net.config.encoding
+        if (s.patch_cells, s.resolution_m) != (enc.cells, enc.resolution_m):
+            raise FecConfigError(
+                f"the VFA CNN was trained on {enc.cells} x {enc.cells} patches of {enc.resolution_m} m, the FEC "
+                f"settings have {s.patch_cells} x {s.patch_cells} of {s.resolution_m} m"
+            )
+        self._margin = np.array(disc_offsets(s.uncertainty_margin_m, s.resolution_m, include_centre=True))
+
+    @property
+    def max_map_age_s(self) -> float:
+        return self.exact.max_map_age_s
+
+    # -- the CNN on FEC tuples ------------------------------------------------------------------------
+    def predict(self, inputs: Sequence[FecInput]) -> NDArray[np.intp]:
+        """Flat (row-major) index of the CNN's optimum for each tuple (one batched forward pass)."""
+        n = self.net.config.encoding.cells
+        for inp in inputs:
+            if inp.heights.shape != (n, n):
+                raise PerceptionInputError(
+                    f"VFA CNN: heights must have the model's patch shape ({n}, {n}), got {inp.heights.shape}"
+                )
+        if not inputs:
+            return np.zeros(0, np.intp)
+        gait = np.array([[i.gait.step_frequency_hz, i.gait.duty_factor, i.gait.swing_time_left_s,
+                          i.gait.step_height_m] for i in inputs])  # fmt: skip
+        image, scalars = encode(
+            self.net.config.encoding, np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
+            np.stack([i.twist for i in inputs]), gait, np.array([int(i.leg) for i in inputs]),
+        )  # fmt: skip
+        with torch.inference_mode():
+            logits = self.net.optimum_logits(torch.from_numpy(image), torch.from_numpy(scalars))
+        return logits.argmax(dim=1).numpy().astype(np.intp)
+
+    def is_safe(self, inp: FecInput, index: int) -> bool:
+        """Exact FEC on one candidate: the candidate and every cell within the uncertainty margin are safe."""
+        n = inp.heights.shape[0]
+        rows, cols = index // n + self._margin[:, 0], index % n + self._margin[:, 1]
+        inside = (rows >= 0) & (rows < n) & (cols >= 0) & (cols < n)  # cells off the patch are ignored
+        cells = (rows * n + cols)[inside]
+        return bool(self.evaluator.raw_safety(self.evaluator.prepare(inp), cells).all())
+
+    # -- the VFA interface ----------------------------------------------------------------------------
+    def select(
+        self,
+        leg: Leg,
+        nominal_world: ArrayLike,
+        grid: HeightMapGrid | None,
+        *,
+        hip_height_m: float,
+        twist: ArrayLike,
+        gait: GaitTiming,
+        yaw: float | None = None,
+        map_age_s: float = 0.0,
+        liftoff_world: ArrayLike | None = None,
+        hip_touchdown_world: ArrayLike | None = None,
+    ) -> VfaResult:
+        """As ``FootholdSelector.select`` (same arguments, frames and units), with g_hat."""
+        request = FootholdRequest(leg, nominal_world, hip_height_m, twist, gait, liftoff_world, hip_touchdown_world)
+        return self.select_legs([request], grid, yaw=yaw, map_age_s=map_age_s)[0]
+
+    def select_legs(
+        self, requests: Sequence[FootholdRequest], grid: HeightMapGrid | None, *, yaw: float | None = None,
+        map_age_s: float = 0.0,
+    ) -> list[VfaResult]:  # fmt: skip
+        """g_hat for several legs on one map: one batched CNN pass (the VFA node's call, 4 legs)."""
+        nominals = [_vector(r.nominal_world, 3, "nominal_world") for r in requests]
+        if not math.isfinite(map_age_s):
+            raise PerceptionInputError(f"VFA: map_age_s must be finite [s], got {map_age_s!r}")
+        if map_age_s < -_FUTURE_TOLERANCE_S:
+            raise PerceptionInputError(
+                f"VFA: the heightmap is stamped {-map_age_s:.4f} s in the future (out-of-order stamps)"
+            )
+        legs = [Leg(r.leg) for r in requests]
+        if grid is None or map_age_s > self.max_map_age_s:
+            status = VfaStatus.NO_MAP if grid is None else VfaStatus.STALE_MAP
+            return [VfaResult(leg, nom, nom.copy(), False, status, None, None) for leg, nom in zip(legs, nominals)]
+        heading = grid.yaw if yaw is None else float(yaw)
+        if not math.isfinite(heading):
+            raise PerceptionInputError(f"VFA: yaw must be finite [rad], got {yaw!r}")
+        s = self.evaluator.settings
+        inputs = [
+            FecInput(leg, extract_patch(grid, nom[:2], heading, s.patch_cells, s.resolution_m), r.hip_height_m,
+                     r.twist, r.gait)
+            for leg, nom, r in zip(legs, nominals, requests)
+        ]  # fmt: skip
+        choices = self.predict(inputs)
+        results = []
+        for request, inp, nominal, index in zip(requests, inputs, nominals, choices):
+            self.counters.selections += 1
+            results.append(self._result(request, inp, nominal, int(index), grid, heading, map_age_s))
+        return results
+
+    def _result(
+        self, request: FootholdRequest, inp: FecInput, nominal: FloatArray, index: int, grid: HeightMapGrid,
+        heading: float, map_age_s: float,
+    ) -> VfaResult:  # fmt: skip
+        """The VfaResult of the CNN's choice ``index``, verified (and replaced by the exact g) if asked."""
+        if self.verify:
+            self.counters.verified += 1
+            exact_inp = inp
+            if request.liftoff_world is not None or request.hip_touchdown_world is not None:
+                exact_inp = self._with_exact_extras(inp, request, nominal, heading)
+            if not self.is_safe(exact_inp, index):
+                self.counters.rejected += 1
+                return self.exact.select(
+                    inp.leg, nominal, grid, hip_height_m=request.hip_height_m, twist=request.twist, gait=request.gait,
+                    yaw=heading, map_age_s=map_age_s, liftoff_world=request.liftoff_world,
+                    hip_touchdown_world=request.hip_touchdown_world,
+                )  # fmt: skip
+        n = inp.heights.shape[0]
+        z = inp.heights.reshape(-1)[index]
+        if not math.isfinite(z):  # an unknown cell is never a foothold
+            return VfaResult(inp.leg, nominal, nominal.copy(), False, VfaStatus.NO_SAFE_CANDIDATE, None, None)
+        d_row, d_col = index // n - n // 2, index % n - n // 2
+        forward, left = d_row * self.evaluator.settings.resolution_m, d_col * self.evaluator.settings.resolution_m
+        c, s = math.cos(heading), math.sin(heading)
+        selected = np.array([nominal[0] + c * forward - s * left, nominal[1] + s * forward + c * left, z])
+        return VfaResult(inp.leg, nominal, selected, True, VfaStatus.SELECTED, None, (int(d_row), int(d_col)))
+
+    @staticmethod
+    def _with_exact_extras(inp: FecInput, request: FootholdRequest, nominal: FloatArray, heading: float) -> FecInput:
+        """``inp`` with the given lift-off / hip-at-touchdown, rotated into the patch frame."""
+        c, s = math.cos(heading), math.sin(heading)
+        liftoff = hip_td = None
+        if request.liftoff_world is not None:
+            lo = _vector(request.liftoff_world, 3, "liftoff_world")
+            dx, dy = lo[0] - nominal[0], lo[1] - nominal[1]
+            liftoff = np.array([c * dx + s * dy, -s * dx + c * dy, lo[2]])
+        if request.hip_touchdown_world is not None:
+            hip = _vector(request.hip_touchdown_world, 2, "hip_touchdown_world")
+            dx, dy = hip[0] - nominal[0], hip[1] - nominal[1]
+            hip_td = np.array([c * dx + s * dy, -s * dx + c * dy])
+        return FecInput(inp.leg, inp.heights, inp.hip_height_m, inp.twist, inp.gait, hip_td, liftoff)
+
+
+def _vector(value: object, size: int, name: str) -> FloatArray:
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as error:
+        raise PerceptionInputError(f"VFA: {name}: cannot convert to a float array ({error})") from None
+    if array.shape != (size,) or not np.isfinite(array).all():
+        raise PerceptionInputError(f"VFA: {name} must be {size} finite values, got {value!r}")
+    return array
+
+
+__all__ = [
+    "DEFAULT_WEIGHTS", "CnnFootholdSelector", "CnnVfaCounters", "EncodingConfig", "FootholdRequest", "NetConfig",
+    "VfaNet", "encode", "load_model", "save_model",
+]  # fmt: skip

@@ -1,0 +1,240 @@
+"""VFA CNN: dataset determinism and labels, encoding, network shapes, selector interface, committed weights."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tal_core.heightmap import HeightMapGrid, extract_heightmap
+from tal_core.legs import LEGS, Leg
+from tal_core.terrain import Course, DefaultGround, GapPatch, Region
+from tal_perception.errors import FecConfigError, PerceptionInputError
+from tal_perception.fec import FootholdEvaluator
+from tal_perception.fec_settings import FecInput, GaitTiming
+from tal_perception.vfa import FootholdSelector, VfaStatus
+from tal_perception.vfa_cnn import (
+    DEFAULT_WEIGHTS,
+    CnnFootholdSelector,
+    EncodingConfig,
+    FootholdRequest,
+    NetConfig,
+    VfaNet,
+    encode,
+    load_model,
+    save_model,
+)
+from tal_perception.vfa_dataset import VfaDataset, closest_safe_index, generate, mirrored
+
+TROT_SWING = GaitTiming(step_frequency_hz=1.5, duty_factor=0.6, swing_time_left_s=0.2, step_height_m=0.1)
+TWIST = np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.1])
+RIGID = {"stiffness_n_per_m": 2e6, "damping_ns_per_m": 400.0}
+NOMINAL = np.array([0.40, 0.21, 0.0])
+# Measured on the 4401-per-leg protocol (results/vital/vfa_cnn_accuracy.md): perfect match 56.5 %, safe
+# 68.9 %, perfect match on the samples that need adaptation 25.4 %. The thresholds sit below (400 samples
+# vary by a few %), and the last one fails a network that always keeps the nominal (0 % there, while
+# that trivial answer scores ~44 % perfect match overall).
+MIN_PERFECT_MATCH = 0.48
+MIN_SAFE = 0.60
+MIN_PERFECT_MATCH_ADAPTED = 0.15
+
+
+@pytest.fixture(scope="module")
+def cnn_selector(evaluator: FootholdEvaluator) -> CnnFootholdSelector:
+    torch.set_num_threads(1)
+    return CnnFootholdSelector(evaluator, load_model(DEFAULT_WEIGHTS), verify=False)
+
+
+@pytest.fixture(scope="module")
+def fresh_set(evaluator: FootholdEvaluator) -> VfaDataset:
+    """100 fresh tuples per leg (seed 3: neither the training nor the protocol's seed)."""
+    return generate(evaluator, seed=3, count=100, progress=False)
+
+
+def course_map(*patches, size: int = 81) -> HeightMapGrid:
+    course = Course("test", Region(-2, 2, -2, 2), DefaultGround(height_m=0.0, **RIGID), tuple(patches))
+    return extract_heightmap(course, (NOMINAL[0], NOMINAL[1]), 0.0, size, size, 0.02)
+
+
+# -- dataset -----------------------------------------------------------------------------------------
+def test_dataset_is_deterministic_by_seed_and_independent_of_the_count(evaluator: FootholdEvaluator) -> None:
+    a = generate(evaluator, seed=5, count=3, progress=False)
+    b = generate(evaluator, seed=5, count=2, progress=False)
+    c = generate(evaluator, seed=6, count=2, progress=False)
+    assert len(a) == 12 and len(b) == 8
+    np.testing.assert_array_equal(a.heights[:8], b.heights)
+    np.testing.assert_array_equal(a.label[:8], b.label)
+    np.testing.assert_array_equal(a.safe[:8], b.safe)
+    assert not np.array_equal(np.nan_to_num(b.heights), np.nan_to_num(c.heights))
+    assert list(a.leg[:4]) == [int(leg) for leg in LEGS]
+
+
+def test_labels_are_the_exact_vfa_and_survive_saving(evaluator: FootholdEvaluator, tmp_path) -> None:
+    data = generate(evaluator, seed=8, count=3, progress=False)
+    selector = FootholdSelector(evaluator)
+    n = data.cells
+    for i in range(len(data)):
+        inp = data.fec_input(i)
+        grid = HeightMapGrid(center_xy=(0.0, 0.0), yaw=0.0, resolution_m=0.02, heights=data.heights[i])
+        exact = selector.select(inp.leg, [0.0, 0.0, 0.0], grid, hip_height_m=inp.hip_height_m, twist=inp.twist,
+                                gait=inp.gait, lazy=False)  # fmt: skip
+        expected = (
+            -1 if exact.offset_cells is None else (exact.offset_cells[0] + n // 2) * n + exact.offset_cells[1] + n // 2
+        )
+        assert data.label[i] == expected
+        assert exact.safe_candidates == int(data.safe[i].sum())
+    data.save(tmp_path / "set.npz")
+    loaded = VfaDataset.load(tmp_path / "set.npz")
+    np.testing.assert_array_equal(loaded.safe, data.safe)
+    np.testing.assert_array_equal(loaded.heights, data.heights)
+    assert loaded.seed == 8 and loaded.statistics() == data.statistics()
+
+
+def test_mirrored_samples_are_the_exact_labels_of_the_other_side(evaluator: FootholdEvaluator) -> None:
+    data = generate(evaluator, seed=9, count=2, progress=False)
+    mirror = mirrored(data)
+    for i in range(len(mirror)):
+        safe = evaluator.evaluate(mirror.fec_input(i)).safe
+        np.testing.assert_array_equal(safe, mirror.safe[i])
+        assert mirror.label[i] == closest_safe_index(safe)
+    assert [LEGS[k] for k in mirror.leg[:4]] == [Leg.RF, Leg.LF, Leg.RH, Leg.LH]
+
+
+# -- encoding and network ------------------------------------------------------------------------------
+def test_network_shapes_and_size(tmp_path) -> None:
+    net = VfaNet(NetConfig())
+    image, scalars = torch.zeros(3, 4, 33, 33), torch.zeros(3, EncodingConfig().scalar_count)
+    optimum, safe = net(image, scalars)
+    assert optimum.shape == (3, 33 * 33) and safe.shape == (3, 33 * 33)
+    torch.testing.assert_close(net.optimum_logits(image, scalars), optimum)
+    plain = VfaNet(NetConfig(safe_head=False))
+    assert plain(image, scalars)[1] is None and plain(image, scalars)[0].shape == (3, 33 * 33)
+    save_model(net, tmp_path / "net.pt")
+    assert (tmp_path / "net.pt").stat().st_size < 2e6
+    assert load_model(tmp_path / "net.pt").config == net.config
+    assert DEFAULT_WEIGHTS.stat().st_size < 2e6
+
+
+def test_encoding_marks_unknown_cells_and_depends_only_on_height_differences() -> None:
+    cfg = EncodingConfig()
+    rng = np.random.default_rng(0)
+    heights = rng.uniform(-0.1, 0.1, size=(2, 33, 33))
+    heights[0, 10:14, 3:9] = np.nan
+    heights[1] = np.nan  # nothing known
+    hip, twist = np.array([0.6, 0.55]), np.zeros((2, 6))
+    gait = np.array([[1.5, 0.6, 0.1, 0.1]] * 2)
+    image, scalars = encode(cfg, heights, hip, twist, gait, np.array([0, 3]))
+    assert np.isfinite(image).all() and np.isfinite(scalars).all()
+    np.testing.assert_array_equal(image[:, 1], np.isnan(heights))
+    assert (image[0, 0][np.isnan(heights[0])] == 0.0).all()
+    shifted, _ = encode(cfg, heights + 0.3, hip + 0.3, twist, gait, np.array([0, 3]))
+    np.testing.assert_allclose(shifted, image, atol=1e-5)
+    np.testing.assert_array_equal(scalars[:, -4:], [[1, 0, 0, 0], [0, 0, 0, 1]])
+
+
+# -- selector interface --------------------------------------------------------------------------------
+def test_bad_inputs_raise_precise_errors(cnn_selector: CnnFootholdSelector, hip_height: float) -> None:
+    grid = course_map()
+    kwargs = {"hip_height_m": hip_height, "twist": TWIST, "gait": TROT_SWING}
+    wrong = FecInput(Leg.LF, np.zeros((31, 31)), hip_height, TWIST, TROT_SWING)
+    with pytest.raises(
+        PerceptionInputError, match=r"VFA CNN: heights must have the model's patch shape \(33, 33\), got \(31, 31\)"
+    ):
+        cnn_selector.predict([wrong])
+    with pytest.raises(PerceptionInputError, match=r"FecInput.twist has non-finite value\(s\) at index \[1\]"):
+        cnn_selector.select(Leg.LF, NOMINAL, grid, **{**kwargs, "twist": [0.1, np.nan, 0, 0, 0, 0]})
+    with pytest.raises(PerceptionInputError, match=r"VFA: nominal_world must be 3 finite values"):
+        cnn_selector.select(Leg.LF, [0.0, np.inf, 0.0], grid, **kwargs)
+    with pytest.raises(PerceptionInputError, match=r"FecInput.hip_height_m must be a finite number"):
+        cnn_selector.select(Leg.LF, NOMINAL, grid, **{**kwargs, "hip_height_m": float("nan")})
+    with pytest.raises(PerceptionInputError, match=r"VFA: the heightmap is stamped 0.2000 s in the future"):
+        cnn_selector.select(Leg.LF, NOMINAL, grid, map_age_s=-0.2, **kwargs)
+    with pytest.raises(FecConfigError, match=r"max_map_age_s must be a finite value > 0"):
+        CnnFootholdSelector(cnn_selector.evaluator, cnn_selector.net, max_map_age_s=-1.0)
+
+
+def test_missing_or_stale_map_passes_the_nominal_through(cnn_selector: CnnFootholdSelector, hip_height: float) -> None:
+    kwargs = {"hip_height_m": hip_height, "twist": TWIST, "gait": TROT_SWING}
+    missing = cnn_selector.select(Leg.RH, NOMINAL, None, **kwargs)
+    stale = cnn_selector.select(Leg.RH, NOMINAL, course_map(), map_age_s=1.0, **kwargs)
+    assert (missing.status, stale.status) == (VfaStatus.NO_MAP, VfaStatus.STALE_MAP)
+    for result in (missing, stale):
+        assert not result.any_safe and result.offset_cells is None
+        np.testing.assert_array_equal(result.selected, NOMINAL)
+
+
+def test_flat_ground_keeps_the_nominal_and_batch_equals_single_calls(
+    cnn_selector: CnnFootholdSelector, hip_height: float
+) -> None:
+    gap = GapPatch(name="gap", region=Region(NOMINAL[0] - 0.05, NOMINAL[0] + 0.05, -2, 2), depth_m=0.3,
+                   start_height_m=0.0, **RIGID)  # fmt: skip
+    for grid in (course_map(), course_map(gap)):
+        requests = [FootholdRequest(leg, NOMINAL, hip_height, TWIST, TROT_SWING) for leg in LEGS]
+        batch = cnn_selector.select_legs(requests, grid)
+        for request, result in zip(requests, batch):
+            single = cnn_selector.select(request.leg, NOMINAL, grid, hip_height_m=hip_height, twist=TWIST,
+                                         gait=TROT_SWING)  # fmt: skip
+            assert result.offset_cells == single.offset_cells and result.status is VfaStatus.SELECTED
+            np.testing.assert_allclose(result.selected, single.selected)
+    flat = cnn_selector.select_legs(requests[:1], course_map())[0]
+    assert not flat.adapted
+
+
+def test_unknown_cells_are_never_returned(evaluator: FootholdEvaluator, hip_height: float) -> None:
+    net = VfaNet(NetConfig())
+    with torch.no_grad():  # a network that always picks the centre cell
+        for p in net.parameters():
+            p.zero_()
+        net.head[2].bias[16 * 33 + 16] = 1.0
+    heights = np.array(course_map().heights)
+    heights[35:46, 35:46] = np.nan  # around the nominal (map centre 40, 40)
+    grid = HeightMapGrid(center_xy=tuple(NOMINAL[:2]), yaw=0.0, resolution_m=0.02, heights=heights)
+    unverified = CnnFootholdSelector(evaluator, net, verify=False)
+    result = unverified.select(Leg.LF, NOMINAL, grid, hip_height_m=hip_height, twist=TWIST, gait=TROT_SWING)
+    assert result.status is VfaStatus.NO_SAFE_CANDIDATE and not result.any_safe
+
+
+def test_verification_replaces_an_unsafe_choice_by_the_exact_search(
+    evaluator: FootholdEvaluator, hip_height: float
+) -> None:
+    gap = GapPatch(name="gap", region=Region(NOMINAL[0] - 0.05, NOMINAL[0] + 0.05, -2, 2), depth_m=0.3,
+                   start_height_m=0.0, **RIGID)  # fmt: skip
+    grid = course_map(gap)
+    net = VfaNet(NetConfig())
+    with torch.no_grad():  # always the centre cell: in the gap here
+        for p in net.parameters():
+            p.zero_()
+        net.head[2].bias[16 * 33 + 16] = 1.0
+    kwargs = {"hip_height_m": hip_height, "twist": TWIST, "gait": TROT_SWING}
+    verified = CnnFootholdSelector(evaluator, net, verify=True)
+    exact = FootholdSelector(evaluator).select(Leg.LF, NOMINAL, grid, **kwargs)
+    result = verified.select(Leg.LF, NOMINAL, grid, **kwargs)
+    assert exact.adapted and result.offset_cells == exact.offset_cells
+    np.testing.assert_allclose(result.selected, exact.selected)
+    assert (verified.counters.verified, verified.counters.rejected) == (1, 1)
+    flat = verified.select(Leg.LF, NOMINAL, course_map(), **kwargs)  # the centre is safe on flat ground
+    assert not flat.adapted and verified.counters.rejected == 1
+
+
+def test_single_candidate_check_equals_the_eroded_full_evaluation(
+    cnn_selector: CnnFootholdSelector, evaluator: FootholdEvaluator, fresh_set: VfaDataset
+) -> None:
+    rng = np.random.default_rng(1)
+    for i in range(0, len(fresh_set), 40):
+        inp = fresh_set.fec_input(i)
+        for index in rng.integers(0, 33 * 33, size=5):
+            assert cnn_selector.is_safe(inp, int(index)) == bool(fresh_set.safe[i].reshape(-1)[index])
+
+
+# -- the committed weights -----------------------------------------------------------------------------
+def test_committed_weights_approximate_the_exact_vfa(cnn_selector: CnnFootholdSelector, fresh_set: VfaDataset) -> None:
+    scored = np.flatnonzero(fresh_set.label >= 0)
+    choices = cnn_selector.predict([fresh_set.fec_input(i) for i in scored])
+    match = float(np.mean(choices == fresh_set.label[scored]))
+    safe = float(np.mean(fresh_set.safe.reshape(len(fresh_set), -1)[scored, choices]))
+    adapted = fresh_set.label[scored] != 16 * 33 + 16
+    match_adapted = float(np.mean(choices[adapted] == fresh_set.label[scored][adapted]))
+    assert scored.size > 300 and adapted.sum() > 150
+    assert match >= MIN_PERFECT_MATCH, f"perfect match {match:.3f} on {scored.size} fresh samples"
+    assert safe >= MIN_SAFE, f"safe {safe:.3f} on {scored.size} fresh samples"
+    assert match_adapted >= MIN_PERFECT_MATCH_ADAPTED, f"perfect match {match_adapted:.3f} where g != nominal"
