@@ -23,3 +23,11 @@ class FecConfigError(TalPerceptionError, ValueError):
 
 class LegKinematicsError(TalPerceptionError):
     """The robot's leg structure does not fit the closed-form HAA-HFE-KFE inverse kinematics."""
+
+
+class VpaConfigError(TalPerceptionError, ValueError):
+    """An invalid VPA setting (sample grid, RBF count, bounds, horizon); the message names it."""
+
+
+class VpaModelError(TalPerceptionError):
+    """A VPA CNN weights file is missing, corrupt or does not match the settings it is used with."""
