@@ -171,7 +171,9 @@ class PoseAdapter:
         horizon_s = (self.settings.horizon - 1) * shift / speed if moving else 0.0
         return hips[None] + stages * step, horizon_s
 
-    def _adapt(self, grid: HeightMapGrid, base: FloatArray, yaw: float, twist: FloatArray, gait: GaitTiming) -> VpaResult:
+    def _adapt(
+        self, grid: HeightMapGrid, base: FloatArray, yaw: float, twist: FloatArray, gait: GaitTiming
+    ) -> VpaResult:
         fec = self.evaluator.settings
         started = time.perf_counter()
         centres, horizon_s = self.map_centres(base, yaw, twist)
@@ -208,7 +210,8 @@ class PoseAdapter:
         solution = self.optimizer.solve(problem, self.solver)
         diag = VpaDiagnostics(stage_poses=solution.poses, solver_iterations=solution.iterations,
                               optimisation_s=time.perf_counter() - evaluated, **diagnostics)  # fmt: skip
-        return self._result(VpaStatus.OK, solution.poses[0], body_reference, weights, horizon_s, solution.converged, diag)
+        status, converged = VpaStatus.OK, solution.converged
+        return self._result(status, solution.poses[0], body_reference, weights, horizon_s, converged, diag)
 
     def _evaluate(
         self, maps: FloatArray, twist: FloatArray, gait: GaitTiming

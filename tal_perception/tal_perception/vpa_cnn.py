@@ -16,6 +16,7 @@ Units: heights [m]; twist inputs vx, vy [m/s] and yaw rate [rad/s] in the horizo
 from __future__ import annotations
 
 import json
+import pickle
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -104,7 +105,7 @@ class CnnNsfModel:
             net = VpaNet(config)
             net.load_state_dict({k: v.float() for k, v in blob["state"].items()})
             metadata = json.loads(blob["metadata"])
-        except (KeyError, TypeError, RuntimeError, ValueError) as error:
+        except (KeyError, TypeError, RuntimeError, ValueError, EOFError, pickle.UnpicklingError) as error:
             raise VpaModelError(f"VPA CNN weights {path} are corrupt or of another network: {error}") from None
         return cls(net, metadata)
 

@@ -96,8 +96,10 @@ def generate(seed: int, count: int, evaluator: PoseEvaluator, gait: GaitTiming =
         legs.append(int(leg))
         nsf.append(evaluator.evaluate(leg, h, twist, gait).nsf)
         kinds.append(sample.kind)
-    return VpaDataset(np.array(heights), np.array(twists), np.array(legs, dtype=np.int64),
-                      np.array(nsf, dtype=np.int16).reshape(-1, n), np.array(kinds), evaluator.hip_heights.copy())  # fmt: skip
+    return VpaDataset(
+        np.array(heights), np.array(twists), np.array(legs, dtype=np.int64),
+        np.array(nsf, dtype=np.int16).reshape(-1, n), np.array(kinds), evaluator.hip_heights.copy(),
+    )  # fmt: skip
 
 
 def build_evaluator(settings: VpaSettings | None = None, robot: str = "hyq") -> PoseEvaluator:

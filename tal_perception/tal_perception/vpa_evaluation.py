@@ -29,10 +29,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tal_core.legs import Leg
+from tal_perception.errors import PerceptionInputError
 from tal_perception.fec import FootholdEvaluator, PreparedPatch
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
-from tal_perception.errors import PerceptionInputError
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -163,7 +163,9 @@ class PoseEvaluator:
         )[:, None]
         instants = [(prep.cand_x, prep.cand_y, td_z, hips[0]), (prep.cand_x, prep.cand_y, td_z, hips[1])]
         instants += [(sx[i], sy[i], sz[i], hips[2 + i]) for i in range(sx.shape[0])]
-        return instants
+        # Instants with one foot point for all cells (the swing start) cost one IK per height and can
+        # remove whole heights: they go first (stable sort keeps the order of the others).
+        return sorted(instants, key=lambda instant: not _same_point(instant[0], instant[1], instant[2]))
 
     def _apply_instant(
         self, prep: PreparedPatch, instant: tuple[FloatArray, FloatArray, FloatArray, FloatArray], ok: BoolArray
@@ -175,11 +177,9 @@ class PoseEvaluator:
         s = ev.settings
         flat = ok.reshape(ok.shape[0], -1)
         alive_h, alive_c = np.nonzero(flat)
-        known = ~np.isnan(fz)
-        uniform = bool(known.any()) and np.ptp(fx[known]) == 0.0 and np.ptp(fy[known]) == 0.0
-        uniform = uniform and np.ptp(fz[known]) == 0.0
+        uniform = _same_point(fx, fy, fz)
         if uniform:  # same foot point for every cell (swing start): once per alive height
-            first = int(np.flatnonzero(known)[0])
+            first = int(np.flatnonzero(~np.isnan(fz))[0])
             heights_alive = np.unique(alive_h)
             pair_h, pair_c = heights_alive, np.full(heights_alive.size, first)
         else:
@@ -217,3 +217,11 @@ class PoseEvaluator:
         else:
             result[alive_h[good], alive_c[good]] = True
         return result.reshape(ok.shape)
+
+
+def _same_point(x: FloatArray, y: FloatArray, z: FloatArray) -> bool:
+    """True if every known (non-NaN z) cell has exactly the same foot point."""
+    known = ~np.isnan(z)
+    if not known.any():
+        return False
+    return bool(np.ptp(x[known]) == 0.0 and np.ptp(y[known]) == 0.0 and np.ptp(z[known]) == 0.0)

@@ -40,6 +40,7 @@ from tal_perception.vpa_settings import CostKind, VpaSettings
 
 FloatArray = NDArray[np.float64]
 _START_HEIGHTS = 7  # [-] body heights tried for the initial guess (spread over the allowed range)
+_MIN_SCALE = 1e-6  # [-] objective magnitudes below this are not scaled up further (flat, empty curves)
 
 
 class Solver(Enum):
@@ -183,9 +184,13 @@ class PoseOptimizer:
         lower, upper = self.bounds(problem)
         start = self.initial_guess(problem) if x0 is None else np.asarray(x0, dtype=float).reshape(-1)
 
+        # The solvers' tolerances are absolute: C_prod of four normalised NSF is ~1e-4, so the objective is
+        # divided by its magnitude at the start (same optimum, gradients of order one for every cost).
+        scale = 1.0 / min(max(abs(self.objective(problem, start)[0]), _MIN_SCALE), 1.0)
+
         def negative(flat: FloatArray) -> tuple[float, FloatArray]:
             value, grad = self.objective(problem, flat)
-            return -value, -grad
+            return -value * scale, -grad * scale
 
         box = Bounds(lower.reshape(-1), upper.reshape(-1))
         if solver is Solver.TRUST_CONSTR:
