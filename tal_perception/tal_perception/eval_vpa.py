@@ -92,11 +92,16 @@ def scene_study(robot: RobotModel, model: CnnNsfModel, settings: VpaSettings, se
             z = exact.hips.heights(pose - np.array([reference, 0.0, 0.0])) + offsets
             return float(np.clip(exact.basis.evaluate(weights, z), 0.0, None).sum() * exact.cells)
 
-        rows.append({"kind": scene.kind, "nsf_exact_pose": exact_score(r_exact.pose),
-                     "nsf_cnn_pose": exact_score(r_cnn.pose), "pose_exact": r_exact.pose.tolist(),
-                     "pose_cnn": r_cnn.pose.tolist()})  # fmt: skip
         previous = exact.default_relative
         problem = PoseProblem(d.weights, reference - np.nan_to_num(d.map_references, nan=reference), previous)
+        # The objective the VPA maximises (both stages, C_int, smoothness) with the exact curves, at the
+        # stage poses found with the exact curves and with the CNN's (same references: same maps).
+        objective_exact = exact.optimizer.objective(problem, d.stage_poses.reshape(-1))[0]
+        objective_cnn = exact.optimizer.objective(problem, r_cnn.diagnostics.stage_poses.reshape(-1))[0]
+        rows.append({"kind": scene.kind, "nsf_exact_pose": exact_score(r_exact.pose),
+                     "nsf_cnn_pose": exact_score(r_cnn.pose), "objective_exact_pose": objective_exact,
+                     "objective_cnn_pose": objective_cnn, "pose_exact": r_exact.pose.tolist(),
+                     "pose_cnn": r_cnn.pose.tolist()})  # fmt: skip
         for kind in CostKind:
             optimizer = PoseOptimizer(dataclasses.replace(settings, cost=kind), exact.basis, exact.hips)
             x0 = optimizer.initial_guess(problem)
@@ -112,6 +117,7 @@ def scene_study(robot: RobotModel, model: CnnNsfModel, settings: VpaSettings, se
                 "pose_diff": pose_diff, "objective_rel_diff": obj_diff,
                 "agree": pose_diff <= AGREE_POSE or obj_diff <= AGREE_OBJECTIVE,
                 "lbfgsb_better_or_equal": b.objective >= a.objective - 1e-9 * max(abs(a.objective), 1.0),
+                "lbfgsb_relative_gain": (b.objective - a.objective) / max(abs(a.objective), 1e-12),
                 "trust_constr_ms": timings[Solver.TRUST_CONSTR] * 1e3, "lbfgsb_ms": timings[Solver.LBFGSB] * 1e3,
             })  # fmt: skip
     exact_total = sum(r["nsf_exact_pose"] for r in rows)
@@ -119,6 +125,8 @@ def scene_study(robot: RobotModel, model: CnnNsfModel, settings: VpaSettings, se
     summary = {
         "scenes": len(rows),
         "optimum_ratio": cnn_total / max(exact_total, 1e-9),
+        "objective_ratio": sum(r["objective_cnn_pose"] for r in rows) / sum(r["objective_exact_pose"] for r in rows),
+        "objective_ratio_min": float(min(r["objective_cnn_pose"] / r["objective_exact_pose"] for r in rows)),
         "per_scene_ratio_median": float(np.median([r["nsf_cnn_pose"] / max(r["nsf_exact_pose"], 1e-9) for r in rows])),
         "rows": rows,
         "solver_agreement": {
@@ -126,6 +134,7 @@ def scene_study(robot: RobotModel, model: CnnNsfModel, settings: VpaSettings, se
                 "cases": len(cases), "agree": int(sum(c["agree"] for c in cases)),
                 "lbfgsb_better_or_equal": int(sum(c["lbfgsb_better_or_equal"] for c in cases)),
                 "max_pose_diff": float(max(c["pose_diff"] for c in cases)) if cases else 0.0,
+                "worst_lbfgsb_relative_gain": float(min(c["lbfgsb_relative_gain"] for c in cases)) if cases else 0.0,
                 "trust_constr_median_ms": float(np.median([c["trust_constr_ms"] for c in cases])) if cases else 0.0,
                 "lbfgsb_median_ms": float(np.median([c["lbfgsb_ms"] for c in cases])) if cases else 0.0,
             }
@@ -191,21 +200,35 @@ def write_markdown(path: Path, curves: dict, scenes: dict, weights: Path, test_p
         f"{scenes['scenes']} scenes (`vpa_scenes`, seed 3). Both poses scored with the exact NSF curves of the "
         "current stage (sum over the legs):",
         "",
-        f"- sum NSF at the CNN pose / sum NSF at the exact pose: **{100 * scenes['optimum_ratio']:.1f} %**",
-        f"- median per-scene ratio: {100 * scenes['per_scene_ratio_median']:.1f} %",
+        f"- the VPA's objective (2 stages, C_int, smoothness; exact curves) at the CNN's stage poses / at the "
+        f"exact stage poses: **{100 * scenes['objective_ratio']:.1f} %** (worst scene "
+        f"{100 * scenes['objective_ratio_min']:.1f} %)",
+        f"- sum of the current stage's exact NSF at the CNN pose / at the exact pose: "
+        f"{100 * scenes['optimum_ratio']:.1f} % (median per scene {100 * scenes['per_scene_ratio_median']:.1f} %). "
+        "This can exceed 100 %: the exact pose maximises the objective above (future stage, margin, "
+        "smoothness), not the current stage's NSF alone.",
         "",
         "## Solver agreement (trust-constr reference vs L-BFGS-B, same start)",
         "",
         "| cost | cases | agree (pose <= 1e-3 or objective <= 1e-6 rel.) | L-BFGS-B objective >= trust-constr "
-        "| max pose diff | trust-constr median [ms] | L-BFGS-B median [ms] |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| worst L-BFGS-B objective vs trust-constr | max pose diff | trust-constr median [ms] "
+        "| L-BFGS-B median [ms] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for kind, row in scenes["solver_agreement"].items():
         lines.append(
             f"| C_{kind} | {row['cases']} | {row['agree']} | {row['lbfgsb_better_or_equal']} | "
-            f"{row['max_pose_diff']:.2e} | {row['trust_constr_median_ms']:.1f} | {row['lbfgsb_median_ms']:.1f} |"
+            f"{100 * row['worst_lbfgsb_relative_gain']:+.2f} % | {row['max_pose_diff']:.2e} | "
+            f"{row['trust_constr_median_ms']:.1f} | {row['lbfgsb_median_ms']:.1f} |"
         )
-    lines += ["", "![exact vs CNN NSF curves](vpa_curves.png)", ""]
+    lines += [
+        "",
+        "Where the two disagree they stopped in different local optima of a multimodal objective (same start);",
+        "the column 'worst' is the largest relative objective deficit of L-BFGS-B against trust-constr.",
+        "",
+        "![exact vs CNN NSF curves](vpa_curves.png)",
+        "",
+    ]
     path.write_text("\n".join(lines), encoding="utf-8")
 
 
