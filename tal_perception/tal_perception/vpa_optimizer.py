@@ -78,13 +78,18 @@ class HipHeightModel:
 
     def jacobian(self, pose: ArrayLike) -> FloatArray:
         """(..., 4, 3) d z_h / d [z_b, roll, pitch]."""
+        return self.heights_and_jacobian(pose)[1]
+
+    def heights_and_jacobian(self, pose: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """``heights`` and ``jacobian`` with one evaluation of the sines and cosines (optimiser loop)."""
         u = np.asarray(pose, dtype=float)
         x, y, z = (self.offsets[:, i] for i in range(3))
         sb, cb = np.sin(u[..., 1])[..., None], np.cos(u[..., 1])[..., None]
         sg, cg = np.sin(u[..., 2])[..., None], np.cos(u[..., 2])[..., None]
+        heights = u[..., 0:1] - x * sg + y * cg * sb + z * cg * cb
         d_roll = y * cg * cb - z * cg * sb
         d_pitch = -x * cg - y * sg * sb - z * sg * cb
-        return np.stack([np.ones_like(d_roll), d_roll, d_pitch], axis=-1)
+        return heights, np.stack([np.ones_like(d_roll), d_roll, d_pitch], axis=-1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,19 +140,28 @@ class PoseOptimizer:
 
     def leg_terms(self, problem: PoseProblem, poses: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Leg terms L (N_h, 4) (F, or its margin mean for C_int) and dL/dz_h at poses (N_h, 3)."""
-        z = self.hips.heights(poses) + problem.offsets
-        w = problem.weights
+        return self._leg_terms(problem, self.hips.heights(poses) + problem.offsets)
+
+    def _leg_terms(self, problem: PoseProblem, z: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Leg terms at hip heights z (N_h, 4) [m] above the map references: one exp for values and
+        slopes (this runs in the solver loop)."""
+        basis = self.basis
         if self.settings.cost is CostKind.INT:
             m = self.settings.cost_margin_m
-            values = 0.5 * (self.basis.evaluate(w, z - m) + self.basis.evaluate(w, z + m))
-            slopes = 0.5 * (self.basis.slope(w, z - m) + self.basis.slope(w, z + m))
-            return values, slopes
-        return self.basis.evaluate(w, z), self.basis.slope(w, z)
+            points = np.stack([z - m, z + m])  # (2, N_h, 4)
+        else:
+            points = z[None]
+        d = (points[..., None] - basis.centres) / basis.sigma  # (k, N_h, 4, E)
+        weighted = problem.weights * np.exp(-0.5 * d * d)
+        values = weighted.sum(axis=-1).mean(axis=0)
+        slopes = -(weighted * d).sum(axis=-1).mean(axis=0) / basis.sigma
+        return values, slopes
 
     def objective(self, problem: PoseProblem, flat: FloatArray) -> tuple[float, FloatArray]:
         """Maximised objective and its gradient w.r.t. the stacked poses (N_h * 3,)."""
         poses = flat.reshape(problem.stages, 3)
-        values, slopes = self.leg_terms(problem, poses)
+        heights, jacobian = self.hips.heights_and_jacobian(poses)
+        values, slopes = self._leg_terms(problem, heights + problem.offsets)
         if self.settings.cost is CostKind.PROD:
             squares = values * values
             total = float(np.prod(squares, axis=1).sum())
@@ -156,7 +170,7 @@ class PoseOptimizer:
         else:
             total = float(np.sum(values * values))
             d_z = 2.0 * values * slopes
-        grad = np.einsum("jl,jlk->jk", d_z, self.hips.jacobian(poses))
+        grad = np.einsum("jl,jlk->jk", d_z, jacobian)
         lam = self.settings.smoothness_weight
         if problem.stages > 1 and lam > 0.0:
             diff = poses[:-1] - poses[1:]
