@@ -56,6 +56,7 @@ class HipHeightModel:
         if offsets.shape != (4, 3) or not np.isfinite(offsets).all():
             raise VpaConfigError(f"hip offsets must be (4, 3) finite values [m], got shape {offsets.shape}")
         self.offsets = offsets  # (4, 3) [m] HAA joints in the base frame, rows LF, RF, LH, RH
+        self._x, self._y, self._z = (offsets[:, i].copy() for i in range(3))
 
     @classmethod
     def from_model(cls, model: RobotModel) -> HipHeightModel:
@@ -83,13 +84,16 @@ class HipHeightModel:
     def heights_and_jacobian(self, pose: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """``heights`` and ``jacobian`` with one evaluation of the sines and cosines (optimiser loop)."""
         u = np.asarray(pose, dtype=float)
-        x, y, z = (self.offsets[:, i] for i in range(3))
-        sb, cb = np.sin(u[..., 1])[..., None], np.cos(u[..., 1])[..., None]
-        sg, cg = np.sin(u[..., 2])[..., None], np.cos(u[..., 2])[..., None]
-        heights = u[..., 0:1] - x * sg + y * cg * sb + z * cg * cb
-        d_roll = y * cg * cb - z * cg * sb
-        d_pitch = -x * cg - y * sg * sb - z * sg * cb
-        return heights, np.stack([np.ones_like(d_roll), d_roll, d_pitch], axis=-1)
+        x, y, z = self._x, self._y, self._z
+        sb, cb = np.sin(u[..., 1:2]), np.cos(u[..., 1:2])
+        sg, cg = np.sin(u[..., 2:3]), np.cos(u[..., 2:3])
+        cg_sb, cg_cb = cg * sb, cg * cb
+        heights = u[..., 0:1] - x * sg + y * cg_sb + z * cg_cb
+        jacobian = np.empty((*heights.shape, 3))
+        jacobian[..., 0] = 1.0
+        jacobian[..., 1] = y * cg_cb - z * cg_sb
+        jacobian[..., 2] = -x * cg - sg * (y * sb + z * cb)
+        return heights, jacobian
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,6 +132,7 @@ class PoseOptimizer:
         self.lower = np.array(settings.pose_lower, dtype=float)
         self.upper = np.array(settings.pose_upper, dtype=float)
         self.max_change = np.array(settings.max_change, dtype=float)
+        self._scaled_centres = basis.centres / basis.sigma
 
     # -- bounds and objective ----------------------------------------------------------------------------
     def bounds(self, problem: PoseProblem) -> tuple[FloatArray, FloatArray]:
@@ -145,17 +150,19 @@ class PoseOptimizer:
     def _leg_terms(self, problem: PoseProblem, z: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Leg terms at hip heights z (N_h, 4) [m] above the map references: one exp for values and
         slopes (this runs in the solver loop)."""
-        basis = self.basis
+        inv_sigma = 1.0 / self.basis.sigma
         if self.settings.cost is CostKind.INT:
             m = self.settings.cost_margin_m
             points = np.stack([z - m, z + m])  # (2, N_h, 4)
         else:
             points = z[None]
-        d = (points[..., None] - basis.centres) / basis.sigma  # (k, N_h, 4, E)
+        d = points[..., None] * inv_sigma - self._scaled_centres  # (k, N_h, 4, E)
         weighted = problem.weights * np.exp(-0.5 * d * d)
-        values = weighted.sum(axis=-1).mean(axis=0)
-        slopes = -(weighted * d).sum(axis=-1).mean(axis=0) / basis.sigma
-        return values, slopes
+        values = weighted.sum(axis=-1)
+        slopes = (weighted * d).sum(axis=-1) * -inv_sigma
+        if values.shape[0] == 2:  # margin mean of C_int
+            return 0.5 * (values[0] + values[1]), 0.5 * (slopes[0] + slopes[1])
+        return values[0], slopes[0]
 
     def objective(self, problem: PoseProblem, flat: FloatArray) -> tuple[float, FloatArray]:
         """Maximised objective and its gradient w.r.t. the stacked poses (N_h * 3,)."""
@@ -218,7 +225,7 @@ class PoseOptimizer:
         else:
             result = minimize(
                 negative, start, jac=True, method="L-BFGS-B", bounds=box,
-                options={"ftol": 1e-13, "gtol": 1e-9, "maxiter": 200},
+                options={"ftol": 1e-10, "gtol": 1e-7, "maxiter": 200},
             )  # fmt: skip
             iterations = int(result.nit)
         poses = np.clip(result.x, box.lb, box.ub).reshape(problem.stages, 3)
