@@ -46,8 +46,6 @@ class VpaSettings:
     pose_lower: tuple[float, float, float] = (0.2, -0.35, -0.35)  # [m, rad, rad] u_min (thesis)
     pose_upper: tuple[float, float, float] = (0.8, 0.35, 0.35)  # [m, rad, rad] u_max (thesis)
     max_change: tuple[float, float, float] = (0.05, 0.1, 0.1)  # [m, rad, rad] |u - u_prev| per update (ours)
-    default_pose: tuple[float, float, float] = (0.5866, 0.0, 0.0)  # [m, rad, rad] held without a map (ours:
-    # HyQ's nominal base height; PoseAdapter replaces the height by the robot model's own nominal one)
     cost: CostKind = CostKind.INT  # the thesis' robust choice
     cost_margin_m: float = 0.025  # [m] m of C_int (thesis)
     horizon: int = 2  # [-] N_h (thesis)
