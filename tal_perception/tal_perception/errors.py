@@ -35,3 +35,11 @@ class VfaInputError(PerceptionInputError):
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
         self.reason = reason
+
+
+class VpaConfigError(TalPerceptionError, ValueError):
+    """An invalid VPA setting (sample grid, RBF count, bounds, horizon); the message names it."""
+
+
+class VpaModelError(TalPerceptionError):
+    """A VPA CNN weights file is missing, corrupt or does not match the settings it is used with."""
