@@ -25,6 +25,7 @@ setup(
     entry_points={
         "console_scripts": [
             "vfa = tal_perception.vfa_node:main",
+            "vpa = tal_perception.vpa_node:main",
         ],
     },
 )

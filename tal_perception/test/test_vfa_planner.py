@@ -231,11 +231,23 @@ def test_out_of_order_stamps_are_rejected_and_a_restarted_clock_restarts(planner
 
 
 def test_selector_and_settings_are_validated(hyq: RobotModel) -> None:
-    with pytest.raises(FecConfigError, match=r"selector must be one of \['exact'\], got 'cnn'"):
-        make_selector("cnn", hyq, max_map_age_s=0.5)
+    with pytest.raises(FecConfigError, match=r"selector must be one of \['exact', 'cnn'\], got 'learned'"):
+        make_selector("learned", hyq, max_map_age_s=0.5)
     with pytest.raises(FecConfigError, match=r"PlannerSettings.max_map_age_s must be > 0, got 0.0"):
         PlannerSettings(max_map_age_s=0.0)
     with pytest.raises(FecConfigError, match=r"PlannerSettings.nominal_shift_threshold_m must be a finite number"):
         PlannerSettings(nominal_shift_threshold_m=math.nan)
     planner = VfaPlanner.for_robot(hyq, "exact", PlannerSettings(max_map_age_s=0.2))
     assert isinstance(planner.selector, FootholdSelector) and planner.selector.max_map_age_s == 0.2
+
+
+def test_the_cnn_selector_moves_the_foothold_off_a_gap_too(hyq: RobotModel, hips_base, hip_height) -> None:
+    """The planner with the committed CNN (verified by the exact criteria) on the gap of the exact test."""
+    planner = VfaPlanner.for_robot(hyq, "cnn", PlannerSettings())
+    gait = snapshot(hips_base, hip_height)
+    lf_nominal = gait.nominal_foothold[Leg.LF]
+    planner.set_map(course_map(gap_across_x(lf_nominal[0])), 1.0)
+    lf = {d.leg: d for d in planner.update(gait)}[Leg.LF]
+    assert lf.status is VfaStatus.SELECTED and lf.safe_candidate_found and lf.adapted
+    assert lf.selected[2] == pytest.approx(0.0)
+    assert abs(lf.selected[0] - lf_nominal[0]) >= 0.06 + 0.03

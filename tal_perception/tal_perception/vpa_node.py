@@ -1,0 +1,185 @@
+"""Node ``vpa``: ViTAL's Vision-based Pose Adaptation (or the TBR baseline), a thin adapter over
+``vpa_planner``.
+
+Subscribes: ``gait_state`` (tal_msgs/GaitState, from the wbc: the clock of the updates, the hips and the
+commanded twist), ``terrain/heightmap`` (tal_msgs/HeightMap), ``footholds`` (tal_msgs/FootholdArray, the
+vfa's selections, used by the TBR baseline).
+Publishes: ``body_pose_reference`` (tal_msgs/BodyPoseReference, stamp = the gait state's, frame "world")
+every ``update_period_s`` of gait-state time, and ``vpa/diagnostics`` (diagnostic_msgs/DiagnosticArray
+every ``diagnostics_period_s`` of node time: updates by status, rejections by reason, update time
+median/max).
+
+The update runs in the gait-state callback: with the CNN it took a median of 15.6 ms (p99 26.6 ms) in
+``bench/bench_vpa.py``, so 20 Hz is the default; the exact evaluation (median 223 ms) needs
+``update_period_s`` >= 0.25 (the thesis ran it at 5 Hz). Bad input (NaN, wrong sizes, wrong frame,
+stamps going backwards) is rejected, counted by reason and logged at most once per second; it never
+stops the node. A missing or stale map holds the default pose (nominal height, level), flagged with
+``optimal`` false and counted.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+
+from tal_core.errors import InputError
+from tal_core.node_utils import declare, ns_from_stamp, run_node, write_summary
+from tal_core.robot_model import RobotModel
+from tal_core.ros_conversions import heightmap_grid
+from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
+
+from .errors import VfaInputError
+from .vfa_node import FRAME, gait_snapshot_from_message
+from .vpa_planner import SOURCES, PosePlanner, PoseReference
+from .vpa_settings import CostKind, VpaSettings
+
+TIMING_WINDOW = 1000  # updates kept for the timing statistics (the latest ones)
+
+
+def pose_message(reference: PoseReference) -> BodyPoseReference:
+    """tal_msgs/BodyPoseReference of a reference (header filled by the caller)."""
+    return BodyPoseReference(
+        source=reference.source, base_height=float(reference.base_height_m), roll=float(reference.roll_rad),
+        pitch=float(reference.pitch_rad), hip_height=[float(v) for v in reference.hip_heights_m],
+        safe_footholds=[int(v) for v in reference.safe_footholds], horizon=float(reference.horizon_s),
+        optimal=bool(reference.optimal))
+
+
+class VpaNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__("vpa", **kwargs)
+        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True)
+        source = declare(self, "source", "vpa", f"pose reference source: one of {', '.join(SOURCES)} (tbr: the "
+                         "thesis' baseline)", choices=SOURCES, read_only=True)
+        use_cnn = declare(self, "use_cnn", True, "VPA: CNN pose evaluation (committed weights) instead of the "
+                          "exact one", read_only=True)
+        period = declare(self, "update_period_s", 0.05, "[s] gait-state time between updates (0.05: 20 Hz)",
+                         low=0.004, high=10.0, read_only=True)
+        cost = declare(self, "cost", "int", "pose optimiser cost: sum, prod or int (C_int with cost_margin_m)",
+                       choices=[c.value for c in CostKind], read_only=True)
+        settings = VpaSettings(
+            cost=CostKind(cost),
+            cost_margin_m=declare(self, "cost_margin_m", 0.025, "[m] C_int margin", low=0.0, high=0.2,
+                                  read_only=True),
+            horizon=declare(self, "horizon", 2, "[-] receding horizon stages N_h", low=1, high=5, read_only=True),
+            max_map_age_s=declare(self, "max_map_age_s", 0.5, "[s] a heightmap older than this (gait-state time) "
+                                  "is stale: default pose held", low=0.001, high=60.0, read_only=True))
+        tbr_height = declare(self, "tbr_height_m", 0.0, "[m] TBR: base height above the footholds' plane "
+                             "(0: the robot's nominal height)", low=0.0, high=2.0, read_only=True)
+        self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
+                                            "clock)", low=0.05, high=60.0, read_only=True)
+        self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
+                                    "('' = none)", read_only=True)
+        self.planner = PosePlanner(RobotModel.from_name(robot), source, use_cnn=use_cnn, update_period_s=period,
+                                   tbr_height_m=tbr_height or None, settings=settings)
+        self.source = source
+        self.rejections: Counter[str] = Counter()
+        self.by_status: Counter[str] = Counter()
+        self.update_ms: deque[float] = deque(maxlen=TIMING_WINDOW)
+        self.max_update_ms = 0.0
+        self.published = 0
+        self._targets: np.ndarray | None = None
+
+        self.pub_pose = self.create_publisher(BodyPoseReference, "body_pose_reference", 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "vpa/diagnostics", 10)
+        self.create_subscription(GaitState, "gait_state", self._on_gait_state, 10)
+        self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
+        self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
+        self.create_timer(self.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(f"vpa ready: robot '{robot}', source '{source}'"
+                               + (f", {'CNN' if use_cnn else 'exact'} evaluation, cost {cost}" if source == "vpa"
+                                  else "") + f", every {period} s")
+
+    # -- inputs -------------------------------------------------------------------------------------
+    def _reject(self, reason: str, message: str) -> None:
+        self.rejections[reason] += 1
+        self.get_logger().warn(f"rejected ({reason}, {self.rejections[reason]} so far): {message}",
+                               throttle_duration_sec=1.0)
+
+    def _on_heightmap(self, msg: HeightMap) -> None:
+        try:
+            if msg.header.frame_id != FRAME:
+                raise VfaInputError("heightmap_frame", f"heightmap frame_id must be '{FRAME}', got "
+                                    f"'{msg.header.frame_id}'")
+            if len(msg.heights) != msg.rows * msg.cols:
+                raise VfaInputError("heightmap_size", f"heightmap has {len(msg.heights)} heights for "
+                                    f"{msg.rows} x {msg.cols} cells")
+            try:
+                grid = heightmap_grid(msg)
+            except InputError as exc:
+                raise VfaInputError("heightmap_invalid", str(exc)) from None
+            self.planner.set_map(grid, ns_from_stamp(msg.header.stamp) * 1e-9)
+        except VfaInputError as exc:
+            self._reject(exc.reason, str(exc))
+
+    def _on_footholds(self, msg: FootholdArray) -> None:
+        for foothold in msg.footholds:
+            try:
+                self.planner.set_foothold(foothold.leg, (foothold.selected.x, foothold.selected.y,
+                                                         foothold.selected.z))
+            except VfaInputError as exc:
+                self._reject(exc.reason, str(exc))
+
+    def _on_gait_state(self, msg: GaitState) -> None:
+        try:
+            snapshot = gait_snapshot_from_message(msg)
+            targets = np.array([[p.x, p.y, p.z] for p in msg.target_foothold], dtype=float)
+            reference = self.planner.update(snapshot, targets if np.isfinite(targets).all() else None)
+        except VfaInputError as exc:
+            self._reject(exc.reason, str(exc))
+            return
+        except InputError as exc:  # the VPA's or TBR's own input checks (e.g. collinear footholds)
+            self._reject("pose_input", str(exc))
+            return
+        if reference is None:
+            return
+        self.by_status[reference.status] += 1
+        elapsed_ms = reference.elapsed_s * 1e3
+        self.update_ms.append(elapsed_ms)
+        self.max_update_ms = max(self.max_update_ms, elapsed_ms)
+        if reference.status not in ("ok", "tbr"):
+            self.get_logger().warn(f"{reference.status}: pose held", throttle_duration_sec=1.0)
+        out = pose_message(reference)
+        out.header.stamp = msg.header.stamp
+        out.header.frame_id = FRAME
+        self.pub_pose.publish(out)
+        self.published += 1
+
+    # -- outputs ------------------------------------------------------------------------------------
+    def counters(self) -> dict[str, int | float | str]:
+        timing = np.array(self.update_ms)
+        return {
+            "source": self.source, "published": self.published, "restarts": self.planner.restarts,
+            **{f"status_{k}": v for k, v in sorted(self.by_status.items())},
+            **{f"rejected_{k}": v for k, v in sorted(self.rejections.items())},
+            "update_time_median_ms": round(float(np.median(timing)), 3) if timing.size else 0.0,
+            "update_time_max_ms": round(float(timing.max()), 3) if timing.size else 0.0,
+            "update_time_max_ever_ms": round(self.max_update_ms, 3),
+        }
+
+    def _publish_diagnostics(self) -> None:
+        values = self.counters()
+        rejected = sum(self.rejections.values())
+        held = sum(v for k, v in self.by_status.items() if k not in ("ok", "tbr"))
+        status = DiagnosticStatus(name=self.get_fully_qualified_name(), hardware_id="tal")
+        status.level = DiagnosticStatus.OK if rejected == 0 and held == 0 else DiagnosticStatus.WARN
+        status.message = "ok" if status.level == DiagnosticStatus.OK else f"{rejected} rejected, {held} held"
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
+
+    def destroy_node(self) -> None:
+        write_summary(self.summary_path, self.counters())
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(lambda: VpaNode(), args, name="vpa")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
