@@ -17,7 +17,8 @@ test: bootstrap
 
 bench: bootstrap
 	@$(ENV) && python bench/bench_bridge.py && python bench/bench_wbc.py && python bench/bench_stance.py \
-		&& python bench/bench_estimator.py && python bench/bench_bags.py && python bench/bench_vfa.py
+		&& python bench/bench_estimator.py && python bench/bench_bags.py && python bench/bench_vfa.py \
+		&& python bench/bench_vfa_cnn.py && python bench/bench_vpa.py
 
 datasets: bootstrap
 	@$(ENV) && python -m tal_control.experiments.datasets --out data --duration-s $(or $(DURATION),70)
@@ -26,7 +27,8 @@ experiments: bootstrap
 	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc \
 		&& python -m tal_control.experiments.stance_experiments --out results/stance \
 		&& python -m tal_control.experiments.estimation_experiments --out results/estimation \
-		&& python -m tal_sim2real benchmark --out results/sim2real --data data/sim2real --count 30 --jobs 2
+		&& python -m tal_sim2real benchmark --out results/sim2real --data data/sim2real --count 30 --jobs 2 \
+		&& python -m tal_perception.eval_vfa --out results/vital && python -m tal_perception.eval_vpa --out results/vital
 
 lint: bootstrap
 	@$(ENV) && ruff check . && ruff format --check .
