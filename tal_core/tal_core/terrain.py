@@ -145,14 +145,24 @@ class Course:
     def height(self, x: ArrayLike, y: ArrayLike) -> FloatArray | float:
         """Ground surface z [m] (world) at (x, y) [m]; NaN outside the extent. Shape: broadcast of x, y."""
         x, y, scalar = _as_points(x, y)
+        z = self._height_at(*self._locate(x, y))
+        return float(z) if scalar else z
+
+    def height_and_properties(self, x: ArrayLike, y: ArrayLike) -> tuple[FloatArray, TerrainPropertyArrays]:
+        """``height`` and ``properties_array`` at (x, y) [m] with one patch look-up (the simulator's
+        per-step query for a power-law ground)."""
+        x, y, _ = _as_points(x, y)
         index, x, y = self._locate(x, y)
+        return self._height_at(index, x, y), self._properties_at(index)
+
+    def _height_at(self, index: NDArray[np.intp], x: FloatArray, y: FloatArray) -> FloatArray:
         z = np.full(x.shape, np.nan)
         z[index == _DEFAULT_INDEX] = self.default.height_m
         for i, patch in enumerate(self.patches):
             on_patch = index == i
             if on_patch.any():
                 z[on_patch] = patch.height(x[on_patch], y[on_patch])
-        return float(z) if scalar else z
+        return z
 
     def normal(self, x: ArrayLike, y: ArrayLike) -> FloatArray:
         """Unit ground normals (..., 3) in the world frame at (x, y) [m]; NaN outside the extent.
@@ -176,7 +186,9 @@ class Course:
     def properties_array(self, x: ArrayLike, y: ArrayLike) -> TerrainPropertyArrays:
         """Stiffness [N/m], damping [N s/m], friction [-] at (x, y) [m]; NaN outside the extent."""
         x, y, _ = _as_points(x, y)
-        index, _, _ = self._locate(x, y)
+        return self._properties_at(self._locate(x, y)[0])
+
+    def _properties_at(self, index: NDArray[np.intp]) -> TerrainPropertyArrays:
         rows = index + _LOOKUP_OFFSET
 
         def table(attribute: str) -> FloatArray:

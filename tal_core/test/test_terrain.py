@@ -370,3 +370,17 @@ class TestShippedCourses:
 
     def test_slope_patch_type(self) -> None:
         assert isinstance(load_course("slope_15deg").patch("ramp_up"), SlopePatch)
+
+
+def test_height_and_properties_equal_the_separate_queries() -> None:
+    """One look-up for both (the simulator's per-step power-law ground query), on every shipped course."""
+    rng = np.random.default_rng(0)
+    for name in shipped_course_names():
+        course = load_course(name)
+        ext = course.extent
+        x = rng.uniform(ext.x_min - 0.5, ext.x_max + 0.5, 200)
+        y = rng.uniform(ext.y_min - 0.5, ext.y_max + 0.5, 200)
+        z, props = course.height_and_properties(x, y)
+        np.testing.assert_array_equal(z, course.height(x, y))
+        for got, expected in zip(props, course.properties_array(x, y)):
+            np.testing.assert_array_equal(got, expected)

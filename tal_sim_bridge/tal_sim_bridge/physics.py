@@ -356,9 +356,8 @@ class Simulation:
         current sinkage (the boxes are rigid, so the foot's parameters are the contact's)."""
         states = self.client.getLinkStates(self.robot, self.foot_links, computeForwardKinematics=1)
         feet = np.array([s[4] for s in states])
-        ground = np.asarray(self.course.height(feet[:, 0], feet[:, 1]), dtype=float)
+        ground, props = self.course.height_and_properties(feet[:, 0], feet[:, 1])
         depth = np.nan_to_num(ground + self.description.foot_radius_m - feet[:, 2], nan=0.0)
-        props = self.course.properties_array(feet[:, 0], feet[:, 1])
         scale = power_law_ground_scale(depth, self.effects.ground_contact_exponent)
         stiffness = np.nan_to_num(props.stiffness_n_per_m, nan=FOOT_CONTACT_STIFFNESS) * scale
         damping = np.nan_to_num(props.damping_ns_per_m, nan=0.0) * scale
