@@ -26,6 +26,7 @@ from geometry_msgs.msg import Point
 from rclpy.node import Node
 
 from tal_core.errors import InputError
+from tal_core.heightmap import HeightMapGrid
 from tal_core.node_utils import declare, ns_from_stamp, run_node, write_summary
 from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import heightmap_grid
@@ -52,6 +53,21 @@ def gait_snapshot_from_message(msg: GaitState) -> GaitSnapshot:
         swing=np.array(msg.swing, dtype=bool), time_to_touchdown_s=np.array(msg.time_to_touchdown, dtype=float),
         step_count=np.array(msg.step_count, dtype=np.int64), liftoff_position=_points(msg.liftoff_position),
         nominal_foothold=_points(msg.nominal_foothold), hip_position=_points(msg.hip_position))
+
+
+def grid_from_message(msg: HeightMap) -> tuple[HeightMapGrid, float]:
+    """HeightMapGrid and stamp [s] of a tal_msgs/HeightMap; VfaInputError (with the reason the ViTAL nodes
+    count) on a wrong frame, a size mismatch or a NaN centre, yaw or resolution."""
+    if msg.header.frame_id != FRAME:
+        raise VfaInputError("heightmap_frame", f"heightmap frame_id must be '{FRAME}', got '{msg.header.frame_id}'")
+    if len(msg.heights) != msg.rows * msg.cols:
+        raise VfaInputError("heightmap_size", f"heightmap has {len(msg.heights)} heights for "
+                            f"{msg.rows} x {msg.cols} cells")
+    try:
+        grid = heightmap_grid(msg)
+    except InputError as exc:
+        raise VfaInputError("heightmap_invalid", str(exc)) from None
+    return grid, ns_from_stamp(msg.header.stamp) * 1e-9
 
 
 def foothold_message(decision: FootholdDecision) -> Foothold:
@@ -116,17 +132,7 @@ class VfaNode(Node):
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
-            if msg.header.frame_id != FRAME:
-                raise VfaInputError("heightmap_frame", f"heightmap frame_id must be '{FRAME}', got "
-                                    f"'{msg.header.frame_id}'")
-            if len(msg.heights) != msg.rows * msg.cols:
-                raise VfaInputError("heightmap_size", f"heightmap has {len(msg.heights)} heights for "
-                                    f"{msg.rows} x {msg.cols} cells")
-            try:
-                grid = heightmap_grid(msg)
-            except InputError as exc:  # NaN centre, yaw or resolution
-                raise VfaInputError("heightmap_invalid", str(exc)) from None
-            fresh = self.planner.set_map(grid, ns_from_stamp(msg.header.stamp) * 1e-9)
+            fresh = self.planner.set_map(*grid_from_message(msg))
         except VfaInputError as exc:
             self._reject(exc.reason, str(exc))
             return

@@ -194,6 +194,45 @@ class PlannerCounters:
     restarts: int = 0
 
 
+class HipFrame:
+    """The base pose as seen from a gait state's hips (HAA joints, world frame), with the base level:
+    heading from the front hips seen from the hind hips, base origin from the hips' centre.
+
+    hip_offsets_base (4, 3) [m]: the HAA joints in the base frame.
+    """
+
+    def __init__(self, hip_offsets_base: ArrayLike) -> None:
+        hips = np.asarray(hip_offsets_base, dtype=float)
+        if hips.shape != (NUM_LEGS, 3) or not np.isfinite(hips).all():
+            raise FecConfigError(f"hip_offsets_base must be (4, 3) finite values [m], got shape {hips.shape}")
+        front_to_hind = _front_minus_hind(hips[:, :2])
+        if np.linalg.norm(front_to_hind) < 1e-3:
+            raise FecConfigError("hip_offsets_base: the front and hind hips coincide, no heading can be derived")
+        self.offsets_base = hips
+        self._heading_base = math.atan2(front_to_hind[1], front_to_hind[0])
+        self._centre_base = hips.mean(axis=0)
+
+    @classmethod
+    def from_model(cls, model: RobotModel) -> HipFrame:
+        """The hips of ``model`` in its neutral standing pose."""
+        neutral = RobotModel(model.description)  # private copy: updating it must not disturb the caller's
+        height = neutral.nominal_base_height_m
+        neutral.update(neutral.neutral_q(height), np.zeros(neutral.nv))
+        return cls(neutral.hip_positions() - np.array([0.0, 0.0, height]))
+
+    def heading(self, hip_world: FloatArray) -> float:
+        """[rad] world yaw of the base: direction of the front hips seen from the hind hips, minus the same
+        direction in the base frame (exact for any roll and pitch: it is the base x axis' projection)."""
+        d = _front_minus_hind(hip_world[:, :2])
+        return math.remainder(math.atan2(d[1], d[0]) - self._heading_base, 2.0 * math.pi)
+
+    def base_position(self, hip_world: FloatArray, yaw: float) -> FloatArray:
+        """(3,) [m] world base origin from the hips (4, 3) [m] world, the base taken level at ``yaw``."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return hip_world.mean(axis=0) - rotation @ self._centre_base
+
+
 class VfaPlanner:
     """Per-leg foothold decisions for the swinging legs (see the module docstring).
 
@@ -205,16 +244,9 @@ class VfaPlanner:
                  settings: PlannerSettings | None = None) -> None:
         self.selector = selector
         self.settings = settings if settings is not None else PlannerSettings()
-        hips = np.asarray(hip_offsets_base, dtype=float)
-        if hips.shape != (NUM_LEGS, 3) or not np.isfinite(hips).all():
-            raise FecConfigError(f"hip_offsets_base must be (4, 3) finite values [m], got shape {hips.shape}")
-        front_to_hind = _front_minus_hind(hips[:, :2])
-        if np.linalg.norm(front_to_hind) < 1e-3:
-            raise FecConfigError("hip_offsets_base: the front and hind hips coincide, no heading can be derived")
+        self.hips = HipFrame(hip_offsets_base)
         if not (math.isfinite(foot_radius_m) and foot_radius_m >= 0.0):
             raise FecConfigError(f"foot_radius_m must be a finite value >= 0 [m], got {foot_radius_m!r}")
-        self._hip_heading_base = math.atan2(front_to_hind[1], front_to_hind[0])
-        self._hip_centre_base = hips[:, :2].mean(axis=0)
         self.foot_radius_m = float(foot_radius_m)
         self.counters = PlannerCounters()
         self.reset()
@@ -225,10 +257,7 @@ class VfaPlanner:
         """A planner for ``model`` with the selector called ``selector`` (``make_selector``)."""
         settings = settings if settings is not None else PlannerSettings()
         chosen = make_selector(selector, model, max_map_age_s=settings.max_map_age_s, fec_settings=fec_settings)
-        neutral = RobotModel(model.description)  # private copy: updating it must not disturb the caller's
-        height = neutral.nominal_base_height_m
-        neutral.update(neutral.neutral_q(height), np.zeros(neutral.nv))
-        hips = neutral.hip_positions() - np.array([0.0, 0.0, height])
+        hips = HipFrame.from_model(model).offsets_base
         return cls(chosen, hips, float(model.description.foot_radius_m), settings)
 
     def warm_up(self) -> float:
@@ -347,7 +376,7 @@ class VfaPlanner:
         # The scheduler's time to touchdown may exceed (1 - D) / f by rounding or during a gait switch.
         time_left = float(np.clip(gait.time_to_touchdown_s[leg], 0.0, timing.swing_duration_s))
         timing = GaitTiming(timing.step_frequency_hz, timing.duty_factor, time_left, timing.step_height_m)
-        yaw = self._heading(gait.hip_position)
+        yaw = self.hips.heading(gait.hip_position)
         hip = gait.hip_position[leg]
         liftoff = gait.liftoff_position[leg] - np.array([0.0, 0.0, self.foot_radius_m])
         map_age = math.inf if self._map_stamp_s is None else abs(gait.stamp_s - self._map_stamp_s)
@@ -366,18 +395,12 @@ class VfaPlanner:
             safe_candidates=None if count is None else int(count), score=score, status=result.status,
             trigger=trigger, map_stamp_s=self._map_stamp_s, elapsed_s=elapsed)
 
-    def _heading(self, hip_world: FloatArray) -> float:
-        """[rad] world yaw of the base: direction of the front hips seen from the hind hips, minus the same
-        direction in the base frame (exact for any roll and pitch: it is the base x axis' projection)."""
-        d = _front_minus_hind(hip_world[:, :2])
-        return math.remainder(math.atan2(d[1], d[0]) - self._hip_heading_base, 2.0 * math.pi)
-
     def _hip_at_touchdown(self, leg: Leg, gait: GaitSnapshot, yaw: float, time_left_s: float) -> FloatArray:
         """(2,) [m] world x, y of ``leg``'s HAA joint at touchdown: moved by the commanded hip velocity
         v + w_z x r (r from the base origin, on the level base) over the time left."""
         c, s = math.cos(yaw), math.sin(yaw)
         rotation = np.array([[c, -s], [s, c]])
-        base_xy = gait.hip_position[:, :2].mean(axis=0) - rotation @ self._hip_centre_base
+        base_xy = self.hips.base_position(gait.hip_position, yaw)[:2]
         r = gait.hip_position[leg, :2] - base_xy
         velocity = rotation @ gait.base_twist[:2] + gait.base_twist[5] * np.array([-r[1], r[0]])
         return gait.hip_position[leg, :2] + velocity * time_left_s

@@ -26,13 +26,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 
 from tal_core.errors import InputError
-from tal_core.node_utils import declare, ns_from_stamp, run_node, write_summary
+from tal_core.node_utils import declare, run_node, write_summary
 from tal_core.robot_model import RobotModel
-from tal_core.ros_conversions import heightmap_grid
 from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
-from .vfa_node import FRAME, gait_snapshot_from_message
+from .vfa_node import FRAME, gait_snapshot_from_message, grid_from_message
 from .vpa_planner import SOURCES, PosePlanner, PoseReference
 from .vpa_settings import CostKind, VpaSettings
 
@@ -101,17 +100,7 @@ class VpaNode(Node):
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
-            if msg.header.frame_id != FRAME:
-                raise VfaInputError("heightmap_frame", f"heightmap frame_id must be '{FRAME}', got "
-                                    f"'{msg.header.frame_id}'")
-            if len(msg.heights) != msg.rows * msg.cols:
-                raise VfaInputError("heightmap_size", f"heightmap has {len(msg.heights)} heights for "
-                                    f"{msg.rows} x {msg.cols} cells")
-            try:
-                grid = heightmap_grid(msg)
-            except InputError as exc:
-                raise VfaInputError("heightmap_invalid", str(exc)) from None
-            self.planner.set_map(grid, ns_from_stamp(msg.header.stamp) * 1e-9)
+            self.planner.set_map(*grid_from_message(msg))
         except VfaInputError as exc:
             self._reject(exc.reason, str(exc))
 

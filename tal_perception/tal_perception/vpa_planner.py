@@ -25,12 +25,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tal_core.heightmap import HeightMapGrid
-from tal_core.legs import NUM_LEGS, Leg
+from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_perception.errors import VfaInputError, VpaConfigError
 from tal_perception.fec_settings import GaitTiming
 from tal_perception.tbr import TerrainBasedReference
-from tal_perception.vfa_planner import GaitSnapshot
+from tal_perception.vfa_planner import GaitSnapshot, HipFrame
 from tal_perception.vpa import PoseAdapter, VpaStatus
 from tal_perception.vpa_settings import VpaSettings
 
@@ -80,12 +80,7 @@ class PosePlanner:
         self.adapter = PoseAdapter(model, self.settings, nsf_model=nsf_model) if source == "vpa" else None
         height = model.nominal_base_height_m if tbr_height_m is None else float(tbr_height_m)
         self.tbr = TerrainBasedReference(height)
-        neutral = RobotModel(model.description)
-        neutral.update(neutral.neutral_q(model.nominal_base_height_m), np.zeros(neutral.nv))
-        self._hips_base = neutral.hip_positions() - np.array([0.0, 0.0, model.nominal_base_height_m])
-        d = 0.5 * (self._hips_base[Leg.LF, :2] + self._hips_base[Leg.RF, :2]
-                   - self._hips_base[Leg.LH, :2] - self._hips_base[Leg.RH, :2])
-        self._hip_heading_base = math.atan2(d[1], d[0])
+        self.hips = HipFrame.from_model(model)
         self._grid: HeightMapGrid | None = None
         self._map_stamp_s: float | None = None
         self._footholds: FloatArray | None = None  # (4, 3) latest selected footholds (TBR)
@@ -130,8 +125,8 @@ class PosePlanner:
             return None
         self._last_update_s = stamp
         self.updates += 1
-        yaw = self._heading(gait.hip_position)
-        base = self._base_position(gait.hip_position, yaw)
+        yaw = self.hips.heading(gait.hip_position)
+        base = self.hips.base_position(gait.hip_position, yaw)
         start = time.perf_counter()
         if self.adapter is not None:
             map_age = math.inf if self._map_stamp_s is None else stamp - self._map_stamp_s
@@ -162,20 +157,10 @@ class PosePlanner:
             return None
         return points[np.isfinite(points).all(axis=1)]
 
-    def _heading(self, hip_world: FloatArray) -> float:
-        d = 0.5 * (hip_world[Leg.LF, :2] + hip_world[Leg.RF, :2] - hip_world[Leg.LH, :2] - hip_world[Leg.RH, :2])
-        return math.remainder(math.atan2(d[1], d[0]) - self._hip_heading_base, 2.0 * math.pi)
-
-    def _base_position(self, hip_world: FloatArray, yaw: float) -> FloatArray:
-        """(3,) [m] world base origin from the hips, with the base taken level (as the VPA's maps do)."""
-        c, s = math.cos(yaw), math.sin(yaw)
-        rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        return hip_world.mean(axis=0) - rotation @ self._hips_base.mean(axis=0)
-
     def _hip_heights(self, pose: FloatArray) -> FloatArray:
         """(4,) [m] world z of the hips for pose (base height [m], roll, pitch [rad]; Cardan, roll first)."""
         height, roll, pitch = pose
-        x, y, z = self._hips_base.T
+        x, y, z = self.hips.offsets_base.T
         cp = math.cos(pitch)
         return height - math.sin(pitch) * x + cp * math.sin(roll) * y + cp * math.cos(roll) * z
 
