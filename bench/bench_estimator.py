@@ -36,8 +36,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from bench_wbc import _cpu_snapshot, _other_cores_busy, fmt, wait_for_quiet_machine  # bench/ is on sys.path
-from machine import machine_info
+from bench_wbc import fmt  # bench/ is on sys.path
+from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine
 
 try:
     from tal_core.legs import LEGS, NUM_LEGS
@@ -241,10 +241,10 @@ def main() -> int:
         parser.error("need --ticks >= 10, --rounds >= 1 and --warmup >= 1")
 
     if args.wait_quiet > 0:
-        busy = wait_for_quiet_machine(args.wait_quiet)
+        busy = wait_for_quiet_machine(args.wait_quiet, log=progress)
         progress(f"other processes keep {fmt(busy, 2)} cores busy; starting")
     load_at_start = list(os.getloadavg())
-    cpu_at_start = _cpu_snapshot()
+    cpu_at_start = cpu_snapshot()
     model = RobotModel.from_name("hyq")
     progress(f"generating {args.warmup} + {n} ticks of inputs (seed {args.seed})")
     inputs = generate_inputs(RobotModel.from_name("hyq"), args.warmup + n, args.seed)
@@ -263,7 +263,7 @@ def main() -> int:
     for mode in MODES:
         progress(f"parts pass: {mode}")
         parts[mode] = run_parts(model, mode, inputs, args.warmup, impedances[mode])
-    other_load = _other_cores_busy(cpu_at_start, _cpu_snapshot())
+    other_load = other_cores_busy(cpu_at_start, cpu_snapshot())
 
     summary = {
         mode: {

@@ -34,7 +34,7 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine  # bench/machine.py
 
 try:
     from tal_core.heightmap import HeightMapGrid
@@ -98,34 +98,10 @@ def run(selector: FootholdSelector, cases: list[dict], lazy: bool) -> dict[str, 
     return out
 
 
-def _cpu_snapshot() -> tuple[float, float, float] | None:
-    """(wall [s], busy CPU time of the whole machine [s], CPU time of this process [s]) (as bench_wbc)."""
-    try:
-        fields = [int(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
-    except (OSError, ValueError, IndexError):
-        return None
-    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
-    t = os.times()
-    return time.monotonic(), (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK"), t.user + t.system
 
 
-def _other_cores_busy(start, end) -> float | None:
-    """Average number of cores other processes kept busy between two snapshots."""
-    if start is None or end is None or end[0] <= start[0]:
-        return None
-    return max(0.0, ((end[1] - start[1]) - (end[2] - start[2])) / (end[0] - start[0]))
 
 
-def wait_for_quiet_machine(timeout_s: float, threshold_cores: float = 0.15, window_s: float = 5.0) -> float | None:
-    """Wait (up to timeout_s) for a window in which other processes keep < threshold cores busy."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        start = _cpu_snapshot()
-        time.sleep(window_s)
-        busy = _other_cores_busy(start, _cpu_snapshot())
-        if busy is None or busy < threshold_cores or time.monotonic() > deadline:
-            return busy
-        progress(f"other processes keep {busy:.2f} cores busy; waiting for a quiet machine")
 
 
 def stats(samples: list[float]) -> dict:
@@ -170,7 +146,7 @@ def main() -> int:
         parser.error("need --samples >= 5 and --rounds >= 1")
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     if args.wait_quiet > 0:
-        busy_before = wait_for_quiet_machine(args.wait_quiet)
+        busy_before = wait_for_quiet_machine(args.wait_quiet, log=progress)
         progress(f"other processes keep {busy_before if busy_before is None else round(busy_before, 2)} cores busy")
     load_at_start = [round(v, 2) for v in os.getloadavg()]
     model = RobotModel.from_name("hyq")
@@ -183,9 +159,9 @@ def main() -> int:
     for r in range(1, args.rounds + 1):
         for key, lazy in (("vfa", True), ("vfa_full", False)):
             progress(f"round {r}/{args.rounds}: {key}")
-            start = _cpu_snapshot()
+            start = cpu_snapshot()
             result = run(selector, cases, lazy)
-            others_busy.append(_other_cores_busy(start, _cpu_snapshot()))
+            others_busy.append(other_cores_busy(start, cpu_snapshot()))
             for leg, value in result.items():
                 entry = pooled[key].setdefault(leg, {"ms": [], "status": value["status"], "adapted": value["adapted"]})
                 entry["ms"].extend(value["ms"])

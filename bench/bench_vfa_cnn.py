@@ -29,8 +29,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_vfa import _cpu_snapshot, _other_cores_busy, make_cases, stats, wait_for_quiet_machine
-from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+from bench_vfa import make_cases, stats
+from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine  # bench/machine.py
 
 try:
     import torch
@@ -135,7 +135,7 @@ def main() -> int:
     torch.set_num_threads(1)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     if args.wait_quiet > 0:
-        busy_before = wait_for_quiet_machine(args.wait_quiet)
+        busy_before = wait_for_quiet_machine(args.wait_quiet, log=progress)
         progress(f"other processes keep {busy_before if busy_before is None else round(busy_before, 2)} cores busy")
     load_at_start = [round(v, 2) for v in os.getloadavg()]
     model = RobotModel.from_name("hyq")
@@ -148,12 +148,12 @@ def main() -> int:
     for r in range(1, args.rounds + 1):
         for mode in MODES:
             progress(f"round {r}/{args.rounds}: {mode}")
-            start = _cpu_snapshot()
+            start = cpu_snapshot()
             if mode == "cnn_4legs":
                 result = run_batch(selector, cases)
             else:
                 result = run_single(selector, cases, verify=mode == "cnn_verified")
-            others_busy.append(_other_cores_busy(start, _cpu_snapshot()))
+            others_busy.append(other_cores_busy(start, cpu_snapshot()))
             for key, value in result.items():
                 entry = pooled[mode].setdefault(key, {k: [] if isinstance(v, list) else 0 for k, v in value.items()})
                 for k, v in value.items():

@@ -28,8 +28,8 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from bench_vfa import _cpu_snapshot, _other_cores_busy, stats, wait_for_quiet_machine
-from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+from bench_vfa import stats
+from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine  # bench/machine.py
 
 try:
     import torch
@@ -104,7 +104,7 @@ def main() -> int:
     torch.set_num_threads(1)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     if args.wait_quiet > 0:
-        busy_before = wait_for_quiet_machine(args.wait_quiet)
+        busy_before = wait_for_quiet_machine(args.wait_quiet, log=progress)
         progress(f"other processes keep {busy_before if busy_before is None else round(busy_before, 2)} cores busy")
     load_at_start = [round(v, 2) for v in os.getloadavg()]
     model = RobotModel.from_name("hyq")
@@ -120,9 +120,9 @@ def main() -> int:
     for r in range(1, args.rounds + 1):
         for mode, adapter in adapters.items():
             progress(f"round {r}/{args.rounds}: {mode}")
-            start = _cpu_snapshot()
+            start = cpu_snapshot()
             result = run(adapter, scenes)
-            others_busy.append(_other_cores_busy(start, _cpu_snapshot()))
+            others_busy.append(other_cores_busy(start, cpu_snapshot()))
             entry = pooled.setdefault(mode, {"ms": [], "evaluation_ms": [], "optimisation_ms": [],
                                              "round_medians_ms": [], "status": result["status"]})  # fmt: skip
             for key in ("ms", "evaluation_ms", "optimisation_ms"):

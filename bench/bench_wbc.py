@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine  # bench/machine.py
 
 try:
     import osqp
@@ -374,36 +374,10 @@ def pool(rounds: list[dict], group: str, key: str) -> list[float]:
     return [value for r in rounds for value in r[group][key]]
 
 
-def _cpu_snapshot() -> tuple[float, float, float] | None:
-    """(wall [s], busy CPU time of the whole machine [s], CPU time of this process and its children [s])."""
-    try:
-        fields = [int(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
-    except (OSError, ValueError, IndexError):
-        return None
-    ticks = os.sysconf("SC_CLK_TCK")
-    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
-    t = os.times()
-    return time.monotonic(), (sum(fields[:8]) - idle) / ticks, t.user + t.system + t.children_user + t.children_system
 
 
-def _other_cores_busy(start, end) -> float | None:
-    """Average number of cores other processes kept busy during the run (0 = a quiet machine)."""
-    if start is None or end is None or end[0] <= start[0]:
-        return None
-    return max(0.0, ((end[1] - start[1]) - (end[2] - start[2])) / (end[0] - start[0]))
 
 
-def wait_for_quiet_machine(timeout_s: float, threshold_cores: float = 0.15, window_s: float = 5.0) -> float | None:
-    """Wait (up to timeout_s) for a window in which other processes keep < threshold cores busy."""
-    deadline = time.monotonic() + timeout_s
-    busy = None
-    while True:
-        start = _cpu_snapshot()
-        time.sleep(window_s)
-        busy = _other_cores_busy(start, _cpu_snapshot())
-        if busy is None or busy < threshold_cores or time.monotonic() > deadline:
-            return busy
-        progress(f"other processes keep {busy:.2f} cores busy; waiting for a quiet machine")
 
 
 def fmt(value: float | None, digits: int = 3) -> str:
@@ -516,10 +490,10 @@ def main() -> int:
 
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     if args.wait_quiet > 0:
-        busy = wait_for_quiet_machine(args.wait_quiet)
+        busy = wait_for_quiet_machine(args.wait_quiet, log=progress)
         progress(f"other processes keep {fmt(busy, 2)} cores busy; starting")
     load_at_start = list(os.getloadavg())
-    cpu_at_start = _cpu_snapshot()
+    cpu_at_start = cpu_snapshot()
     model = RobotModel.from_name("hyq")
     settings, gains = WbcSettings(), WbcGains()
     progress(f"generating 2 x {n} states (seed {args.seed}) -> {STATES_PATH.relative_to(ROOT)}")
@@ -588,7 +562,7 @@ def main() -> int:
         progress("cProfile pass over both sequences (timings above were taken without the profiler)")
         profile = profile_ours(model, states, settings, gains)
 
-    other_load = _other_cores_busy(cpu_at_start, _cpu_snapshot())
+    other_load = other_cores_busy(cpu_at_start, cpu_snapshot())
     now = dt.datetime.now().astimezone()
     print(f"## WBC cycle vs TSID ({now:%Y-%m-%d %H:%M %Z}, {machine_info()['cpu_model']}, {os.cpu_count()} cores)\n")
     print(

@@ -6,6 +6,8 @@ import datetime as dt
 import os
 import platform
 import subprocess
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,3 +36,37 @@ def machine_info() -> dict[str, object]:
         "rmw": os.environ.get("RMW_IMPLEMENTATION", "default (rmw_fastrtps_cpp)"),
         "load_average_1_5_15min": [round(x, 2) for x in os.getloadavg()],
     }
+
+
+def cpu_snapshot() -> tuple[float, float, float] | None:
+    """(wall [s], busy CPU time of the whole machine [s], CPU time of this process and its children [s])."""
+    try:
+        fields = [int(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    except (OSError, ValueError, IndexError):
+        return None
+    ticks = os.sysconf("SC_CLK_TCK")
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+    t = os.times()
+    return time.monotonic(), (sum(fields[:8]) - idle) / ticks, t.user + t.system + t.children_user + t.children_system
+
+
+def other_cores_busy(start, end) -> float | None:
+    """Average number of cores other processes kept busy between two snapshots (0 = a quiet machine)."""
+    if start is None or end is None or end[0] <= start[0]:
+        return None
+    return max(0.0, ((end[1] - start[1]) - (end[2] - start[2])) / (end[0] - start[0]))
+
+
+def wait_for_quiet_machine(timeout_s: float, threshold_cores: float = 0.15, window_s: float = 5.0,
+                           log: Callable[[str], None] | None = None) -> float | None:
+    """Wait (up to timeout_s) for a window in which other processes keep < threshold cores busy; returns
+    the last measured load of the others (cores)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        start = cpu_snapshot()
+        time.sleep(window_s)
+        busy = other_cores_busy(start, cpu_snapshot())
+        if busy is None or busy < threshold_cores or time.monotonic() > deadline:
+            return busy
+        if log is not None:
+            log(f"other processes keep {busy:.2f} cores busy; waiting for a quiet machine")
