@@ -10,6 +10,12 @@ decides once per swing (the swing's ``step_count``) and re-decides during the sw
   decision (the motion generator keeps re-planning its Raibert foothold as the velocity changes; once it
   was given an external foothold it stops following the nominal itself, so the VFA must).
 
+A re-decision keeps the swing's current selection, instead of jumping more than ``switch_hysteresis_m``
+from it, while that point is still safe and no more than ``switch_hysteresis_m`` further from the new
+nominal than the new best candidate: near a step edge two
+safe regions can be almost equally close to the nominal, and flipping between them mid-swing retargets
+the foot by a whole tread (a jolt for the whole-body controller) for no gain in safety.
+
 A re-decision is reported only when it changes something (the selection by more than
 ``selection_tolerance_m``, or the status), so the consumer re-targets the swing only when needed.
 
@@ -33,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -87,9 +93,11 @@ class PlannerSettings:
     nominal_shift_threshold_m: float = 0.02  # [m] re-decide when the nominal moved this far (one cell)
     reevaluate_on_new_map: bool = True  # re-decide when a newer map arrives during the swing
     selection_tolerance_m: float = 1e-3  # [m] a re-decision closer than this to the last is not news
+    switch_hysteresis_m: float = 0.05  # [m] keep a still-safe selection unless the new one is this much closer
 
     def __post_init__(self) -> None:
-        for name in ("max_map_age_s", "min_swing_time_left_s", "nominal_shift_threshold_m", "selection_tolerance_m"):
+        for name in ("max_map_age_s", "min_swing_time_left_s", "nominal_shift_threshold_m", "selection_tolerance_m",
+                     "switch_hysteresis_m"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise FecConfigError(f"PlannerSettings.{name} must be a finite number, got {value!r}")
@@ -192,6 +200,7 @@ class PlannerCounters:
     adapted: int = 0
     late_swings: int = 0
     restarts: int = 0
+    kept: int = 0  # re-decisions that kept the swing's still-safe selection (switch hysteresis)
 
 
 class HipFrame:
@@ -385,6 +394,11 @@ class VfaPlanner:
             leg, gait.nominal_foothold[leg], self._grid, hip_height_m=float(hip[2]), twist=gait.base_twist,
             gait=timing, yaw=yaw, map_age_s=0.0 if self._grid is None else map_age, liftoff_world=liftoff,
             hip_touchdown_world=self._hip_at_touchdown(leg, gait, yaw, time_left))
+        previous = self._decisions.get(leg)
+        if (previous is not None and previous.step_count == int(gait.step_count[leg])
+                and previous.status is VfaStatus.SELECTED and result.status is VfaStatus.SELECTED):
+            result = self._keep_if_still_safe(leg, gait, result, previous, timing, yaw, map_age, liftoff,
+                                              self._hip_at_touchdown(leg, gait, yaw, time_left))
         elapsed = time.perf_counter() - start
         evaluated = result.status in (VfaStatus.SELECTED, VfaStatus.NO_SAFE_CANDIDATE)
         score = float(getattr(result, "score", 1.0)) if evaluated else 0.0
@@ -394,6 +408,29 @@ class VfaPlanner:
             selected=np.asarray(result.selected, dtype=float).copy(), safe_candidate_found=bool(result.any_safe),
             safe_candidates=None if count is None else int(count), score=score, status=result.status,
             trigger=trigger, map_stamp_s=self._map_stamp_s, elapsed_s=elapsed)
+
+    def _keep_if_still_safe(self, leg: Leg, gait: GaitSnapshot, result: Any, previous: FootholdDecision,
+                            timing: GaitTiming, yaw: float, map_age: float, liftoff: FloatArray,
+                            hip_touchdown: FloatArray) -> Any:
+        """``result``, or the previous selection when ``result`` would jump more than ``switch_hysteresis_m``
+        away from it for less than ``switch_hysteresis_m`` of distance to the nominal, and the previous
+        selection is still safe (the selector, searching around it, returns it)."""
+        nominal = gait.nominal_foothold[leg]
+        new_distance = float(np.linalg.norm(result.selected[:2] - nominal[:2]))
+        old_distance = float(np.linalg.norm(previous.selected[:2] - nominal[:2]))
+        hysteresis = self.settings.switch_hysteresis_m
+        jump = float(np.linalg.norm(result.selected[:2] - previous.selected[:2]))
+        if jump <= hysteresis or old_distance - new_distance > hysteresis:
+            return result  # a small move follows the nominal; a large gain is worth a jump
+        check = self.selector.select(
+            leg, previous.selected, self._grid, hip_height_m=float(gait.hip_position[leg, 2]),
+            twist=gait.base_twist, gait=timing, yaw=yaw, map_age_s=0.0 if self._grid is None else map_age,
+            liftoff_world=liftoff, hip_touchdown_world=hip_touchdown)
+        if check.status is not VfaStatus.SELECTED or np.linalg.norm(check.selected[:2] - previous.selected[:2]) > 1e-6:
+            return result
+        self.counters.kept += 1
+        return replace(result, selected=previous.selected.copy(), nominal=np.asarray(nominal, dtype=float).copy(),
+                       offset_cells=None)
 
     def _hip_at_touchdown(self, leg: Leg, gait: GaitSnapshot, yaw: float, time_left_s: float) -> FloatArray:
         """(2,) [m] world x, y of ``leg``'s HAA joint at touchdown: moved by the commanded hip velocity

@@ -88,6 +88,7 @@ class PosePlanner:
         self._last_stamp_s: float | None = None
         self.updates = 0
         self.restarts = 0
+        self.last_result = None  # the PoseAdapter's last VpaResult (source vpa), with its diagnostics
 
     def set_map(self, grid: HeightMapGrid, stamp_s: float) -> None:
         """The latest heightmap and its stamp [s]; older than the one in use: ``VfaInputError``."""
@@ -135,6 +136,7 @@ class PosePlanner:
                                 max(float(gait.step_height_m), 0.0))
             result = self.adapter.update(self._grid, base, yaw, gait.base_twist, timing,
                                          map_age_s=max(map_age, 0.0) if self._grid is not None else 0.0)
+            self.last_result = result
             return PoseReference(stamp, "vpa", result.base_height_m, result.roll_rad, result.pitch_rad,
                                  np.asarray(result.hip_heights_m, dtype=float),
                                  np.asarray(result.safe_footholds, dtype=np.int64), result.horizon_s,

@@ -251,3 +251,30 @@ def test_the_cnn_selector_moves_the_foothold_off_a_gap_too(hyq: RobotModel, hips
     assert lf.status is VfaStatus.SELECTED and lf.safe_candidate_found and lf.adapted
     assert lf.selected[2] == pytest.approx(0.0)
     assert abs(lf.selected[0] - lf_nominal[0]) >= 0.06 + 0.03
+
+
+@pytest.mark.parametrize("hysteresis_m, kept", [(0.05, True), (0.0, False)])
+def test_a_still_safe_selection_is_kept_when_the_other_side_is_only_slightly_closer(
+        selector, hips_base, hyq: RobotModel, hip_height, hysteresis_m: float, kept: bool) -> None:
+    """A gap along x centred under LF's nominal (8 cm wide): the first decision takes one side; the nominal
+    then moves 2.1 cm towards the other side, which becomes about 2 cm closer. Within the hysteresis the
+    swing keeps its target; without it the foot is retargeted across the gap (a jump of ~0.2 m)."""
+    planner = VfaPlanner(selector, hips_base, hyq.description.foot_radius_m,
+                         PlannerSettings(switch_hysteresis_m=hysteresis_m))
+    gait = snapshot(hips_base, hip_height)
+    nominal = gait.nominal_foothold[Leg.LF]
+    strip = GapPatch(name="gap", region=Region(-3, 3, nominal[1] - 0.04, nominal[1] + 0.04), depth_m=0.3,
+                     start_height_m=0.0, **RIGID)
+    planner.set_map(course_map(strip), 1.0)
+    first = {d.leg: d for d in planner.update(gait)}[Leg.LF]
+    side = math.copysign(1.0, first.selected[1] - nominal[1])
+    moved = snapshot(hips_base, hip_height, stamp_s=1.004, time_left_s=0.196, nominal_shift_m=(0.0, -side * 0.021))
+    news = {d.leg: d for d in planner.update(moved)}
+    current = planner.decision(Leg.LF)
+    assert current is not None and current.status is VfaStatus.SELECTED
+    if kept:
+        assert Leg.LF not in news and planner.counters.kept == 1
+        np.testing.assert_allclose(current.selected, first.selected, atol=1e-9)
+    else:
+        assert Leg.LF in news and planner.counters.kept == 0
+        assert math.copysign(1.0, current.selected[1] - nominal[1]) == -side  # across the gap

@@ -1,0 +1,317 @@
+"""ViTAL's closed-loop experiments: HyQ trots over stairs, gapped stairs and rough terrain in PyBullet.
+
+    python -m tal_perception.vital_experiments --out results/vital [--only speeds,tbr,gaps,rough,horizon,cost]
+
+Every run is ``tal_control``'s lockstep closed loop (sWBC on the ground-truth base state, 250 Hz; physics
+1 kHz) with ``VitalLoop`` as its tick hook (VFA + VPA or TBR, the nodes' planners, a perfect 121 x 121
+heightmap at 20 Hz). Experiments (thesis, ViTAL results):
+
+* ``speeds``: the stairs (rise 0.1 m, go 0.25 m, up and down; course ``vital_stairs``) at 0.2, 0.3, 0.4
+  and 0.5 m/s with VFA + VPA: success, leg and foot collisions, mean absolute pitch and height tracking
+  errors (thesis table: 0.7-2.3 deg, 0.3-3.8 cm);
+* ``tbr``: VPA vs TBR on the same stairs at 0.2 m/s, 3 runs each (start 0.1 m apart): success and the
+  safe footholds at the actual pose (exact evaluation at the actual hips, the same for both);
+* ``gaps``: gapped stairs (``vital_gap_stairs``) at 0.4 m/s with VPA and with TBR;
+* ``rough``: cobblestones (``vital_rough``) at 0.2 m/s with ViTAL and blind (nominal footholds, default
+  pose): collisions;
+* ``horizon``: stairs at 0.4 m/s with N_h = 1 and N_h = 2: pose variation per metre dz/dx, dpitch/dx;
+* ``cost``: stairs at 0.4 m/s with C_sum and C_int: envelope thickness |F(u*+m) - F(u*-m)|, m = 0.025 m.
+
+A run succeeds when the robot reaches the course's goal x without falling (trunk too low or a trunk,
+hip or thigh touching the ground). Tracking errors are taken over the samples after the start (1.5 s).
+Writes ``closed_loop.md``, ``closed_loop.json`` and plots into ``--out``; progress on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from tal_perception.vital_loop import VitalLoopSettings, collision_events
+from tal_perception.vpa_settings import CostKind
+
+START_S = 1.0  # [s] standing before the command starts
+SETTLE_S = 1.5  # [s] samples before this are left out of the tracking errors
+EXPERIMENTS = ("speeds", "tbr", "gaps", "rough", "horizon", "cost")
+
+
+@dataclass(frozen=True)
+class VitalRun:
+    """One closed-loop run. loop None: blind (no VFA, default pose); goal_x_m [m]: success line."""
+
+    name: str
+    course: str
+    speed_mps: float
+    loop: VitalLoopSettings | None
+    goal_x_m: float
+    initial_x_m: float = 0.0
+    slack_s: float = 8.0  # [s] beyond the time the goal takes at the commanded speed
+
+    @property
+    def duration_s(self) -> float:
+        return START_S + (self.goal_x_m - self.initial_x_m) / self.speed_mps + self.slack_s
+
+
+@dataclass
+class VitalRunResult:
+    """What a run measured (see the module docstring); arrays per leg LF, RF, LH, RH."""
+
+    name: str
+    course: str
+    speed_mps: float
+    success: bool
+    fell: bool
+    fall_reason: str
+    x_end_m: float
+    leg_collisions: list[int]
+    foot_collisions: list[int]
+    pitch_mae_deg: float
+    height_mae_cm: float
+    height_variation_per_m: float
+    pitch_variation_deg_per_m: float
+    actual_safe_footholds_mean: float
+    actual_safe_footholds_min: float
+    envelope_thickness_mean: float
+    decisions: int
+    adapted: int
+    no_safe: int
+    vpa_compute_median_ms: float
+    wall_s: float
+    series: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+
+def _stairs(name: str, speed: float, loop: VitalLoopSettings | None, x0: float = 0.0) -> VitalRun:
+    return VitalRun(name, "vital_stairs", speed, loop, goal_x_m=4.8, initial_x_m=x0)
+
+
+def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[VitalRun]]:
+    """The runs of each experiment; runs with equal settings are shared (run once)."""
+    vital = VitalLoopSettings(monitor_period_s=0.2)
+    tbr = replace(vital, pose_source="tbr")
+    runs: dict[str, list[VitalRun]] = {}
+    if "speeds" in only:
+        runs["speeds"] = [_stairs(f"stairs_{v:.1f}", v, vital) for v in (0.2, 0.3, 0.4, 0.5)]
+    if "tbr" in only:
+        runs["tbr"] = [_stairs(f"stairs_0.2_{source}_x{x0:+.1f}", 0.2, settings, x0)
+                       for source, settings in (("vpa", vital), ("tbr", tbr)) for x0 in (-0.1, 0.0, 0.1)]
+        runs["tbr"][1] = replace(runs["tbr"][1], name="stairs_0.2")  # the speeds run at x0 = 0
+    if "gaps" in only:
+        runs["gaps"] = [VitalRun(f"gap_stairs_0.4_{source}", "vital_gap_stairs", 0.4, settings, goal_x_m=3.2)
+                        for source, settings in (("vpa", vital), ("tbr", tbr))]
+    if "rough" in only:
+        runs["rough"] = [VitalRun("rough_0.2_vital", "vital_rough", 0.2, vital, goal_x_m=4.5),
+                         VitalRun("rough_0.2_blind", "vital_rough", 0.2, None, goal_x_m=4.5)]
+    if "horizon" in only:
+        single = replace(vital, vpa=replace(vital.vpa, horizon=1))
+        runs["horizon"] = [_stairs("stairs_0.4", 0.4, vital), _stairs("stairs_0.4_single_horizon", 0.4, single)]
+    if "cost" in only:
+        c_sum = replace(vital, vpa=replace(vital.vpa, cost=CostKind.SUM))
+        runs["cost"] = [_stairs("stairs_0.4", 0.4, vital), _stairs("stairs_0.4_c_sum", 0.4, c_sum)]
+    return runs
+
+
+def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = None) -> VitalRunResult:
+    """Run one closed loop and measure it (``max_sim_s`` [s]: cut the run short, for smoke tests)."""
+    import torch
+
+    from tal_control.experiments.closed_loop import ClosedLoopConfig, run_closed_loop
+    from tal_core.robot_description import load_robot_description
+    from tal_core.robot_model import RobotModel
+    from tal_core.terrain import load_course
+    from tal_perception.vital_loop import VitalLoop
+
+    torch.set_num_threads(1)  # the CNNs are small; a second thread only contends with the physics
+    course = load_course(run.course)
+    loop = VitalLoop(course, RobotModel(load_robot_description("hyq")),
+                     run.loop if run.loop is not None else VitalLoopSettings(vfa=False, pose_source="none"))
+    config = ClosedLoopConfig(name=run.name, course=course, gait="trot",
+                              commands=((0.0, 0.0, 0.0, 0.0), (START_S, run.speed_mps, 0.0, 0.0)),
+                              duration_s=run.duration_s if max_sim_s is None else min(run.duration_s, max_sim_s),
+                              initial_xy=(run.initial_x_m, 0.0), progress=progress)
+    started = time.perf_counter()
+    log = run_closed_loop(config, hook=loop)
+    wall = time.perf_counter() - started
+    trace = loop.trace.arrays()
+    n = min(len(log.t), len(trace["t"]))
+    mask = log.t[:n] >= SETTLE_S
+    pitch_error = np.degrees(np.abs(log.rpy_des[:n, 1] - log.base_rpy[:n, 1]))[mask]
+    height_error = 100.0 * np.abs(log.base_position_des[:n, 2] - log.base_position[:n, 2])[mask]
+    x = log.base_position[:n, 0]
+    reached = bool(np.any(x >= run.goal_x_m))
+    pose = trace["pose_reference"][:n]
+    dz, dpitch = _variation_per_metre(x, pose[:, 0], np.degrees(pose[:, 2]))
+    safe = trace["actual_safe_footholds"][:n]
+    thickness = trace["envelope_thickness"][:n]
+    return VitalRunResult(
+        name=run.name, course=run.course, speed_mps=run.speed_mps, success=reached and not log.fell,
+        fell=log.fell, fall_reason=str(log.meta.get("fall_reason", "")), x_end_m=float(x[-1]),
+        leg_collisions=collision_events(trace["leg_collision"]).tolist(),
+        foot_collisions=collision_events(trace["foot_collision"]).tolist(),
+        pitch_mae_deg=_mean(pitch_error), height_mae_cm=_mean(height_error),
+        height_variation_per_m=dz, pitch_variation_deg_per_m=dpitch,
+        actual_safe_footholds_mean=_mean(safe[np.isfinite(safe)]),
+        actual_safe_footholds_min=float(np.nanmin(safe)) if np.isfinite(safe).any() else math.nan,
+        envelope_thickness_mean=_mean(thickness[np.isfinite(thickness)]),
+        decisions=loop.decisions, adapted=loop.adapted, no_safe=loop.no_safe,
+        vpa_compute_median_ms=1e3 * float(np.median(loop.pose_compute_s)) if loop.pose_compute_s else math.nan,
+        wall_s=wall,
+        series={"t": log.t[:n], "x": x, "z": log.base_position[:n, 2], "z_des": log.base_position_des[:n, 2],
+                "pitch_deg": np.degrees(log.base_rpy[:n, 1]), "pitch_des_deg": np.degrees(log.rpy_des[:n, 1]),
+                "pose_reference": pose, "safe": safe, "thickness": thickness,
+                "leg_collision": trace["leg_collision"][:n], "foot_collision": trace["foot_collision"][:n],
+                "foot_x": log.foot_position[:n, :, 0], "foot_z": log.foot_position[:n, :, 2]})
+
+
+def _mean(values: np.ndarray) -> float:
+    return float(np.mean(values)) if np.size(values) else math.nan
+
+
+def _variation_per_metre(x: np.ndarray, z_ref: np.ndarray, pitch_ref_deg: np.ndarray) -> tuple[float, float]:
+    """Total variation of the pose reference over the distance walked: sum|dz| / sum|dx| [m/m] and
+    sum|dpitch| / sum|dx| [deg/m] (thesis: numerical differences of the optimal pose along x)."""
+    ok = np.isfinite(z_ref) & np.isfinite(pitch_ref_deg)
+    if ok.sum() < 2:
+        return math.nan, math.nan
+    distance = float(np.sum(np.abs(np.diff(x[ok]))))
+    if distance <= 0.0:
+        return math.nan, math.nan
+    return (float(np.sum(np.abs(np.diff(z_ref[ok])))) / distance,
+            float(np.sum(np.abs(np.diff(pitch_ref_deg[ok])))) / distance)
+
+
+# -- report ---------------------------------------------------------------------------------------------
+def _row(r: VitalRunResult) -> str:
+    return (f"| {r.name} | {r.speed_mps:.1f} | {'yes' if r.success else 'NO'} | {r.x_end_m:.2f} | "
+            f"{sum(r.leg_collisions)} {r.leg_collisions} | {sum(r.foot_collisions)} {r.foot_collisions} | "
+            f"{r.pitch_mae_deg:.2f} | {r.height_mae_cm:.2f} | {r.actual_safe_footholds_mean:.0f} | "
+            f"{r.adapted}/{r.decisions} | {r.wall_s:.0f} s |")
+
+
+HEADER = ("| run | speed [m/s] | success | x end [m] | leg collisions (LF, RF, LH, RH) | foot collisions | "
+          "pitch MAE [deg] | height MAE [cm] | safe footholds at the actual pose (mean) | adapted/decisions | "
+          "wall |\n|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRunResult]) -> None:
+    lines = ["# ViTAL in the closed loop", "",
+             "`python -m tal_perception.vital_experiments --out results/vital` (part of `make experiments`). "
+             "HyQ, trot, sWBC on the ground-truth base, lockstep PyBullet; VFA exact, VPA with the CNN at 20 Hz, "
+             "N_h = 2, C_int unless the run says otherwise. Collisions are events (a collision starting): leg = "
+             "shin/knee cylinder in the terrain by more than 5 mm; foot = swing foot hitting the terrain.", ""]
+    titles = {"speeds": "Stairs (rise 0.1 m, go 0.25 m) at four speeds, VFA + VPA",
+              "tbr": "VPA vs TBR on the stairs at 0.2 m/s (3 runs each)",
+              "gaps": "Gapped stairs at 0.4 m/s", "rough": "Rough terrain at 0.2 m/s, with and without ViTAL",
+              "horizon": "Single vs receding horizon (stairs, 0.4 m/s)", "cost": "C_sum vs C_int (stairs, 0.4 m/s)"}
+    for key, group in runs.items():
+        lines += [f"## {titles[key]}", "", HEADER] + [_row(results[r.name]) for r in group] + [""]
+        if key == "speeds":
+            lines += ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to "
+                      "0.5 m/s, all successful.", "", "![stairs](vital_stairs_speeds.png)", ""]
+        if key == "tbr":
+            lines += ["Thesis: TBR fails, VPA succeeds; TBR has fewer safe footholds.", "",
+                      "![VPA vs TBR](vital_vpa_vs_tbr.png)", ""]
+        if key == "horizon":
+            lines += ["| run | height variation [m/m] | pitch variation [deg/m] |", "|---|---|---|"]
+            lines += [f"| {results[r.name].name} | {results[r.name].height_variation_per_m:.3f} | "
+                      f"{results[r.name].pitch_variation_deg_per_m:.1f} |" for r in group]
+            lines += ["", "Thesis: the receding horizon varies the pose less.", ""]
+        if key == "cost":
+            lines += ["| run | envelope thickness (mean over legs and updates) [footholds] |", "|---|---|"]
+            lines += [f"| {results[r.name].name} | {results[r.name].envelope_thickness_mean:.1f} |" for r in group]
+            lines += ["", "Thesis: C_int gives the thinner envelope (more robust to pose tracking errors).", "",
+                      "![envelope](vital_cost_envelope.png)", ""]
+    (out / "closed_loop.md").write_text("\n".join(lines) + "\n")
+    payload = {name: {k: v for k, v in vars(r).items() if k != "series"} for name, r in results.items()}
+    (out / "closed_loop.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
+
+
+def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRunResult]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if "speeds" in runs:
+        fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
+        for run in runs["speeds"]:
+            s = results[run.name].series
+            axes[0].plot(s["x"], s["z"], label=f"{run.speed_mps:.1f} m/s")
+            axes[0].plot(s["x"], s["z_des"], "k:", lw=0.6)
+            axes[1].plot(s["x"], s["pitch_deg"])
+            axes[1].plot(s["x"], s["pitch_des_deg"], "k:", lw=0.6)
+            axes[2].plot(s["x"], 100 * np.abs(s["z_des"] - s["z"]))
+            axes[3].plot(s["x"], np.abs(s["pitch_des_deg"] - s["pitch_deg"]))
+        first = results[runs["speeds"][0].name].series
+        axes[0].plot(first["x"], first["foot_z"][:, 0], color="grey", lw=0.5, label="LF foot z (0.2 m/s)")
+        for ax, label in zip(axes, ("base z [m] (dotted: VPA)", "pitch [deg] (dotted: VPA)", "|height error| [cm]",
+                                    "|pitch error| [deg]")):
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=7)
+        axes[-1].set_xlabel("base x [m]")
+        fig.tight_layout()
+        fig.savefig(out / "vital_stairs_speeds.png", dpi=110)
+        plt.close(fig)
+    if "tbr" in runs:
+        fig, ax = plt.subplots(figsize=(9, 4))
+        for run in runs["tbr"]:
+            r = results[run.name]
+            s = r.series
+            style = "-" if run.loop is not None and run.loop.pose_source == "vpa" else "--"
+            ax.plot(s["x"], np.nansum(s["safe"], axis=1), style, lw=0.9,
+                    label=f"{run.name} ({'success' if r.success else 'failed'})")
+        ax.set_xlabel("base x [m]")
+        ax.set_ylabel("safe footholds at the actual pose (4 legs)")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / "vital_vpa_vs_tbr.png", dpi=110)
+        plt.close(fig)
+    if "cost" in runs:
+        fig, ax = plt.subplots(figsize=(9, 4))
+        for run in runs["cost"]:
+            s = results[run.name].series
+            ax.plot(s["x"], np.nanmean(s["thickness"], axis=1), lw=0.9, label=run.name)
+        ax.set_xlabel("base x [m]")
+        ax.set_ylabel("|F(u*+m) - F(u*-m)| mean over legs")
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / "vital_cost_envelope.png", dpi=110)
+        plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("results/vital"))
+    parser.add_argument("--only", default=",".join(EXPERIMENTS), help=f"comma-separated subset of {EXPERIMENTS}")
+    args = parser.parse_args(argv)
+    only = tuple(name.strip() for name in args.only.split(",") if name.strip())
+    unknown = sorted(set(only) - set(EXPERIMENTS))
+    if unknown:
+        parser.error(f"unknown experiment(s) {unknown}; known: {', '.join(EXPERIMENTS)}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    runs = experiment_runs(only)
+    unique = {run.name: run for group in runs.values() for run in group}
+    results: dict[str, VitalRunResult] = {}
+    for i, run in enumerate(unique.values(), start=1):
+        sys.stderr.write(f"[vital] run {i}/{len(unique)}: {run.name} ({run.duration_s:.0f} s of sim time)\n")
+        results[run.name] = run_vital(run)
+        r = results[run.name]
+        sys.stderr.write(f"[vital]   {'success' if r.success else 'FAILED'}: x_end {r.x_end_m:.2f} m, leg collisions "
+                         f"{sum(r.leg_collisions)}, foot collisions {sum(r.foot_collisions)}, {r.wall_s:.0f} s\n")
+    write_report(args.out, runs, results)
+    plot(args.out, runs, results)
+    print((args.out / "closed_loop.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
