@@ -28,7 +28,8 @@ experiments: bootstrap
 		&& python -m tal_control.experiments.stance_experiments --out results/stance \
 		&& python -m tal_control.experiments.estimation_experiments --out results/estimation \
 		&& python -m tal_sim2real benchmark --out results/sim2real --data data/sim2real --count 30 --jobs 2 \
-		&& python -m tal_perception.eval_vfa --out results/vital && python -m tal_perception.eval_vpa --out results/vital
+		&& python -m tal_perception.eval_vfa --out results/vital && python -m tal_perception.eval_vpa --out results/vital \
+		&& python -m tal_perception.vital_experiments --out results/vital
 
 lint: bootstrap
 	@$(ENV) && ruff check . && ruff format --check .
