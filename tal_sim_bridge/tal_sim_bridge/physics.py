@@ -217,6 +217,7 @@ class Simulation:
             self._apply_box_contact(body, box.stiffness_n_per_m, box.damping_ns_per_m, box.friction)
         for link in self.foot_links:  # undo a power-law ground's per-step foot parameters
             self.client.changeDynamics(self.robot, link, contactStiffness=FOOT_CONTACT_STIFFNESS, contactDamping=0.0)
+        self._foot_contact_parameters = [(FOOT_CONTACT_STIFFNESS, 0.0)] * len(self.foot_links)
 
     def _index_links(self) -> None:
         names: dict[str, int] = {}
@@ -243,6 +244,9 @@ class Simulation:
         for link in self.foot_links:
             c.changeDynamics(self.robot, link, contactStiffness=FOOT_CONTACT_STIFFNESS, contactDamping=0.0,
                              lateralFriction=1.0, rollingFriction=0.0, spinningFriction=0.0, restitution=0.0)
+        # (stiffness [N/m], damping [N s/m]) last given to each foot (the power-law ground updates them)
+        self._foot_contact_parameters: list[tuple[float, float]] = [(FOOT_CONTACT_STIFFNESS, 0.0)] * len(
+            self.foot_links)
         for body in self.ground_bodies:
             for link in self.shin_links:
                 c.setCollisionFilterPair(self.robot, body, link, -1, enableCollision=0)
@@ -376,12 +380,19 @@ class Simulation:
         states = self.client.getLinkStates(self.robot, self.foot_links, computeForwardKinematics=1)
         feet = np.array([s[4] for s in states])
         ground, props = self.course.height_and_properties(feet[:, 0], feet[:, 1])
-        depth = np.nan_to_num(ground + self.description.foot_radius_m - feet[:, 2], nan=0.0)
+        depth = ground + self.description.foot_radius_m - feet[:, 2]
+        depth[np.isnan(depth)] = 0.0  # off the course: no sinkage
         scale = power_law_ground_scale(depth, self.effects.ground_contact_exponent)
-        stiffness = np.nan_to_num(props.stiffness_n_per_m, nan=FOOT_CONTACT_STIFFNESS) * scale
-        damping = np.nan_to_num(props.damping_ns_per_m, nan=0.0) * scale
-        for link, k, d in zip(self.foot_links, stiffness, damping):
-            self.client.changeDynamics(self.robot, link, contactStiffness=float(k), contactDamping=float(d))
+        stiffness = np.where(np.isnan(props.stiffness_n_per_m), FOOT_CONTACT_STIFFNESS,
+                             props.stiffness_n_per_m) * scale
+        damping = np.where(np.isnan(props.damping_ns_per_m), 0.0, props.damping_ns_per_m) * scale
+        applied = self._foot_contact_parameters
+        for i, (link, k, d) in enumerate(zip(self.foot_links, stiffness, damping)):
+            # a foot above the ground keeps the floor-depth value step after step: setting the same
+            # parameters again changes nothing in Bullet, so it is skipped (the call is most of this method)
+            if applied[i] != (k, d):
+                self.client.changeDynamics(self.robot, link, contactStiffness=float(k), contactDamping=float(d))
+                applied[i] = (k, d)
 
     def robot_state(self) -> RobotState:
         position, quat = self.base_pose()
