@@ -40,7 +40,8 @@ linear fit's values carried to the reference sinkage, see ``_power_law_start``).
 GROUND_CANDIDATES = ("ground", "ground_nonlinear")
 MIN_GROUND_EXPONENT_EFFECT = 0.2
 """A power-law exponent within this of 1 changes the ground's stiffness by < 15% per doubling of sinkage:
-not resolved by these segments (a Kelvin-Voigt ground's data fit to n = 1.14, the stiffness 10% low)."""
+not worth a model of its own (a Kelvin-Voigt ground's data fit to n = 1.00-1.01 on hidden_10/13/20; with the
+stale contacts of earlier replays they fit to n = 1.14)."""
 
 
 # -- dynamics ---------------------------------------------------------------------------------------------
