@@ -37,11 +37,20 @@ class Fit:
 
 
 def fit_least_squares(
-    candidates: list[Candidate], residual: Residual, start: dict[str, float], n_obs: int, max_evaluations: int = 16
+    candidates: list[Candidate],
+    residual: Residual,
+    start: dict[str, float],
+    n_obs: int,
+    max_evaluations: int = 16,
+    rtol: float = 1e-8,
 ) -> Fit:
     """Bounded trust-region least squares (scipy) over the candidates' parameters, in internal (log for
     stiffness-like) coordinates, finite-difference Jacobian; intervals from the Jacobian at the optimum
-    with the residual variance scaled to ``n_obs`` independent observations."""
+    with the residual variance scaled to ``n_obs`` independent observations.
+
+    ``max_evaluations`` bounds the trust-region iterations' own residual calls (scipy does not count the
+    Jacobian's); ``rtol`` [-] stops when an iteration changes the cost or the internal parameters by less
+    than that fraction (scipy's ftol and xtol)."""
     params: list[Parameter] = [p for c in candidates for p in c.parameters]
     lower = np.array([p.to_internal(p.lower) if not (p.log and p.lower <= 0) else -np.inf for p in params])
     upper = np.array([p.to_internal(p.upper) for p in params])
@@ -57,7 +66,15 @@ def fit_least_squares(
         return residual(values_of(x))
 
     result = least_squares(
-        fun, x0, bounds=(lower, upper), diff_step=2e-3, x_scale="jac", max_nfev=max_evaluations, method="trf"
+        fun,
+        x0,
+        bounds=(lower, upper),
+        diff_step=2e-3,
+        x_scale="jac",
+        max_nfev=max_evaluations,
+        method="trf",
+        ftol=rtol,
+        xtol=rtol,
     )
     cost = float(result.fun @ result.fun)
     values = values_of(result.x)

@@ -43,6 +43,8 @@ SOFT_BOX_STIFFNESS_N_PER_M = 1e5
 SOFT_BOX_OVERLAP_M = 0.1
 """[m] how far a soft box's collision shape reaches under the neighbouring boxes, per side."""
 SHIN_LINK_SUFFIX = "lowerleg"
+FORGET_CONTACTS_LIFT_M = 1e3
+"""[m] base height at which no robot link's bounding box overlaps a course box (Simulation._forget_contacts)."""
 
 
 @dataclass(frozen=True)
@@ -215,6 +217,7 @@ class Simulation:
             self._apply_box_contact(body, box.stiffness_n_per_m, box.damping_ns_per_m, box.friction)
         for link in self.foot_links:  # undo a power-law ground's per-step foot parameters
             self.client.changeDynamics(self.robot, link, contactStiffness=FOOT_CONTACT_STIFFNESS, contactDamping=0.0)
+        self._foot_contact_parameters = [(FOOT_CONTACT_STIFFNESS, 0.0)] * len(self.foot_links)
 
     def _index_links(self) -> None:
         names: dict[str, int] = {}
@@ -241,6 +244,9 @@ class Simulation:
         for link in self.foot_links:
             c.changeDynamics(self.robot, link, contactStiffness=FOOT_CONTACT_STIFFNESS, contactDamping=0.0,
                              lateralFriction=1.0, rollingFriction=0.0, spinningFriction=0.0, restitution=0.0)
+        # (stiffness [N/m], damping [N s/m]) last given to each foot (the power-law ground updates them)
+        self._foot_contact_parameters: list[tuple[float, float]] = [(FOOT_CONTACT_STIFFNESS, 0.0)] * len(
+            self.foot_links)
         for body in self.ground_bodies:
             for link in self.shin_links:
                 c.setCollisionFilterPair(self.robot, body, link, -1, enableCollision=0)
@@ -254,6 +260,7 @@ class Simulation:
         """Place the robot in its nominal pose with its feet on the terrain below (plus drop height)."""
         q = (self.description.nominal_joint_positions_rad if joint_positions_rad is None
              else np.asarray(joint_positions_rad, dtype=float))
+        self._forget_contacts()  # a teleport too (see set_state)
         for joint, angle in zip(self.joint_ids, q):
             self.client.resetJointState(self.robot, joint, float(angle), 0.0)
         quat = self.client.getQuaternionFromEuler([0.0, 0.0, initial_yaw_rad])
@@ -282,6 +289,7 @@ class Simulation:
         if q.shape != (len(self.joint_ids),) or qd.shape != q.shape:
             raise BridgeConfigError(f"set_state needs {len(self.joint_ids)} joint positions and velocities, "
                                     f"got {q.shape} and {qd.shape}")
+        self._forget_contacts()
         for joint, angle, rate in zip(self.joint_ids, q, qd):
             self.client.resetJointState(self.robot, joint, float(angle), float(rate))
         quat = [float(v) for v in base_quat_xyzw]
@@ -294,6 +302,21 @@ class Simulation:
         self._last_torque = np.zeros(len(self.joint_ids))
         self._prev_base_vel = lin.copy()
         self._base_acc = np.zeros(3)
+
+    def _forget_contacts(self) -> None:
+        """Drop Bullet's cached robot/ground contact points before a teleport.
+
+        Bullet keeps a persistent manifold per overlapping body pair and, on the next step, refreshes its
+        points from their body-local anchors: a point cached at the old pose whose anchors end up within the
+        contact breaking threshold (2 cm) of each other at the new pose survives as an extra contact with a
+        stale depth and warm-start impulse. A teleported foot then pushes on the ground through two points, and
+        an open-loop segment from a state differs from that state's own continuation (on a 1.3e4 N/m
+        ground the ground stiffness fitted to the simulator's own data came out ~20% low). Lifting the robot
+        out of every ground box's bounding box and running the broadphase removes the pairs and their
+        manifolds; the next step starts with fresh contacts, as a continuous run has after a touchdown."""
+        _, quat = self.client.getBasePositionAndOrientation(self.robot)
+        self.client.resetBasePositionAndOrientation(self.robot, [0.0, 0.0, FORGET_CONTACTS_LIFT_M], quat)
+        self.client.performCollisionDetection()
 
     def _world_R(self, quat_xyzw) -> np.ndarray:
         return np.array(self.client.getMatrixFromQuaternion(list(quat_xyzw))).reshape(3, 3)
@@ -357,12 +380,19 @@ class Simulation:
         states = self.client.getLinkStates(self.robot, self.foot_links, computeForwardKinematics=1)
         feet = np.array([s[4] for s in states])
         ground, props = self.course.height_and_properties(feet[:, 0], feet[:, 1])
-        depth = np.nan_to_num(ground + self.description.foot_radius_m - feet[:, 2], nan=0.0)
+        depth = ground + self.description.foot_radius_m - feet[:, 2]
+        depth[np.isnan(depth)] = 0.0  # off the course: no sinkage
         scale = power_law_ground_scale(depth, self.effects.ground_contact_exponent)
-        stiffness = np.nan_to_num(props.stiffness_n_per_m, nan=FOOT_CONTACT_STIFFNESS) * scale
-        damping = np.nan_to_num(props.damping_ns_per_m, nan=0.0) * scale
-        for link, k, d in zip(self.foot_links, stiffness, damping):
-            self.client.changeDynamics(self.robot, link, contactStiffness=float(k), contactDamping=float(d))
+        stiffness = np.where(np.isnan(props.stiffness_n_per_m), FOOT_CONTACT_STIFFNESS,
+                             props.stiffness_n_per_m) * scale
+        damping = np.where(np.isnan(props.damping_ns_per_m), 0.0, props.damping_ns_per_m) * scale
+        applied = self._foot_contact_parameters
+        for i, (link, k, d) in enumerate(zip(self.foot_links, stiffness, damping)):
+            # a foot above the ground keeps the floor-depth value step after step: setting the same
+            # parameters again changes nothing in Bullet, so it is skipped (the call is most of this method)
+            if applied[i] != (k, d):
+                self.client.changeDynamics(self.robot, link, contactStiffness=float(k), contactDamping=float(d))
+                applied[i] = (k, d)
 
     def robot_state(self) -> RobotState:
         position, quat = self.base_pose()
