@@ -333,6 +333,9 @@ class TestShippedCourses:
                 "stairs",
                 "mixed_course",
                 "trot_loop",
+                "vital_stairs",
+                "vital_gap_stairs",
+                "vital_rough",
             ]
         )
         for name in names:
