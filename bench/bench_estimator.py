@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_wbc import fmt  # bench/ is on sys.path
-from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine
+from machine import add_wait_quiet_option, cpu_snapshot, machine_info, other_cores_busy, settle_machine
 
 try:
     from tal_core.legs import LEGS, NUM_LEGS
@@ -228,22 +228,13 @@ def main() -> int:
     parser.add_argument("--warmup", type=int, default=DEFAULT_WARMUP, help="untimed ticks first")
     parser.add_argument("--rounds", type=int, default=2, help="alternating rounds per mode (default 2)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
-    parser.add_argument(
-        "--wait-quiet",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="first wait up to S seconds for 5 s in which other processes use < 0.15 cores (shared machines)",
-    )
+    add_wait_quiet_option(parser)
     args = parser.parse_args()
     n = args.ticks or (QUICK_TICKS if args.quick else DEFAULT_TICKS)
     if n < 10 or args.rounds < 1 or args.warmup < 1:
         parser.error("need --ticks >= 10, --rounds >= 1 and --warmup >= 1")
 
-    if args.wait_quiet > 0:
-        busy = wait_for_quiet_machine(args.wait_quiet, log=progress)
-        progress(f"other processes keep {fmt(busy, 2)} cores busy; starting")
-    load_at_start = list(os.getloadavg())
+    load_at_start = settle_machine(args.wait_quiet, progress)
     cpu_at_start = cpu_snapshot()
     model = RobotModel.from_name("hyq")
     progress(f"generating {args.warmup} + {n} ticks of inputs (seed {args.seed})")

@@ -27,14 +27,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine  # bench/machine.py
+from machine import (  # bench/machine.py
+    add_wait_quiet_option,
+    cpu_snapshot,
+    machine_info,
+    other_cores_busy,
+    settle_machine,
+)
 
 try:
     from tal_core.heightmap import HeightMapGrid
@@ -136,19 +141,13 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=None, help="number of terrains (per leg)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of both modes, pooled (default 3)")
-    parser.add_argument(
-        "--wait-quiet", type=float, default=0.0, metavar="S",
-        help="first wait up to S seconds for 5 s in which other processes use < 0.15 cores (shared machines)",
-    )  # fmt: skip
+    add_wait_quiet_option(parser)
     args = parser.parse_args()
     n = args.samples or (QUICK_SAMPLES if args.quick else DEFAULT_SAMPLES)
     if n < 5 or args.rounds < 1:
         parser.error("need --samples >= 5 and --rounds >= 1")
     OUT_DIR.mkdir(parents=True, exist_ok=True)
-    if args.wait_quiet > 0:
-        busy_before = wait_for_quiet_machine(args.wait_quiet, log=progress)
-        progress(f"other processes keep {busy_before if busy_before is None else round(busy_before, 2)} cores busy")
-    load_at_start = [round(v, 2) for v in os.getloadavg()]
+    load_at_start = settle_machine(args.wait_quiet, progress)
     model = RobotModel.from_name("hyq")
     selector = FootholdSelector(FootholdEvaluator(model))
     progress(f"{n} terrains (seed {args.seed}), {MAP_CELLS} x {MAP_CELLS} maps, 4 legs")

@@ -23,14 +23,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from bench_vfa import make_cases, stats
-from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine  # bench/machine.py
+from machine import (  # bench/machine.py
+    add_wait_quiet_option,
+    cpu_snapshot,
+    machine_info,
+    other_cores_busy,
+    settle_machine,
+)
 
 try:
     import torch
@@ -124,20 +129,14 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the modes, pooled (default 3)")
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
-    parser.add_argument(
-        "--wait-quiet", type=float, default=0.0, metavar="S",
-        help="first wait up to S seconds for 5 s in which other processes use < 0.15 cores (shared machines)",
-    )  # fmt: skip
+    add_wait_quiet_option(parser)
     args = parser.parse_args()
     n = args.samples or (QUICK_SAMPLES if args.quick else DEFAULT_SAMPLES)
     if n < 5 or args.rounds < 1:
         parser.error("need --samples >= 5 and --rounds >= 1")
     torch.set_num_threads(1)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
-    if args.wait_quiet > 0:
-        busy_before = wait_for_quiet_machine(args.wait_quiet, log=progress)
-        progress(f"other processes keep {busy_before if busy_before is None else round(busy_before, 2)} cores busy")
-    load_at_start = [round(v, 2) for v in os.getloadavg()]
+    load_at_start = settle_machine(args.wait_quiet, progress)
     model = RobotModel.from_name("hyq")
     selector = CnnFootholdSelector(FootholdEvaluator(model), load_model(args.weights))
     progress(f"{n} terrains (seed {args.seed}), 4 legs, weights {args.weights.name}")

@@ -42,7 +42,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from machine import cpu_snapshot, machine_info, other_cores_busy, wait_for_quiet_machine  # bench/machine.py
+from machine import (  # bench/machine.py
+    add_wait_quiet_option,
+    cpu_snapshot,
+    machine_info,
+    other_cores_busy,
+    settle_machine,
+)
 
 try:
     import osqp
@@ -471,13 +477,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=2, help="alternating rounds per side (default 2)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--no-tsid", action="store_true", help="our side only (no TSID venv needed)")
-    parser.add_argument(
-        "--wait-quiet",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="first wait up to S seconds for 5 s in which other processes use < 0.15 cores (shared machines)",
-    )
+    add_wait_quiet_option(parser)
     parser.add_argument(
         "--profile",
         action="store_true",
@@ -489,10 +489,7 @@ def main() -> int:
         parser.error("need --states >= 10 and --rounds >= 1")
 
     OUT_DIR.mkdir(parents=True, exist_ok=True)
-    if args.wait_quiet > 0:
-        busy = wait_for_quiet_machine(args.wait_quiet, log=progress)
-        progress(f"other processes keep {fmt(busy, 2)} cores busy; starting")
-    load_at_start = list(os.getloadavg())
+    load_at_start = settle_machine(args.wait_quiet, progress)
     cpu_at_start = cpu_snapshot()
     model = RobotModel.from_name("hyq")
     settings, gains = WbcSettings(), WbcGains()

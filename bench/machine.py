@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import os
 import platform
@@ -70,3 +71,20 @@ def wait_for_quiet_machine(timeout_s: float, threshold_cores: float = 0.15, wind
             return busy
         if log is not None:
             log(f"other processes keep {busy:.2f} cores busy; waiting for a quiet machine")
+
+
+def add_wait_quiet_option(parser: argparse.ArgumentParser) -> None:
+    """The benches' ``--wait-quiet S`` option (see ``settle_machine``)."""
+    parser.add_argument(
+        "--wait-quiet", type=float, default=0.0, metavar="S",
+        help="first wait up to S seconds for 5 s in which other processes use < 0.15 cores (shared machines)",
+    )  # fmt: skip
+
+
+def settle_machine(wait_quiet_s: float, log: Callable[[str], None]) -> list[float]:
+    """Wait for a quiet machine when ``wait_quiet_s`` > 0 (logging the others' load), then return the
+    1/5/15 min load averages at the start of the measurement."""
+    if wait_quiet_s > 0:
+        busy = wait_for_quiet_machine(wait_quiet_s, log=log)
+        log(f"other processes keep {'unknown' if busy is None else f'{busy:.2f}'} cores busy; starting")
+    return [round(v, 2) for v in os.getloadavg()]
