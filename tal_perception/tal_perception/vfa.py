@@ -67,6 +67,17 @@ class VfaResult:
         return bool(self.offset_cells is not None and self.offset_cells != (0, 0))
 
 
+def check_map_age(map_age_s: float, who: str) -> None:
+    """PerceptionInputError unless ``map_age_s`` [s] (now minus the map's stamp) is finite and not more
+    than the clock jitter tolerance in the future; ``who`` names the caller in the message."""
+    if isinstance(map_age_s, bool) or not isinstance(map_age_s, (int, float, np.floating)) \
+            or not math.isfinite(map_age_s):
+        raise PerceptionInputError(f"{who}: map_age_s must be finite [s], got {map_age_s!r}")
+    if map_age_s < -_FUTURE_TOLERANCE_S:
+        raise PerceptionInputError(
+            f"{who}: the heightmap is stamped {-map_age_s:.4f} s in the future (out-of-order stamps)")
+
+
 def extract_patch(grid: HeightMapGrid, center_xy: ArrayLike, yaw: float, cells: int, resolution_m: float) -> FloatArray:
     """Heights (cells, cells) [m] around ``center_xy`` [m] (world), rows along the heading ``yaw``
     [rad]: nearest cell of ``grid`` at each patch cell centre; outside ``grid`` NaN (unknown)."""
@@ -142,12 +153,7 @@ class FootholdSelector:
         stance behind the nominal, the Raibert rule).
         """
         nominal = _vector(nominal_world, 3, "nominal_world")
-        if not math.isfinite(map_age_s):
-            raise PerceptionInputError(f"VFA: map_age_s must be finite [s], got {map_age_s!r}")
-        if map_age_s < -_FUTURE_TOLERANCE_S:
-            raise PerceptionInputError(
-                f"VFA: the heightmap is stamped {-map_age_s:.4f} s in the future (out-of-order stamps)"
-            )
+        check_map_age(map_age_s, "VFA")
         leg = Leg(leg)
         if grid is None:
             return VfaResult(leg, nominal, nominal.copy(), False, VfaStatus.NO_MAP, None, None)

@@ -44,12 +44,11 @@ from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
-from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, extract_patch
+from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, check_map_age, extract_patch
 
 FloatArray = NDArray[np.float64]
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 DEFAULT_WEIGHTS = MODEL_DIR / "vfa_cnn.pt"
-_FUTURE_TOLERANCE_S = 1e-3  # [s] as the exact VFA: a map stamped this far after "now" is accepted
 LEAKY_SLOPE = 0.01  # negative slope of the Leaky ReLUs (PyTorch's default)
 IMAGE_CHANNELS = 4  # relative height, unknown mask, row offset, column offset
 
@@ -329,12 +328,7 @@ class CnnFootholdSelector:
     ) -> list[VfaResult]:  # fmt: skip
         """g_hat for several legs on one map: one batched CNN pass (the VFA node's call, 4 legs)."""
         nominals = [_vector(r.nominal_world, 3, "nominal_world") for r in requests]
-        if not math.isfinite(map_age_s):
-            raise PerceptionInputError(f"VFA: map_age_s must be finite [s], got {map_age_s!r}")
-        if map_age_s < -_FUTURE_TOLERANCE_S:
-            raise PerceptionInputError(
-                f"VFA: the heightmap is stamped {-map_age_s:.4f} s in the future (out-of-order stamps)"
-            )
+        check_map_age(map_age_s, "VFA")
         legs = [Leg(r.leg) for r in requests]
         if grid is None or map_age_s > self.max_map_age_s:
             status = VfaStatus.NO_MAP if grid is None else VfaStatus.STALE_MAP

@@ -31,13 +31,12 @@ from tal_perception.errors import PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import GaitTiming
 from tal_perception.rbf import RbfBasis
-from tal_perception.vfa import extract_patch
+from tal_perception.vfa import check_map_age, extract_patch
 from tal_perception.vpa_evaluation import PoseEvaluator
 from tal_perception.vpa_optimizer import HipHeightModel, PoseOptimizer, PoseProblem, Solver
 from tal_perception.vpa_settings import VpaSettings
 
 FloatArray = NDArray[np.float64]
-_FUTURE_TOLERANCE_S = 1e-3  # [s] a map stamped this far after "now" is still accepted (clock jitter)
 _NO_FOOTHOLD = 0.5  # [footholds] a curve below this everywhere has no safe foothold
 
 
@@ -142,10 +141,7 @@ class PoseAdapter:
         base, twist_h = _vector(base_position, 3, "base_position"), _vector(twist, 6, "twist")
         if not (isinstance(yaw, (int, float, np.floating)) and math.isfinite(yaw)):
             raise PerceptionInputError(f"VPA: yaw must be a finite number [rad], got {yaw!r}")
-        if not (isinstance(map_age_s, (int, float, np.floating)) and math.isfinite(map_age_s)):
-            raise PerceptionInputError(f"VPA: map_age_s must be finite [s], got {map_age_s!r}")
-        if map_age_s < -_FUTURE_TOLERANCE_S:
-            raise PerceptionInputError(f"VPA: the heightmap is stamped {-map_age_s:.4f} s in the future")
+        check_map_age(map_age_s, "VPA")
         if not isinstance(gait, GaitTiming):
             raise PerceptionInputError(f"VPA: gait must be a GaitTiming, got {type(gait).__name__}")
         if grid is None:
