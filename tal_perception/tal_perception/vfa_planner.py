@@ -389,16 +389,17 @@ class VfaPlanner:
         hip = gait.hip_position[leg]
         liftoff = gait.liftoff_position[leg] - np.array([0.0, 0.0, self.foot_radius_m])
         map_age = math.inf if self._map_stamp_s is None else abs(gait.stamp_s - self._map_stamp_s)
+        hip_touchdown = self._hip_at_touchdown(leg, gait, yaw, time_left)
         start = time.perf_counter()
         result = self.selector.select(
             leg, gait.nominal_foothold[leg], self._grid, hip_height_m=float(hip[2]), twist=gait.base_twist,
             gait=timing, yaw=yaw, map_age_s=0.0 if self._grid is None else map_age, liftoff_world=liftoff,
-            hip_touchdown_world=self._hip_at_touchdown(leg, gait, yaw, time_left))
+            hip_touchdown_world=hip_touchdown)
         previous = self._decisions.get(leg)
         if (previous is not None and previous.step_count == int(gait.step_count[leg])
                 and previous.status is VfaStatus.SELECTED and result.status is VfaStatus.SELECTED):
             result = self._keep_if_still_safe(leg, gait, result, previous, timing, yaw, map_age, liftoff,
-                                              self._hip_at_touchdown(leg, gait, yaw, time_left))
+                                              hip_touchdown)
         elapsed = time.perf_counter() - start
         evaluated = result.status in (VfaStatus.SELECTED, VfaStatus.NO_SAFE_CANDIDATE)
         score = float(getattr(result, "score", 1.0)) if evaluated else 0.0

@@ -267,25 +267,24 @@ def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRun
             style = "-" if run.loop is not None and run.loop.pose_source == "vpa" else "--"
             ax.plot(s["x"], np.nansum(s["safe"], axis=1), style, lw=0.9,
                     label=f"{run.name} ({'success' if r.success else 'failed'})")
-        ax.set_xlabel("base x [m]")
-        ax.set_ylabel("safe footholds at the actual pose (4 legs)")
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
-        fig.tight_layout()
-        fig.savefig(out / "vital_vpa_vs_tbr.png", dpi=110)
-        plt.close(fig)
+        _finish(plt, fig, ax, "safe footholds at the actual pose (4 legs)", out / "vital_vpa_vs_tbr.png")
     if "cost" in runs:
         fig, ax = plt.subplots(figsize=(9, 4))
         for run in runs["cost"]:
             s = results[run.name].series
             ax.plot(s["x"], np.nanmean(s["thickness"], axis=1), lw=0.9, label=run.name)
-        ax.set_xlabel("base x [m]")
-        ax.set_ylabel("|F(u*+m) - F(u*-m)| mean over legs")
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
-        fig.tight_layout()
-        fig.savefig(out / "vital_cost_envelope.png", dpi=110)
-        plt.close(fig)
+        _finish(plt, fig, ax, "|F(u*+m) - F(u*-m)| mean over legs", out / "vital_cost_envelope.png")
+
+
+def _finish(plt, fig, ax, ylabel: str, path: Path) -> None:
+    """Label a plot over base x, save it as PNG and close it."""
+    ax.set_xlabel("base x [m]")
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -194,7 +194,7 @@ class VitalLoop:
         self.trace.shin_depth.append(depth)
         self.trace.actual_safe_footholds.append(self._actual_safe.copy())
         self.trace.envelope_thickness.append(self._thickness.copy())
-        self.trace.foot_collision.append(self._foot_collisions(ctx.core.sim, ctx.output.targets.gait))
+        self.trace.foot_collision.append(self._foot_collisions(ctx.contacts, ctx.output.targets.gait))
         return None
 
     # -- maps ---------------------------------------------------------------------------------------
@@ -278,9 +278,11 @@ class VitalLoop:
         depth = (ground - (points[..., 2] - SHIN_RADIUS_M)).max(axis=1)
         return depth > COLLISION_TOLERANCE_M, depth
 
-    def _foot_collisions(self, sim, phase) -> NDArray[np.bool_]:
+    def _foot_collisions(self, contacts: list, phase) -> NDArray[np.bool_]:
+        """(4,) whether each swinging foot hits the terrain (see the module docstring); contacts: the
+        tick's true foot contacts, leg order."""
         hits = np.zeros(NUM_LEGS, dtype=bool)
-        for leg, contact in enumerate(sim.foot_contacts()):
+        for leg, contact in enumerate(contacts):
             if not phase.swing[leg]:
                 self._airborne[leg] = False
                 continue

@@ -140,7 +140,8 @@ class ClosedLoopConfig:
 
 @dataclass(frozen=True)
 class TickContext:
-    """What a per-tick hook sees. Returning an array from the hook replaces the torque command [N m]."""
+    """What a per-tick hook sees. Returning an array from the hook replaces the torque command [N m].
+    contacts: the true foot contacts at the tick (``Simulation.foot_contacts``, leg order)."""
 
     t_s: float
     tick: int
@@ -148,6 +149,7 @@ class TickContext:
     controller: LocomotionController
     output: TickOutput
     state: RobotState
+    contacts: list
 
 
 TickHook = Callable[[TickContext], "np.ndarray | None"]
@@ -373,12 +375,12 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                 if aligner is not None:
                     aligner.update(t, out.measured.foot_positions, out.targets.load_factor, radius, height_fn)
                 tau = out.tau
+                contacts = sim.foot_contacts()
                 if hook is not None:
-                    replaced = hook(TickContext(t, k // decimation, core, controller, out, state))
+                    replaced = hook(TickContext(t, k // decimation, core, controller, out, state, contacts))
                     if replaced is not None:
                         tau = np.asarray(replaced, dtype=float)
                 core.commands.submit(sim.time_ns, description.joint_names, tau)
-                contacts = sim.foot_contacts()
                 body = bool(sim.body_ground_contact())
                 rpy = _rpy(state.base_quat_xyzw)
                 trunk = out.targets.trunk
