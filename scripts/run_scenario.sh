@@ -96,7 +96,7 @@ stance() {
 
 tour() {
     local speed="${SPEED_M_S:-0.2}" duration="${DURATION_S:-40.0}" mode="${MODE:-lockstep}"
-    local contact_model="${CONTACT_MODEL:-rigid}" odometry="${LEG_ODOMETRY:-rigid}"
+    local contact_model="${CONTACT_MODEL:-rigid}" odometry="${LEG_ODOMETRY:-terrain_aware}"
     local dir="$RUN_ROOT"
     local topics="${RECORDED_TOPICS%]}, 'footholds', 'body_pose_reference']"
     echo "[run] tour: the whole graph ($mode). HyQ trots at $speed m/s over rigid -> T1 -> T2 -> rigid -> 4 stairs" \

@@ -32,7 +32,7 @@ from tal_core.bag_io import BagReader
 from tal_core.course_io import load_course
 from tal_core.legs import LEG_NAMES
 
-from .run_report import format_estimator, format_report
+from .run_report import TRUNK_LINKS, format_estimator, format_report
 
 SOFT_N_PER_M = 1e5  # [N/m] patches softer than this are shaded in the trajectory plot
 LOOKBACK_S = 2.5  # [s] the TCE window is 250 stance samples at 250 Hz: ~1.7 s of trot at duty factor 0.6
@@ -294,7 +294,8 @@ def build_report(run_dir: Path, title: str) -> str:
         {"rates": [r.__dict__ for r in rates], "stiffness": stiffness,
          "peak_total_rss_mb": None if resources is None else resources["peak_total_rss_mb"],
          "real_time_factor": bridge.get("real_time_factor"), "mode": bridge.get("mode"),
-         "fell": bool(bridge["body_ground_contact"]), "distance_m": wbc.get("distance_m")}, indent=1))
+         "fell": bool(TRUNK_LINKS & set(bridge["body_ground_contact"])),
+         "links_touching_terrain": bridge["body_ground_contact"], "distance_m": wbc.get("distance_m")}, indent=1))
     return report
 
 
