@@ -119,7 +119,11 @@ tour() {
         tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_estimation/tce tal_control/wbc \
         tal_perception/vfa tal_perception/vpa tal_control/cmd_vel_script tal_sim_bridge/bag_recorder \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
-    python -m tal_control.graph_report "$dir" --title "tour ($mode): HyQ trots at $speed m/s over rigid, T1, T2 and stairs"
+    local bench=()
+    # A real-time tour is the graph-rates measurement of `make bench` (bench/report.py reads it).
+    [ "$mode" = realtime ] && bench=(--bench-json "$ROOT/bench/out/graph_rates.json")
+    python -m tal_control.graph_report "$dir" --title "tour ($mode): HyQ trots at $speed m/s over rigid, T1, T2 and stairs" \
+        "${bench[@]+"${bench[@]}"}"
 }
 
 stand() {

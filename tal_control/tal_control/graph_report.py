@@ -266,6 +266,22 @@ def plot_run(series: BagSeries, course_name: str, rates: list[RateResult],
     return paths
 
 
+PRIMARY_TOPIC = {"sim_bridge": "joint_states", "state_estimator": "state_estimate", "tce": "terrain_impedance",
+                 "wbc": "joint_command", "vpa": "body_pose_reference"}
+
+
+def bench_rates(summary: dict) -> dict:
+    """The rate each node held (its main output) and its missed ticks, in the schema bench/report.py reads."""
+    rates = {r["topic"]: r for r in summary["rates"]}
+    nodes = {}
+    for node, topic in PRIMARY_TOPIC.items():
+        r = rates[topic]
+        nodes[node] = {"topic": topic, "target_hz": r["target_hz"], "achieved_hz": r["wall_rate_hz"],
+                       "deadline_misses": r["missed_ticks"], "ticks": r["messages"]}
+    return {"mode": summary["mode"], "real_time_factor": summary["real_time_factor"], "nodes": nodes,
+            "peak_rss_mb": summary["peak_total_rss_mb"]}
+
+
 def load_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
@@ -290,12 +306,12 @@ def build_report(run_dir: Path, title: str) -> str:
                                     load_json(run_dir / "vpa_summary.json"))
     plots = plot_run(series, bridge["course"], rates, resources, run_dir)
     report += "\nPlots: " + ", ".join(f"[{p.name}]({p.name})" for p in plots) + "\n"
-    (run_dir / "graph_summary.json").write_text(json.dumps(
-        {"rates": [r.__dict__ for r in rates], "stiffness": stiffness,
-         "peak_total_rss_mb": None if resources is None else resources["peak_total_rss_mb"],
-         "real_time_factor": bridge.get("real_time_factor"), "mode": bridge.get("mode"),
-         "fell": bool(TRUNK_LINKS & set(bridge["body_ground_contact"])),
-         "links_touching_terrain": bridge["body_ground_contact"], "distance_m": wbc.get("distance_m")}, indent=1))
+    summary = {"rates": [r.__dict__ for r in rates], "stiffness": stiffness,
+               "peak_total_rss_mb": None if resources is None else resources["peak_total_rss_mb"],
+               "real_time_factor": bridge.get("real_time_factor"), "mode": bridge.get("mode"),
+               "fell": bool(TRUNK_LINKS & set(bridge["body_ground_contact"])),
+               "links_touching_terrain": bridge["body_ground_contact"], "distance_m": wbc.get("distance_m")}
+    (run_dir / "graph_summary.json").write_text(json.dumps(summary, indent=1))
     return report
 
 
@@ -303,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("--title", default="Whole-graph run")
+    parser.add_argument("--bench-json", type=Path, help="also write the nodes' rates for bench/report.py here "
+                        "(bench/out/graph_rates.json)")
     args = parser.parse_args(argv)
     try:
         report = build_report(args.run_dir, args.title)
@@ -310,6 +328,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     (args.run_dir / "report.md").write_text(report)
     print(report)
+    if args.bench_json is not None:
+        summary = json.loads((args.run_dir / "graph_summary.json").read_text())
+        args.bench_json.parent.mkdir(parents=True, exist_ok=True)
+        args.bench_json.write_text(json.dumps({**bench_rates(summary), "run": str(args.run_dir)}, indent=1))
     return 0
 
 
