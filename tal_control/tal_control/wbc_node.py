@@ -95,6 +95,8 @@ class WbcNode(Node):
         self.mode = WbcDiagnostics.MODE_NORMAL
         self.rejected_inputs = 0
         self.ticks = 0
+        self.deferred_ticks = 0   # ticks whose base state had not arrived with their joint state
+        self.watchdog_trips = 0   # safe-mode commands sent by the wall-clock watchdog
         self._last_joint_wall = time.monotonic()
         self.stats = TrackingStats()
 
@@ -111,9 +113,14 @@ class WbcNode(Node):
         self._impedance: LegImpedance | None = None
         if p["contact_model"] == "compliant" and p["impedance_source"] == "tce":
             self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
+        # The watchdog is a deadline, not a poll: each accepted joint state restarts the timer, so it fires
+        # watchdog_timeout_s after the last one (a poll every timeout/3 fired up to 4/3 timeout late), then
+        # every watchdog_timeout_s while the silence lasts. Idle (cancelled) until the first joint state.
+        self._watchdog_timer = None
         if p["watchdog_timeout_s"] > 0.0:
-            self.create_timer(p["watchdog_timeout_s"] / 3.0, self._watchdog,
-                              clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self._watchdog_timer = self.create_timer(p["watchdog_timeout_s"], self._watchdog,
+                                                     clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self._watchdog_timer.cancel()
         self.get_logger().info(f"wbc ready: gait {gait.name}, state from '{state_topic}', "
                                f"{1.0 / p['control_period_s']:.0f} Hz")
 
@@ -207,6 +214,8 @@ class WbcNode(Node):
             return  # repeated or out-of-order sample: keep the newer one
         self._joints = (stamp, q, qd)
         self._last_joint_wall = time.monotonic()
+        if self._watchdog_timer is not None:
+            self._watchdog_timer.reset()
         self._maybe_tick()
 
     def _restart(self, stamp_ns: int) -> None:
@@ -289,6 +298,7 @@ class WbcNode(Node):
         deferred_before = self._deferred_tick_ns is not None and stamp > self._deferred_tick_ns
         if base_stamp < self._expected_base_stamp(stamp) - TICK_TOLERANCE_NS and not deferred_before:
             self._deferred_tick_ns = stamp
+            self.deferred_ticks += 1
             return
         self._deferred_tick_ns = None
         self._next_tick_ns = tick_after(stamp, self.period_ns)
@@ -351,8 +361,12 @@ class WbcNode(Node):
         self.pub_diag.publish(diag)
 
     def _watchdog(self) -> None:
-        if self._joints is not None and time.monotonic() - self._last_joint_wall > self.p["watchdog_timeout_s"]:
-            self._safe_mode(self._joints[0], "no joint_states within the watchdog timeout")
+        silence_s = time.monotonic() - self._last_joint_wall
+        if self._joints is None or silence_s < self.p["watchdog_timeout_s"]:
+            return
+        self.watchdog_trips += 1
+        self._safe_mode(self._joints[0], f"no joint_states for {silence_s * 1e3:.1f} ms (watchdog_timeout_s "
+                                         f"{self.p['watchdog_timeout_s'] * 1e3:.1f} ms)")
 
     # -- outputs ------------------------------------------------------------------------------------------
     @staticmethod
@@ -407,6 +421,7 @@ class WbcNode(Node):
     def summary(self) -> dict:
         aligner = self.map_aligner
         return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
+                "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name}
 
