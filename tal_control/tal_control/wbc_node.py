@@ -113,7 +113,7 @@ class WbcNode(Node):
         self._impedance: LegImpedance | None = None
         if p["contact_model"] == "compliant" and p["impedance_source"] == "tce":
             self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
-        # The watchdog is a deadline, not a poll: each accepted joint state restarts the timer, so it fires
+        # The watchdog is a deadline, not a poll: each joint state handled restarts the timer, so it fires
         # watchdog_timeout_s after the last one (a poll every timeout/3 fired up to 4/3 timeout late), then
         # every watchdog_timeout_s while the silence lasts. Idle (cancelled) until the first joint state.
         self._watchdog_timer = None
@@ -155,8 +155,9 @@ class WbcNode(Node):
                                            "[-] base state older than this many periods: safe mode", low=1,
                                            high=1000),
             "watchdog_timeout_s": declare(self, "watchdog_timeout_s", 0.0,
-                                          "[s] wall time without joint_states before safe mode (0 = off; "
-                                          "keep off in lockstep)", low=0.0, high=10.0),
+                                          "[s] wall time without joint_states (from the end of handling "
+                                          "the last one) before safe mode (0 = off; keep off in lockstep)",
+                                          low=0.0, high=10.0),
             "safe_damping_nms_per_rad": declare(self, "safe_damping_nms_per_rad", 20.0,
                                                 "[N m s/rad] joint damping in safe mode", low=0.0, high=1000.0),
             "summary_path": declare(self, "summary_path", "", "JSON file for the tracking summary written "
@@ -213,10 +214,16 @@ class WbcNode(Node):
         if self._joints is not None and stamp <= self._joints[0]:
             return  # repeated or out-of-order sample: keep the newer one
         self._joints = (stamp, q, qd)
+        self._maybe_tick()
+        self._feed_watchdog()
+
+    def _feed_watchdog(self) -> None:
+        """A joint state was handled (and maybe its tick computed): the watchdog's deadline starts now. It
+        counts from the end of the work, because the time a tick takes is not silence of the driver (a
+        joint state that arrived meanwhile waits in the queue, and the executor runs timers first)."""
         self._last_joint_wall = time.monotonic()
         if self._watchdog_timer is not None:
             self._watchdog_timer.reset()
-        self._maybe_tick()
 
     def _restart(self, stamp_ns: int) -> None:
         """The robot's clock jumped back (simulation restarted): start the controller afresh."""
@@ -240,7 +247,8 @@ class WbcNode(Node):
         if self._base is not None and stamp <= self._base[0]:
             return
         self._base = (stamp, base)
-        self._maybe_tick()
+        if self._maybe_tick():
+            self._feed_watchdog()
 
     def _on_cmd_vel(self, msg: Twist) -> None:
         values = np.array([msg.linear.x, msg.linear.y, msg.angular.z])
@@ -279,33 +287,35 @@ class WbcNode(Node):
             self._reject("heightmap", exc)
 
     # -- the tick -----------------------------------------------------------------------------------------
-    def _maybe_tick(self) -> None:
+    def _maybe_tick(self) -> bool:
         """Compute the tick once its joint state and the base state expected for it have arrived (ground
         truth: the same stamp; estimate: the estimator's latest tick at or before it).
 
         That base state is on its way (the bridge publishes both each step, the estimator answers the
         bridge's samples), so a tick whose base state has not arrived yet is deferred; it is decided, with whatever base
         state is there, when the next tick's joint state arrives (the robot driver moved on). Safe mode
-        follows when that base state is older than ``stale_state_periods``.
+        follows when that base state is older than ``stale_state_periods``. Returns whether a tick (normal
+        or safe) was decided.
         """
         if self._joints is None or self._base is None:
-            return
+            return False
         stamp, q, qd = self._joints
         if not reaches_tick(stamp, self._next_tick_ns):
-            return  # not a control tick
+            return False  # not a control tick
         base_stamp, base = self._base
         age = stamp - base_stamp
         deferred_before = self._deferred_tick_ns is not None and stamp > self._deferred_tick_ns
         if base_stamp < self._expected_base_stamp(stamp) - TICK_TOLERANCE_NS and not deferred_before:
             self._deferred_tick_ns = stamp
             self.deferred_ticks += 1
-            return
+            return False
         self._deferred_tick_ns = None
         self._next_tick_ns = tick_after(stamp, self.period_ns)
         if age > self.stale_ns:
             self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")
-            return
-        self._tick(stamp, base, q, qd)
+        else:
+            self._tick(stamp, base, q, qd)
+        return True
 
     def _expected_base_stamp(self, stamp_ns: int) -> int:
         """The stamp of the newest base state the source publishes at or before ``stamp_ns``: ground truth
