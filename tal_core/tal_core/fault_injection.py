@@ -5,7 +5,8 @@ A relay sits on a remapped topic: the producer publishes ``joint_states``, the r
 Each message is passed, dropped or corrupted (positions replaced by NaN) as decided by a
 ``FaultSchedule``: of every ``period`` consecutive messages exactly ``count`` are picked, at positions
 drawn from a seeded RNG, so a run drops exactly the asked fraction (over whole periods) and is
-reproducible. The relay counts what it did.
+reproducible. Faults can start at a header stamp (the robot walks first, then the link degrades);
+earlier messages pass untouched. The relay counts what it did.
 
 The logic (``FaultSchedule``, ``FaultRelay``, ``corrupt_with_nan``) does not use rclpy; ``FaultRelayNode``
 is the thin node around it (test support: no executable, tests create it in their graph's context).
@@ -68,6 +69,7 @@ class FaultCounts:
     messages (tests are short; a relay meant to run for hours would keep counts only)."""
 
     received: int = 0
+    eligible: int = 0        # received at or after the start stamp (the fractions apply to these)
     passed: int = 0
     dropped: int = 0
     corrupted: int = 0
@@ -75,8 +77,8 @@ class FaultCounts:
     corrupted_stamps_ns: list[int] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, int]:
-        return {"received": self.received, "passed": self.passed, "dropped": self.dropped,
-                "corrupted": self.corrupted}
+        return {"received": self.received, "eligible": self.eligible, "passed": self.passed,
+                "dropped": self.dropped, "corrupted": self.corrupted}
 
 
 def corrupt_with_nan(msg: Any) -> Any:
@@ -105,20 +107,27 @@ class FaultRelay:
     """Decides per message: drop (``drop_fraction``), else corrupt (``nan_fraction``), else pass.
 
     The two schedules are independent streams of the same seed family, so the drops do not change
-    which messages are corrupted.
+    which messages are corrupted. Messages stamped before ``start_ns`` (header stamp [ns]) pass and do not
+    advance the schedules; messages without a header are always eligible.
     """
 
-    def __init__(self, drop_fraction: float = 0.0, nan_fraction: float = 0.0, seed: int = 0) -> None:
+    def __init__(self, drop_fraction: float = 0.0, nan_fraction: float = 0.0, seed: int = 0,
+                 start_ns: int = 0) -> None:
         self.drops = FaultSchedule(drop_fraction, seed)
         self.nans = FaultSchedule(nan_fraction, seed + 1)
+        self.start_ns = int(start_ns)
         self.counts = FaultCounts()
 
     def process(self, msg: Any) -> Any | None:
         """The message to forward (possibly corrupted), or None to drop it."""
         self.counts.received += 1
+        stamp = _stamp_ns(msg)
+        if stamp is not None and stamp < self.start_ns:
+            self.counts.passed += 1
+            return msg
+        self.counts.eligible += 1
         drop = self.drops.next()
         corrupt = self.nans.next()
-        stamp = _stamp_ns(msg)
         if drop:
             self.counts.dropped += 1
             if stamp is not None:
@@ -137,7 +146,8 @@ class FaultRelayNode(Node):
     """Relays ``input_topic`` to ``output_topic`` through a ``FaultRelay``.
 
     Parameters: ``input_topic``, ``output_topic``, ``message_type`` ('pkg/msg/Type'), ``drop_fraction``,
-    ``nan_fraction`` ([0, 1]), ``seed``, ``depth`` (QoS history depth of both sides, reliable).
+    ``nan_fraction`` ([0, 1]), ``seed``, ``start_s`` (header-stamp time from which faults are injected),
+    ``depth`` (QoS history depth of both sides, reliable).
     Pass ``node_name`` to run several relays in one process.
     """
 
@@ -153,19 +163,25 @@ class FaultRelayNode(Node):
         nan = declare(self, "nan_fraction", 0.0, "[-] fraction of messages whose positions become NaN",
                       low=0.0, high=1.0, read_only=True)
         seed = declare(self, "seed", 0, "[-] seed of the fault positions", low=0, high=2**31 - 1, read_only=True)
+        start = declare(self, "start_s", 0.0, "[s] header stamp from which faults are injected (earlier "
+                        "messages pass)", low=0.0, high=1e9, read_only=True)
         depth = declare(self, "depth", 10, "[-] QoS history depth (reliable)", low=1, high=10000, read_only=True)
         msg_type = message_class(type_name)
         if nan > 0.0:
             corrupt_with_nan(msg_type())  # raises TypeError at start-up for a type without positions
-        self.relay = FaultRelay(drop, nan, seed)
+        self.relay = FaultRelay(drop, nan, seed, start_ns=round(start * 1e9))
         self._pub = self.create_publisher(msg_type, output_topic, depth)
         self.create_subscription(msg_type, input_topic, self._on_message, depth)
         self.get_logger().info(f"fault relay {input_topic} -> {output_topic}: drop {self.relay.drops.fraction:.3f}, "
-                               f"NaN {self.relay.nans.fraction:.3f}, seed {seed}")
+                               f"NaN {self.relay.nans.fraction:.3f}, seed {seed}, from {start} s")
 
     @property
     def counts(self) -> FaultCounts:
         return self.relay.counts
+
+    def matched_subscribers(self) -> int:
+        """Subscriptions matched with the output (messages sent before a subscriber matched are lost)."""
+        return self._pub.get_subscription_count()
 
     def _on_message(self, msg: Any) -> None:
         out = self.relay.process(msg)

@@ -70,3 +70,16 @@ def test_relay_drops_then_corrupts_and_counts_by_stamp() -> None:
     # Exactly 20 messages were picked for NaN; those that were also dropped were not sent.
     assert relay.nans.picked == 20 and counts.corrupted <= 20
 
+
+
+def test_relay_passes_messages_stamped_before_the_start_without_using_the_schedule() -> None:
+    relay = FaultRelay(drop_fraction=0.5, seed=2, start_ns=50)
+    reference = FaultSchedule(0.5, seed=2)
+    out = []
+    for k in range(100):
+        msg = JointState(name=["a"], position=[float(k)])
+        msg.header.stamp.nanosec = k
+        out.append(relay.process(msg))
+    assert all(m is not None for m in out[:50])
+    assert [k for k in range(50, 100) if out[k] is None] == [50 + k for k in picks(reference, 50)]
+    assert relay.counts.as_dict() == {"received": 100, "eligible": 50, "passed": 75, "dropped": 25, "corrupted": 0}
