@@ -1,7 +1,9 @@
 """Node ``wbc``: motion generation + passive whole-body controller (sWBC) at 250 Hz.
 
 Subscribes: joint_states, the base state (``ground_truth/odom`` or ``state_estimate``, parameter
-state_source), cmd_vel, footholds, body_pose_reference, terrain/heightmap.
+state_source), cmd_vel (Twist, applied from the tick after it arrives), cmd_vel_stamped (TwistStamped,
+applied from the first tick at or after its stamp; what keeps a lockstep run with a scripted command
+independent of when the script's process runs), footholds, body_pose_reference, terrain/heightmap.
 Publishes: joint_command (feed-forward torques), gait_state, wbc/diagnostics.
 
 Ticks lie on the sim-time grid k * control_period_s. A tick is computed once the joint state of that
@@ -10,6 +12,11 @@ lockstep runs are deterministic). A base state older than ``stale_state_periods`
 the node in safe mode (joint damping hold, MODE_SAFE in diagnostics) until fresh state returns. Input
 with NaN, wrong sizes or unknown joints is rejected and counted; a QP that fails falls back to the
 decayed previous solution and is counted (MODE_FALLBACK); nothing raises out of the loop.
+
+Lockstep determinism: inputs without a fixed arrival order relative to the tick's joint state are tied to
+sim time: a stamped command applies from its stamp's tick, a heightmap from the first tick one control
+period after its stamp. (footholds, body_pose_reference and terrain_impedance are still used as they
+arrive.)
 """
 
 from __future__ import annotations
@@ -18,13 +25,15 @@ import dataclasses
 import time
 
 import numpy as np
-from geometry_msgs.msg import Twist, Vector3
+from geometry_msgs.msg import Twist, TwistStamped, Vector3
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
+from tal_core.heightmap import HeightMapGrid
 from tal_core.node_utils import (
     TICK_TOLERANCE_NS,
     declare,
@@ -57,6 +66,10 @@ from .wbc import WbcGains, WbcSettings
 from .wbc.tasks import orientation_error
 
 CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
+# Stamped commands come ahead of their time, several per message burst: a deep queue. Volatile, so that
+# any publisher matches (a transient-local subscription refuses volatile publishers).
+STAMPED_COMMAND_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.VOLATILE)
 
 
 class WbcNode(Node):
@@ -87,7 +100,12 @@ class WbcNode(Node):
         self._joints: tuple[int, np.ndarray, np.ndarray] | None = None
         self._base: tuple[int, BaseState] | None = None
         self._cmd_vel = np.zeros(3)
-        self._grid = None
+        self._cmd_queue: list[tuple[int, np.ndarray]] = []  # stamped commands not yet in force, by stamp
+        self._cmd_stamp_ns: int | None = None                # stamp of the stamped command in force
+        self._last_tick_ns: int | None = None                # stamp of the last tick decided
+        self.late_cmd_vel = 0  # stamped commands that arrived after their tick and changed the command
+        self._grid = None   # the heightmap in use
+        self._pending_grids: list[tuple[int, HeightMapGrid]] = []  # (stamp [ns], map) received, not yet in use
         # The simulator's heightmap is in the true world frame; the estimate drifts in z (map_alignment).
         self.map_aligner = (HeightmapAligner(p["map_alignment_time_constant_s"])
                             if p["state_source"] == "estimate" and p["map_alignment_time_constant_s"] > 0.0
@@ -107,6 +125,7 @@ class WbcNode(Node):
         self.create_subscription(JointState, "joint_states", self._on_joints, 10)
         self.create_subscription(Odometry, state_topic, self._on_base, 10)
         self.create_subscription(Twist, "cmd_vel", self._on_cmd_vel, 10)
+        self.create_subscription(TwistStamped, "cmd_vel_stamped", self._on_cmd_vel_stamped, STAMPED_COMMAND_QOS)
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
         self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
@@ -234,6 +253,9 @@ class WbcNode(Node):
         self._next_tick_ns = 0
         self._deferred_tick_ns = None
         self._last_command = None
+        self._last_tick_ns = self._cmd_stamp_ns = None
+        self._cmd_queue.clear()
+        self._pending_grids.clear()
 
     def _on_base(self, msg: Odometry) -> None:
         try:
@@ -250,14 +272,45 @@ class WbcNode(Node):
         if self._maybe_tick():
             self._feed_watchdog()
 
-    def _on_cmd_vel(self, msg: Twist) -> None:
+    def _clamped_command(self, msg: Twist, what: str) -> np.ndarray | None:
         values = np.array([msg.linear.x, msg.linear.y, msg.angular.z])
         if not np.all(np.isfinite(values)):
-            self._reject("cmd_vel", InputError("cmd_vel has NaN or inf"))
-            return
+            self._reject(what, InputError(f"{what} has NaN or inf"))
+            return None
         v_max, w_max = self.p["max_linear_velocity_m_s"], self.p["max_yaw_rate_rad_s"]
-        self._cmd_vel = np.array([np.clip(values[0], -v_max, v_max), np.clip(values[1], -v_max, v_max),
-                                  np.clip(values[2], -w_max, w_max)])
+        return np.array([np.clip(values[0], -v_max, v_max), np.clip(values[1], -v_max, v_max),
+                         np.clip(values[2], -w_max, w_max)])
+
+    def _on_cmd_vel(self, msg: Twist) -> None:
+        command = self._clamped_command(msg, "cmd_vel")
+        if command is not None:
+            self._cmd_vel = command
+
+    def _on_cmd_vel_stamped(self, msg: TwistStamped) -> None:
+        """Queue the command for its first tick at or after its stamp; one whose tick has passed applies
+        now (counted as late when it changes the command)."""
+        command = self._clamped_command(msg.twist, "cmd_vel_stamped")
+        if command is None:
+            return
+        stamp = ns_from_stamp(msg.header.stamp)
+        if self._cmd_stamp_ns is not None and stamp <= self._cmd_stamp_ns:
+            return  # not newer than the command in force (a re-sent one)
+        if self._last_tick_ns is not None and stamp <= self._last_tick_ns:
+            if not np.array_equal(command, self._cmd_vel):
+                self.late_cmd_vel += 1
+                self.get_logger().warn(f"cmd_vel_stamped for {stamp * 1e-9:.3f} s arrived after the tick at "
+                                       f"{self._last_tick_ns * 1e-9:.3f} s ({self.late_cmd_vel} late)",
+                                       throttle_duration_sec=1.0)
+            self._cmd_queue = [(s, c) for s, c in self._cmd_queue if s > stamp]
+            self._cmd_vel, self._cmd_stamp_ns = command, stamp
+            return
+        self._cmd_queue = sorted([(s, c) for s, c in self._cmd_queue if s != stamp] + [(stamp, command)],
+                                 key=lambda item: item[0])
+
+    def _apply_due_commands(self, stamp_ns: int) -> None:
+        """The stamped commands due at the tick ``stamp_ns`` come into force (the latest one wins)."""
+        while self._cmd_queue and self._cmd_queue[0][0] <= stamp_ns + TICK_TOLERANCE_NS:
+            self._cmd_stamp_ns, self._cmd_vel = self._cmd_queue.pop(0)
 
     def _on_footholds(self, msg: FootholdArray) -> None:
         for foothold in msg.footholds:
@@ -282,9 +335,25 @@ class WbcNode(Node):
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
-            self._grid = heightmap_grid(msg)
+            grid = heightmap_grid(msg)
         except InputError as exc:
             self._reject("heightmap", exc)
+            return
+        self._pending_grids.append((ns_from_stamp(msg.header.stamp), grid))
+
+    def _update_grid(self, stamp_ns: int) -> None:
+        """The newest heightmap stamped at least one control period before the tick comes into use.
+
+        A map stamped with the tick itself (or just before it) may reach this node before or after the
+        tick's joint state (other topic, no order between them), so using it at once made lockstep runs
+        depend on delivery order; the maps of earlier ticks have been delivered by the time the next
+        tick's joint state comes (the bridge waited for this node's command in between).
+        """
+        cutoff = stamp_ns - self.period_ns + TICK_TOLERANCE_NS
+        due = [(s, g) for s, g in self._pending_grids if s <= cutoff]
+        if due:
+            self._grid = max(due, key=lambda item: item[0])[1]
+            self._pending_grids = [(s, g) for s, g in self._pending_grids if s > cutoff]
 
     # -- the tick -----------------------------------------------------------------------------------------
     def _maybe_tick(self) -> bool:
@@ -311,6 +380,9 @@ class WbcNode(Node):
             return False
         self._deferred_tick_ns = None
         self._next_tick_ns = tick_after(stamp, self.period_ns)
+        self._last_tick_ns = stamp
+        self._apply_due_commands(stamp)
+        self._update_grid(stamp)
         if age > self.stale_ns:
             self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")
         else:
@@ -428,10 +500,16 @@ class WbcNode(Node):
         return diag
 
 
+    @property
+    def cmd_vel(self) -> tuple[float, float, float]:
+        """The velocity command in force: vx, vy [m/s] (horizontal frame), yaw rate [rad/s]."""
+        return (float(self._cmd_vel[0]), float(self._cmd_vel[1]), float(self._cmd_vel[2]))
+
     def summary(self) -> dict:
         aligner = self.map_aligner
         return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
                 "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
+                "late_cmd_vel": self.late_cmd_vel,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name}
 
