@@ -219,10 +219,10 @@ def test_stamped_commands_apply_from_their_tick_and_late_ones_are_counted(contex
         command(10_000_000, 0.3)  # its tick (12 ms) has not run: queued
         spin_until(executor, lambda: False, 0.3)
         tick(12_000_000)
-        assert wbc.cmd_vel == (0.3, 0.0, 0.0) and wbc.late_cmd_vel == 0
+        assert wbc.cmd_vel == (0.3, 0.0, 0.0) and wbc.command_input.late == 0
         command(14_000_000, 0.4)  # after the tick at 12 ms, for the tick at 16 ms: in time
         command(12_000_000, 0.35)  # for the tick at 12 ms, which has run: applied now, late
-        assert spin_until(executor, lambda: wbc.late_cmd_vel == 1, 10.0)
+        assert spin_until(executor, lambda: wbc.command_input.late == 1, 10.0)
         assert wbc.cmd_vel == (0.35, 0.0, 0.0)
         tick(16_000_000)
         assert wbc.cmd_vel == (0.4, 0.0, 0.0) and wbc.summary()["late_cmd_vel"] == 1

@@ -3,14 +3,14 @@
 Parameter ``profile`` is a flat list [t0, vx, vy, wz, t1, ...] (sim time [s], [m/s], [m/s], [rad/s]).
 It follows the ``clock`` topic directly.
 
-Stamped (default): geometry_msgs/TwistStamped on ``cmd_vel_stamped``, each stamped with the sim time from
-which it applies, published ``lead_s`` of sim time ahead of the clock on the absolute grid k * period_s
-plus every segment start. The wbc applies each from its first control tick at or after the stamp, so a
-lockstep run does not depend on when this process gets the CPU (an unstamped command is applied at
-whichever tick follows its arrival). Reliable, transient local (a late transient-local subscriber gets the
-recent ones; the wbc subscribes volatile, to match any publisher).
-Unstamped (``stamped`` false): geometry_msgs/Twist on ``cmd_vel`` when the clock passes each grid point,
-as a teleop would send it.
+It always publishes geometry_msgs/Twist on ``cmd_vel`` when the clock passes each period_s (as a teleop
+would, and what recorders keep). With ``stamped`` (default) it also publishes geometry_msgs/TwistStamped on
+``cmd_vel_stamped``, each stamped with the sim time from which it applies, ``lead_s`` of sim time ahead of
+the clock on the absolute grid k * period_s plus every segment start. The wbc applies those from their
+first control tick at or after the stamp (and ignores the Twist while they come), so a lockstep run does
+not depend on when this process gets the CPU; a Twist is applied at whichever tick follows its arrival.
+Reliable, transient local (a late transient-local subscriber gets the recent ones; the wbc subscribes
+volatile, to match any publisher).
 """
 
 from __future__ import annotations
@@ -35,15 +35,14 @@ class CmdVelScriptNode(Node):
                           "flat list of (t [s], vx [m/s], vy [m/s], yaw rate [rad/s]) segments")
         self.period_ns = round(declare(self, "period_s", 0.02, "[s] sim time between messages",
                                        low=0.001, high=10.0) * 1e9)
-        self.stamped = declare(self, "stamped", True, "publish TwistStamped on cmd_vel_stamped ahead of the clock "
-                               "(deterministic in lockstep) instead of Twist on cmd_vel", read_only=True)
+        self.stamped = declare(self, "stamped", True, "also publish TwistStamped on cmd_vel_stamped ahead of the "
+                               "clock (deterministic in lockstep)", read_only=True)
         self.lead_ns = round(declare(self, "lead_s", 0.1, "[s] stamped: sim time ahead of the clock at which "
                                      "commands are published", low=0.0, high=10.0) * 1e9)
         self.segments = parse_profile(profile)
+        self.pub = self.create_publisher(Twist, "cmd_vel", 10)
         if self.stamped:
             self.pub_stamped = self.create_publisher(TwistStamped, "cmd_vel_stamped", STAMPED_QOS)
-        else:
-            self.pub = self.create_publisher(Twist, "cmd_vel", 10)
         self.create_subscription(Clock, "clock", self._on_clock, 10)
         self._last_ns: int | None = None        # unstamped: clock of the last message
         self._published_ns: int | None = None   # stamped: stamp of the last message
@@ -58,7 +57,6 @@ class CmdVelScriptNode(Node):
         now = ns_from_stamp(msg.clock)
         if self.stamped:
             self._publish_stamped(now)
-            return
         if self._last_ns is not None and now - self._last_ns < self.period_ns:
             return
         self._last_ns = now

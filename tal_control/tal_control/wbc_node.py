@@ -1,9 +1,10 @@
 """Node ``wbc``: motion generation + passive whole-body controller (sWBC) at 250 Hz.
 
 Subscribes: joint_states, the base state (``ground_truth/odom`` or ``state_estimate``, parameter
-state_source), cmd_vel (Twist, applied from the tick after it arrives), cmd_vel_stamped (TwistStamped,
-applied from the first tick at or after its stamp; what keeps a lockstep run with a scripted command
-independent of when the script's process runs), footholds, body_pose_reference, terrain/heightmap.
+state_source), cmd_vel_stamped (TwistStamped, applied from the first tick at or after its stamp: a
+lockstep run with a scripted command does not depend on when the script's process runs), cmd_vel (Twist,
+applied from the tick after it arrives, unless stamped commands are in use; see velocity_command),
+footholds, body_pose_reference, terrain/heightmap.
 Publishes: joint_command (feed-forward torques), gait_state, wbc/diagnostics.
 
 Ticks lie on the sim-time grid k * control_period_s. A tick is computed once the joint state of that
@@ -62,6 +63,7 @@ from .map_alignment import HeightmapAligner
 from .motion.gait import PRESETS as GAITS
 from .msg_conversions import gait_state_message
 from .tracking_stats import TrackingStats
+from .velocity_command import VelocityCommandInput
 from .wbc import WbcGains, WbcSettings
 from .wbc.tasks import orientation_error
 
@@ -99,11 +101,7 @@ class WbcNode(Node):
         self._last_command: JointCommand | None = None
         self._joints: tuple[int, np.ndarray, np.ndarray] | None = None
         self._base: tuple[int, BaseState] | None = None
-        self._cmd_vel = np.zeros(3)
-        self._cmd_queue: list[tuple[int, np.ndarray]] = []  # stamped commands not yet in force, by stamp
-        self._cmd_stamp_ns: int | None = None                # stamp of the stamped command in force
-        self._last_tick_ns: int | None = None                # stamp of the last tick decided
-        self.late_cmd_vel = 0  # stamped commands that arrived after their tick and changed the command
+        self.command_input = VelocityCommandInput(p["max_linear_velocity_m_s"], p["max_yaw_rate_rad_s"])
         self._grid = None   # the heightmap in use
         self._pending_grids: list[tuple[int, HeightMapGrid]] = []  # (stamp [ns], map) received, not yet in use
         # The simulator's heightmap is in the true world frame; the estimate drifts in z (map_alignment).
@@ -253,8 +251,7 @@ class WbcNode(Node):
         self._next_tick_ns = 0
         self._deferred_tick_ns = None
         self._last_command = None
-        self._last_tick_ns = self._cmd_stamp_ns = None
-        self._cmd_queue.clear()
+        self.command_input.reset()
         self._pending_grids.clear()
 
     def _on_base(self, msg: Odometry) -> None:
@@ -272,45 +269,22 @@ class WbcNode(Node):
         if self._maybe_tick():
             self._feed_watchdog()
 
-    def _clamped_command(self, msg: Twist, what: str) -> np.ndarray | None:
-        values = np.array([msg.linear.x, msg.linear.y, msg.angular.z])
-        if not np.all(np.isfinite(values)):
-            self._reject(what, InputError(f"{what} has NaN or inf"))
-            return None
-        v_max, w_max = self.p["max_linear_velocity_m_s"], self.p["max_yaw_rate_rad_s"]
-        return np.array([np.clip(values[0], -v_max, v_max), np.clip(values[1], -v_max, v_max),
-                         np.clip(values[2], -w_max, w_max)])
-
     def _on_cmd_vel(self, msg: Twist) -> None:
-        command = self._clamped_command(msg, "cmd_vel")
-        if command is not None:
-            self._cmd_vel = command
+        try:
+            self.command_input.unstamped((msg.linear.x, msg.linear.y, msg.angular.z))
+        except InputError as exc:
+            self._reject("cmd_vel", exc)
 
     def _on_cmd_vel_stamped(self, msg: TwistStamped) -> None:
-        """Queue the command for its first tick at or after its stamp; one whose tick has passed applies
-        now (counted as late when it changes the command)."""
-        command = self._clamped_command(msg.twist, "cmd_vel_stamped")
-        if command is None:
-            return
         stamp = ns_from_stamp(msg.header.stamp)
-        if self._cmd_stamp_ns is not None and stamp <= self._cmd_stamp_ns:
-            return  # not newer than the command in force (a re-sent one)
-        if self._last_tick_ns is not None and stamp <= self._last_tick_ns:
-            if not np.array_equal(command, self._cmd_vel):
-                self.late_cmd_vel += 1
-                self.get_logger().warn(f"cmd_vel_stamped for {stamp * 1e-9:.3f} s arrived after the tick at "
-                                       f"{self._last_tick_ns * 1e-9:.3f} s ({self.late_cmd_vel} late)",
-                                       throttle_duration_sec=1.0)
-            self._cmd_queue = [(s, c) for s, c in self._cmd_queue if s > stamp]
-            self._cmd_vel, self._cmd_stamp_ns = command, stamp
+        try:
+            late = self.command_input.stamped(stamp, (msg.twist.linear.x, msg.twist.linear.y, msg.twist.angular.z))
+        except InputError as exc:
+            self._reject("cmd_vel_stamped", exc)
             return
-        self._cmd_queue = sorted([(s, c) for s, c in self._cmd_queue if s != stamp] + [(stamp, command)],
-                                 key=lambda item: item[0])
-
-    def _apply_due_commands(self, stamp_ns: int) -> None:
-        """The stamped commands due at the tick ``stamp_ns`` come into force (the latest one wins)."""
-        while self._cmd_queue and self._cmd_queue[0][0] <= stamp_ns + TICK_TOLERANCE_NS:
-            self._cmd_stamp_ns, self._cmd_vel = self._cmd_queue.pop(0)
+        if late:
+            self.get_logger().warn(f"cmd_vel_stamped for {stamp * 1e-9:.3f} s arrived after its tick "
+                                   f"({self.command_input.late} late)", throttle_duration_sec=1.0)
 
     def _on_footholds(self, msg: FootholdArray) -> None:
         for foothold in msg.footholds:
@@ -380,8 +354,7 @@ class WbcNode(Node):
             return False
         self._deferred_tick_ns = None
         self._next_tick_ns = tick_after(stamp, self.period_ns)
-        self._last_tick_ns = stamp
-        self._apply_due_commands(stamp)
+        self.command_input.at_tick(stamp)
         self._update_grid(stamp)
         if age > self.stale_ns:
             self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")
@@ -405,7 +378,7 @@ class WbcNode(Node):
             height = self.map_aligner.aligned(height)
         normal = (lambda x, y: heightmap_normal(grid, x, y)) if grid is not None else None
         try:
-            out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self._cmd_vel, height, normal,
+            out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self.command_input.command, height, normal,
                                        impedance=self._impedance)
         except InputError as exc:
             self._reject("state", exc)
@@ -503,13 +476,14 @@ class WbcNode(Node):
     @property
     def cmd_vel(self) -> tuple[float, float, float]:
         """The velocity command in force: vx, vy [m/s] (horizontal frame), yaw rate [rad/s]."""
-        return (float(self._cmd_vel[0]), float(self._cmd_vel[1]), float(self._cmd_vel[2]))
+        command = self.command_input.command
+        return (float(command[0]), float(command[1]), float(command[2]))
 
     def summary(self) -> dict:
         aligner = self.map_aligner
         return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
                 "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
-                "late_cmd_vel": self.late_cmd_vel,
+                "late_cmd_vel": self.command_input.late, "cmd_vel_ignored": self.command_input.unstamped_ignored,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name}
 
