@@ -107,6 +107,8 @@ def test_the_same_lockstep_trot_twice_once_under_cpu_load_gives_the_same_traject
     for run in (quiet, loaded):
         assert run["bridge"]["lockstep_timeouts"] == 0 and run["bridge"]["body_ground_contact"] == []
         assert run["wbc"]["late_cmd_vel"] == 0 and run["wbc"]["safe_mode_ticks"] == 0
-    assert hog_cpu_s > 0.5 * loaded["bridge"]["wall_time_s"]   # the hogs did compete for the cores
+    # The hogs competed for the cores (their share depends on what else runs: 17-20 CPU s of ~40 s on a
+    # quiet machine, 16 CPU s of 73 s when others kept the load average at 17).
+    assert hog_cpu_s > 0.1 * loaded["bridge"]["wall_time_s"]
     assert a[common[-1]][0] - a[common[0]][0] > 0.4            # it trotted
     assert deviation.max() < 1e-3                               # [m] at every common stamp
