@@ -87,7 +87,13 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None,
             return 2
         executor.add_node(node)
         while rclpy.ok() and not (until is not None and until(node)):
-            executor.spin_once(timeout_sec=0.1)
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except Exception:
+                # SIGINT/SIGTERM shut the context down while a callback was publishing (a real-time bridge
+                # catching up publishes in a loop): rclpy raises "publisher's context is invalid". A stop.
+                if rclpy.ok():
+                    raise
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
