@@ -561,24 +561,30 @@ def _size(name: str, doc: dict) -> str:
     return "-"
 
 
-def _load_of_others(doc: dict) -> str:
-    m = doc.get("machine", {})
-    others = m.get("other_processes_cores_busy", doc.get("other_processes_cores_busy"))
+def _others_busy(doc: dict) -> float | None:
+    """Cores other processes kept busy on average while the bench measured (None: not recorded)."""
+    others = doc.get("machine", {}).get("other_processes_cores_busy", doc.get("other_processes_cores_busy"))
     if isinstance(others, list):
         others = [x for x in others if x is not None]
         others = sum(others) / len(others) if others else None
+    return float(others) if isinstance(others, (int, float)) else None
+
+
+def _load_of_others(doc: dict) -> str:
+    m = doc.get("machine", {})
+    others = _others_busy(doc)
     load = (
         m.get("load_average_at_start_1_5_15min") or doc.get("load_average_at_start") or m.get("load_average_1_5_15min")
     )
     parts = []
-    if isinstance(others, (int, float)):
+    if others is not None:
         parts.append(f"others {others:.2f} cores")
     if load:
         parts.append(f"load avg {load[0]}")
     return ", ".join(parts) or "-"
 
 
-def render(rows: list[Row], docs: dict[str, dict], machine: dict) -> str:
+def render(rows: list[Row], docs: dict[str, dict], machine: dict, note: str = "") -> str:
     def cell(text: str) -> str:
         return text.replace("|", "\\|") or "-"
 
@@ -592,6 +598,16 @@ def render(rows: list[Row], docs: dict[str, dict], machine: dict) -> str:
         "engineers' builds and tests: every figure moves with their load (see Sources); compare figures of the "
         "same run and read ratios rather than absolute times.",
         "",
+        *(
+            [
+                f"While the benches that record it measured, other processes kept {min(busy):.2f}-{max(busy):.2f} of "
+                f"the {machine.get('cpus')} cores busy on average.",
+                "",
+            ]
+            if (busy := [b for b in map(_others_busy, docs.values()) if b is not None])
+            else []
+        ),
+        *([note.strip(), ""] if note.strip() else []),
         "measured / goal: below 1 is good for a time or a share (goal `<=`), above 1 for a rate or a real-time "
         "factor (goal `>=`).",
         "",
@@ -631,9 +647,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out-dir", type=Path, default=OUT_DIR, help="where the benches wrote their JSON")
     parser.add_argument("--output", type=Path, default=OUTPUT, help="the markdown file to write")
+    parser.add_argument("--note", default="", help="a paragraph on the run's conditions, printed under the header")
     args = parser.parse_args(argv)
     rows, docs = collect(args.out_dir)
-    text = render(rows, docs, machine_info())
+    text = render(rows, docs, machine_info(), args.note)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(text)
     not_run = sum(1 for r in rows if r.note.startswith(("not run", "unreadable")))

@@ -168,9 +168,10 @@ def test_across_hosts_rows_and_section(report, tmp_path) -> None:
 def test_main_writes_the_markdown(report, tmp_path) -> None:
     _write(tmp_path, "bench_wbc", WBC)
     output = tmp_path / "results" / "bench.md"
-    assert report.main(["--out-dir", str(tmp_path), "--output", str(output)]) == 0
+    assert report.main(["--out-dir", str(tmp_path), "--output", str(output), "--note", "Quiet machine."]) == 0
     text = output.read_text()
     assert "| group | what | measured | goal | measured / goal | met | thesis / peer | notes |" in text
     assert "0.600 ms" in text and "1.50 |" in text  # measured and measured / goal
     assert "100 states x 2 sequences x 2 rounds (reduced)" in text
     assert "CPUs" in text  # machine info
+    assert "\nQuiet machine.\n" in text
