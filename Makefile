@@ -1,7 +1,7 @@
 # tal: every target bootstraps first (venv + pinned wheels + colcon build; a fast no-op when unchanged).
 SHELL := /bin/bash
 ENV := source scripts/env.sh
-SCENARIO ?= stance
+SCENARIO ?= tour
 PYTEST_ARGS ?=
 
 .PHONY: bootstrap run test bench experiments datasets lint clean

@@ -3,8 +3,10 @@
 # --params-file <pkg>/config/<exe>.yaml ...` when the ros2 CLI exists, otherwise the installed
 # executable ros2_ws/install/<pkg>/lib/<pkg>/<exe> with the same arguments.
 #
-# Usage: scripts/run_graph.sh [-d RUN_DIR] [-w NODE] [-s EXE.PARAM:=VALUE ...] PKG/EXE ...
+# Usage: scripts/run_graph.sh [-d RUN_DIR] [-w NODE] [-m FILE] [-s EXE.PARAM:=VALUE ...] PKG/EXE ...
 #   -d RUN_DIR   where the per-node logs go (default runs/<timestamp>)
+#   -m FILE      sample each node's resident memory and CPU time every second into FILE (JSON,
+#                tal_core.resource_monitor)
 #   -w NODE      wait for this executable to exit, then stop the others (default: wait for any to exit)
 #   -s EXE.PARAM:=VALUE  a parameter override for one node, e.g. -s sim_bridge.duration_s:=10.0
 # Ctrl-C, SIGTERM or a node failing stops every child (SIGINT, then SIGTERM, then SIGKILL): no orphans.
@@ -14,13 +16,16 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 RUN_DIR=""
 WAIT_FOR=""
+MONITOR_OUT=""
+MONITOR_PID=""
 OVERRIDES=()
-while getopts "d:w:s:h" opt; do
+while getopts "d:w:m:s:h" opt; do
     case "$opt" in
         d) RUN_DIR="$OPTARG" ;;
         w) WAIT_FOR="$OPTARG" ;;
+        m) MONITOR_OUT="$OPTARG" ;;
         s) OVERRIDES+=("$OPTARG") ;;
-        h) sed -n '2,12p' "$0"; exit 0 ;;
+        h) sed -n '2,14p' "$0"; exit 0 ;;
         *) echo "run_graph: see -h" >&2; exit 2 ;;
     esac
 done
@@ -38,8 +43,14 @@ declare -A PIDS=()      # exe -> pid
 declare -A NAMES=()     # pid -> exe
 stopping=0
 
-stop_all() {
-    stopping=1
+stop_monitor() {
+    [ -n "$MONITOR_PID" ] || return 0
+    kill -TERM "$MONITOR_PID" 2>/dev/null || true
+    wait "$MONITOR_PID" 2>/dev/null || true
+    MONITOR_PID=""
+}
+
+stop_nodes() {
     local sig pid
     for sig in INT TERM KILL; do
         local alive=0
@@ -57,6 +68,12 @@ stop_all() {
             sleep 0.1
         done
     done
+}
+# The monitor stops after the nodes; its file keeps the peaks it saw.
+stop_all() {
+    stopping=1
+    stop_nodes
+    stop_monitor
 }
 trap 'stop_all; exit 130' INT
 trap 'stop_all; exit 143' TERM
@@ -84,6 +101,12 @@ for spec in "$@"; do
     NAMES[$!]=$exe
     echo "$(date +%T) pid $! ${cmd[*]}" >> "$RUN_DIR/graph.log"
 done
+if [ -n "$MONITOR_OUT" ]; then
+    targets=()
+    for exe in "${!PIDS[@]}"; do targets+=("$exe=${PIDS[$exe]}"); done
+    python -m tal_core.resource_monitor --out "$MONITOR_OUT" "${targets[@]}" >> "$RUN_DIR/graph.log" 2>&1 &
+    MONITOR_PID=$!
+fi
 echo "run_graph: started ${!PIDS[*]} (logs in $RUN_DIR, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-0})"
 
 code=0

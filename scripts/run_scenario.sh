@@ -1,7 +1,13 @@
 #!/usr/bin/env bash
 # `make run SCENARIO=...`: run one scenario of the full node graph and print its summary.
 # Scenarios:
-#   stance          (default) STANCE: HyQ crawls at 0.1 m/s over the transition course (rigid, T1 soft, T2, T3,
+#   tour            (default) the whole graph, each node its own process: HyQ trots at 0.2 m/s for 40 s of sim
+#                   time (lockstep) over rigid ground, T1 and T2 soft patches and 4 stairs up (course graph_tour):
+#                   sim_bridge (121x121 heightmap) + state_estimator (terrain-aware leg odometry) + tce + wbc
+#                   (c3WBC with the TCE's impedance, on the ground-truth base like the vfa/vpa) + vfa + vpa
+#                   (VPA CNN, 20 Hz) + bag_recorder + cmd_vel_script; prints the summary of graph_report
+#   tour_realtime   the same following the wall clock (rates and deadline misses as the machine holds them)
+#   stance           STANCE: HyQ crawls at 0.1 m/s over the transition course (rigid, T1 soft, T2, T3,
 #                   rigid; 2 m strips) for 90 s of sim time: sim_bridge (81x81 heightmap) + state_estimator
 #                   (terrain-aware leg odometry) + wbc (c3WBC on the estimate) + tce (ground-truth base, as
 #                   the thesis' motion capture) + cmd_vel_script; prints the report
@@ -20,11 +26,11 @@
 # walking scenarios, runs/<timestamp>/bag (the run recorded by bag_recorder).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-SCENARIO="${1:-stance}"
+SCENARIO="${1:-tour}"
 RUN_ROOT="$ROOT/runs/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
 # What make run records into runs/<timestamp>/bag (rosbag2 MCAP; sim time as log time).
 RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/contacts', 'joint_command', \
-'state_estimate', 'contact_estimate', 'terrain_impedance', 'gait_state', 'wbc/diagnostics', 'cmd_vel']"
+'state_estimate', 'contact_estimate', 'terrain_impedance', 'gait_state', 'wbc/diagnostics', 'cmd_vel', 'cmd_vel_stamped']"
 # A private DDS domain per run, so concurrent runs and tests do not see each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
 
@@ -88,6 +94,38 @@ stance() {
         --tce "$dir/tce_summary.json" --estimator "$dir/estimator_summary.json" --title "STANCE: HyQ crawl at $speed m/s, rigid -> T1 -> T2 -> T3 -> rigid" --output "$RUN_ROOT/report.md"
 }
 
+tour() {
+    local speed="${SPEED_M_S:-0.2}" duration="${DURATION_S:-40.0}" mode="${MODE:-lockstep}"
+    local contact_model="${CONTACT_MODEL:-rigid}" odometry="${LEG_ODOMETRY:-terrain_aware}"
+    local dir="$RUN_ROOT"
+    local topics="${RECORDED_TOPICS%]}, 'footholds', 'body_pose_reference']"
+    echo "[run] tour: the whole graph ($mode). HyQ trots at $speed m/s over rigid -> T1 -> T2 -> rigid -> 4 stairs" \
+         "up -> landing for $duration s of sim time: sim_bridge, state_estimator ($odometry leg odometry), tce," \
+         "wbc ($contact_model contact model), vfa, vpa, bag_recorder, cmd_vel_script"
+    bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge -m "$dir/resources.json" \
+        -s "sim_bridge.course:=graph_tour" -s "sim_bridge.duration_s:=$duration" -s "sim_bridge.mode:=$mode" \
+        -s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121" \
+        -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
+        -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \
+        -s "wbc.state_source:=ground_truth" -s "wbc.summary_path:=$dir/wbc_summary.json" \
+        -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
+        -s "state_estimator.leg_odometry:=$odometry" \
+        -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
+        -s "vfa.use_sim_time:=true" -s "vfa.summary_path:=$dir/vfa_summary.json" \
+        -s "vpa.use_sim_time:=true" -s "vpa.summary_path:=$dir/vpa_summary.json" \
+        -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
+        -s "bag_recorder.topics:=$topics" -s "bag_recorder.summary_path:=$dir/recorder_summary.json" \
+        -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
+        tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_estimation/tce tal_control/wbc \
+        tal_perception/vfa tal_perception/vpa tal_control/cmd_vel_script tal_sim_bridge/bag_recorder \
+        || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
+    local bench=()
+    # A real-time tour is the graph-rates measurement of `make bench` (bench/report.py reads it).
+    [ "$mode" = realtime ] && bench=(--bench-json "$ROOT/bench/out/graph_rates.json")
+    python -m tal_control.graph_report "$dir" --title "tour ($mode): HyQ trots at $speed m/s over rigid, T1, T2 and stairs" \
+        "${bench[@]+"${bench[@]}"}"
+}
+
 stand() {
     local mode="$1"
     DURATION_S="${DURATION_S:-10.0}"
@@ -106,13 +144,15 @@ stand() {
 }
 
 case "$SCENARIO" in
+    tour) tour ;;
+    tour_realtime) MODE=realtime tour ;;
     stance) stance ;;
     trot) walk trot 0.3 ;;
     crawl) walk crawl 0.1 ;;
     stairs) VFA="${VFA:-1}" DURATION_S="${DURATION_S:-30.0}" walk trot 0.3 stairs ground_truth ;;
     stand) stand lockstep ;;
     stand_realtime) stand realtime ;;
-    *) echo "unknown SCENARIO '$SCENARIO'; known: stance, trot, crawl, stairs, stand, stand_realtime" >&2; exit 2 ;;
+    *) echo "unknown SCENARIO '$SCENARIO'; known: tour, tour_realtime, stance, trot, crawl, stairs, stand, stand_realtime" >&2; exit 2 ;;
 esac
 echo "[run] report: $RUN_ROOT/report.md"
 if [ -d "$RUN_ROOT/bag" ]; then echo "[run] bag (rosbag2 MCAP): $RUN_ROOT/bag"; fi

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import rclpy
+from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
@@ -174,6 +175,57 @@ def test_nan_and_unknown_joints_are_rejected_and_counted(context, spin_until) ->
         assert spin_until(executor, lambda: len(robot.commands) >= 1, 10.0)
         assert np.all(np.isfinite(robot.commands[-1].effort))
         assert wbc.rejected_inputs == 3
+    finally:
+        executor.shutdown()
+        wbc.destroy_node()
+        robot.node.destroy_node()
+
+
+def test_stamped_commands_apply_from_their_tick_and_late_ones_are_counted(context, spin_until) -> None:
+    """cmd_vel_stamped: a command applies from the first tick at or after its stamp, whatever the arrival
+    order; one that arrives after its tick applies at once and is counted as late."""
+    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand"),
+                                                        Parameter("state_source", value="ground_truth")])
+    robot = FakeRobot(context)
+    commands = robot.node.create_publisher(TwistStamped, "cmd_vel_stamped", 100)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(wbc)
+    executor.add_node(robot.node)
+
+    def command(stamp_ns: int, vx: float) -> None:
+        msg = TwistStamped()
+        msg.header.stamp = stamp_from_ns(stamp_ns)
+        msg.twist.linear.x = vx
+        commands.publish(msg)
+
+    def tick(stamp_ns: int) -> None:
+        n = len(robot.commands)
+        robot.publish_odom(stamp_ns)
+        robot.publish_joints(stamp_ns)
+        assert spin_until(executor, lambda: len(robot.commands) > n, 10.0)
+
+    try:
+        assert spin_until(executor, lambda: robot.matched() and commands.get_subscription_count() >= 1, 20.0)
+        command(8_000_000, 0.2)   # out of order: the later one first
+        command(4_000_000, 0.1)
+        spin_until(executor, lambda: False, 0.3)
+        tick(0)
+        assert wbc.cmd_vel == (0.0, 0.0, 0.0)
+        tick(4_000_000)
+        assert wbc.cmd_vel == (0.1, 0.0, 0.0)
+        tick(8_000_000)
+        assert wbc.cmd_vel == (0.2, 0.0, 0.0)
+        command(4_000_000, 0.5)   # older than the command in force: ignored
+        command(10_000_000, 0.3)  # its tick (12 ms) has not run: queued
+        spin_until(executor, lambda: False, 0.3)
+        tick(12_000_000)
+        assert wbc.cmd_vel == (0.3, 0.0, 0.0) and wbc.command_input.late == 0
+        command(14_000_000, 0.4)  # after the tick at 12 ms, for the tick at 16 ms: in time
+        command(12_000_000, 0.35)  # for the tick at 12 ms, which has run: applied now, late
+        assert spin_until(executor, lambda: wbc.command_input.late == 1, 10.0)
+        assert wbc.cmd_vel == (0.35, 0.0, 0.0)
+        tick(16_000_000)
+        assert wbc.cmd_vel == (0.4, 0.0, 0.0) and wbc.summary()["late_cmd_vel"] == 1
     finally:
         executor.shutdown()
         wbc.destroy_node()

@@ -1,4 +1,5 @@
-"""A piecewise-constant velocity command profile in sim time (what ``cmd_vel_script`` plays)."""
+"""A piecewise-constant velocity command profile in sim time (what ``cmd_vel_script`` plays), and when a
+player of stamped commands publishes them."""
 
 from __future__ import annotations
 
@@ -38,3 +39,17 @@ def command_at(segments: Sequence[CommandSegment], t_s: float) -> CommandSegment
         if segment.start_s <= t_s:
             current = segment
     return current
+
+
+def stamps_due(segments: Sequence[CommandSegment], period_ns: int, after_ns: int, horizon_ns: int) -> list[int]:
+    """Stamps [ns] in (after_ns, horizon_ns] at which a stamped player publishes its command: the points of
+    the sim-time grid k * period_ns and every segment start, sorted. The grid is absolute, so what is
+    published does not depend on when the player joined the clock."""
+    if period_ns <= 0:
+        raise InputError(f"the publishing period must be > 0 ns, got {period_ns}")
+    if horizon_ns <= after_ns:
+        return []
+    first = after_ns // period_ns + 1
+    stamps = {k * period_ns for k in range(first, horizon_ns // period_ns + 1)}
+    stamps.update(round(s.start_s * 1e9) for s in segments if after_ns < round(s.start_s * 1e9) <= horizon_ns)
+    return sorted(stamps)

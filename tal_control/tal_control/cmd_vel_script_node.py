@@ -1,18 +1,31 @@
-"""Node ``cmd_vel_script``: plays a piecewise-constant velocity profile on ``cmd_vel`` in sim time.
+"""Node ``cmd_vel_script``: plays a piecewise-constant velocity profile in sim time.
 
 Parameter ``profile`` is a flat list [t0, vx, vy, wz, t1, ...] (sim time [s], [m/s], [m/s], [rad/s]).
-It follows the ``clock`` topic directly, publishing at most every ``period_s`` of sim time.
+It follows the ``clock`` topic directly.
+
+It always publishes geometry_msgs/Twist on ``cmd_vel`` when the clock passes each period_s (as a teleop
+would, and what recorders keep). With ``stamped`` (default) it also publishes geometry_msgs/TwistStamped on
+``cmd_vel_stamped``, each stamped with the sim time from which it applies, ``lead_s`` of sim time ahead of
+the clock on the absolute grid k * period_s plus every segment start. The wbc applies those from their
+first control tick at or after the stamp (and ignores the Twist while they come), so a lockstep run does
+not depend on when this process gets the CPU; a Twist is applied at whichever tick follows its arrival.
+Reliable, transient local (a late transient-local subscriber gets the recent ones; the wbc subscribes
+volatile, to match any publisher).
 """
 
 from __future__ import annotations
 
-from geometry_msgs.msg import Twist
+from geometry_msgs.msg import Twist, TwistStamped
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-from tal_core.node_utils import declare, ns_from_stamp, run_node
+from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
 
-from .cmd_vel_profile import command_at, parse_profile
+from .cmd_vel_profile import command_at, parse_profile, stamps_due
+
+STAMPED_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class CmdVelScriptNode(Node):
@@ -22,20 +35,45 @@ class CmdVelScriptNode(Node):
                           "flat list of (t [s], vx [m/s], vy [m/s], yaw rate [rad/s]) segments")
         self.period_ns = round(declare(self, "period_s", 0.02, "[s] sim time between messages",
                                        low=0.001, high=10.0) * 1e9)
+        self.stamped = declare(self, "stamped", True, "also publish TwistStamped on cmd_vel_stamped ahead of the "
+                               "clock (deterministic in lockstep)", read_only=True)
+        self.lead_ns = round(declare(self, "lead_s", 0.1, "[s] stamped: sim time ahead of the clock at which "
+                                     "commands are published", low=0.0, high=10.0) * 1e9)
         self.segments = parse_profile(profile)
         self.pub = self.create_publisher(Twist, "cmd_vel", 10)
+        if self.stamped:
+            self.pub_stamped = self.create_publisher(TwistStamped, "cmd_vel_stamped", STAMPED_QOS)
         self.create_subscription(Clock, "clock", self._on_clock, 10)
-        self._last_ns: int | None = None
+        self._last_ns: int | None = None        # unstamped: clock of the last message
+        self._published_ns: int | None = None   # stamped: stamp of the last message
+
+    def _twist(self, t_ns: int) -> Twist:
+        segment = command_at(self.segments, t_ns * 1e-9)
+        twist = Twist()
+        twist.linear.x, twist.linear.y, twist.angular.z = segment.vx_m_s, segment.vy_m_s, segment.yaw_rate_rad_s
+        return twist
 
     def _on_clock(self, msg: Clock) -> None:
         now = ns_from_stamp(msg.clock)
+        if self.stamped:
+            self._publish_stamped(now)
         if self._last_ns is not None and now - self._last_ns < self.period_ns:
             return
         self._last_ns = now
-        segment = command_at(self.segments, now * 1e-9)
-        twist = Twist()
-        twist.linear.x, twist.linear.y, twist.angular.z = segment.vx_m_s, segment.vy_m_s, segment.yaw_rate_rad_s
-        self.pub.publish(twist)
+        self.pub.publish(self._twist(now))
+
+    def _publish_stamped(self, now_ns: int) -> None:
+        stamps = []
+        if self._published_ns is None or now_ns < self._published_ns - self.lead_ns:
+            stamps.append(now_ns)  # the first clock (or a restarted one): the command in force now
+            self._published_ns = now_ns
+        stamps += stamps_due(self.segments, self.period_ns, self._published_ns, now_ns + self.lead_ns)
+        for stamp in stamps:
+            out = TwistStamped(twist=self._twist(stamp))
+            out.header.stamp = stamp_from_ns(stamp)
+            out.header.frame_id = "horizontal"
+            self.pub_stamped.publish(out)
+            self._published_ns = stamp
 
 
 def main(args: list[str] | None = None) -> int:

@@ -12,9 +12,14 @@ import argparse
 import json
 from pathlib import Path
 
+TRUNK_LINKS = {"trunk", "base"}  # the names the simulator gives the floating base in its contact report
+
 
 def format_report(bridge: dict, wbc: dict, title: str) -> str:
-    fell = "yes (" + ", ".join(bridge["body_ground_contact"]) + ")" if bridge["body_ground_contact"] else "no"
+    touched = bridge["body_ground_contact"]
+    # The trunk on the ground is a fall; upper legs (the shins are filtered) also touch step edges on stairs.
+    fell = "yes (" + ", ".join(touched) + ")" if TRUNK_LINKS & set(touched) else (
+        "no" + (f" (but {', '.join(touched)} touched the terrain)" if touched else ""))
 
     def fmt(value, unit: str, scale: float = 1.0, digits: int = 3) -> str:
         return "n/a" if value is None else f"{value * scale:.{digits}f} {unit}"

@@ -1,7 +1,10 @@
 """Node ``wbc``: motion generation + passive whole-body controller (sWBC) at 250 Hz.
 
 Subscribes: joint_states, the base state (``ground_truth/odom`` or ``state_estimate``, parameter
-state_source), cmd_vel, footholds, body_pose_reference, terrain/heightmap.
+state_source), cmd_vel_stamped (TwistStamped, applied from the first tick at or after its stamp: a
+lockstep run with a scripted command does not depend on when the script's process runs), cmd_vel (Twist,
+applied from the tick after it arrives, unless stamped commands are in use; see velocity_command),
+footholds, body_pose_reference, terrain/heightmap.
 Publishes: joint_command (feed-forward torques), gait_state, wbc/diagnostics.
 
 Ticks lie on the sim-time grid k * control_period_s. A tick is computed once the joint state of that
@@ -10,6 +13,11 @@ lockstep runs are deterministic). A base state older than ``stale_state_periods`
 the node in safe mode (joint damping hold, MODE_SAFE in diagnostics) until fresh state returns. Input
 with NaN, wrong sizes or unknown joints is rejected and counted; a QP that fails falls back to the
 decayed previous solution and is counted (MODE_FALLBACK); nothing raises out of the loop.
+
+Lockstep determinism: inputs without a fixed arrival order relative to the tick's joint state are tied to
+sim time: a stamped command applies from its stamp's tick, a heightmap from the first tick one control
+period after its stamp. (footholds, body_pose_reference and terrain_impedance are still used as they
+arrive.)
 """
 
 from __future__ import annotations
@@ -18,13 +26,15 @@ import dataclasses
 import time
 
 import numpy as np
-from geometry_msgs.msg import Twist, Vector3
+from geometry_msgs.msg import Twist, TwistStamped, Vector3
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
+from tal_core.heightmap import HeightMapGrid
 from tal_core.node_utils import (
     TICK_TOLERANCE_NS,
     declare,
@@ -53,10 +63,15 @@ from .map_alignment import HeightmapAligner
 from .motion.gait import PRESETS as GAITS
 from .msg_conversions import gait_state_message
 from .tracking_stats import TrackingStats
+from .velocity_command import VelocityCommandInput
 from .wbc import WbcGains, WbcSettings
 from .wbc.tasks import orientation_error
 
 CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
+# Stamped commands come ahead of their time, several per message burst: a deep queue. Volatile, so that
+# any publisher matches (a transient-local subscription refuses volatile publishers).
+STAMPED_COMMAND_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.VOLATILE)
 
 
 class WbcNode(Node):
@@ -86,8 +101,9 @@ class WbcNode(Node):
         self._last_command: JointCommand | None = None
         self._joints: tuple[int, np.ndarray, np.ndarray] | None = None
         self._base: tuple[int, BaseState] | None = None
-        self._cmd_vel = np.zeros(3)
-        self._grid = None
+        self.command_input = VelocityCommandInput(p["max_linear_velocity_m_s"], p["max_yaw_rate_rad_s"])
+        self._grid = None   # the heightmap in use
+        self._pending_grids: list[tuple[int, HeightMapGrid]] = []  # (stamp [ns], map) received, not yet in use
         # The simulator's heightmap is in the true world frame; the estimate drifts in z (map_alignment).
         self.map_aligner = (HeightmapAligner(p["map_alignment_time_constant_s"])
                             if p["state_source"] == "estimate" and p["map_alignment_time_constant_s"] > 0.0
@@ -95,6 +111,8 @@ class WbcNode(Node):
         self.mode = WbcDiagnostics.MODE_NORMAL
         self.rejected_inputs = 0
         self.ticks = 0
+        self.deferred_ticks = 0   # ticks whose base state had not arrived with their joint state
+        self.watchdog_trips = 0   # safe-mode commands sent by the wall-clock watchdog
         self._last_joint_wall = time.monotonic()
         self.stats = TrackingStats()
 
@@ -105,15 +123,21 @@ class WbcNode(Node):
         self.create_subscription(JointState, "joint_states", self._on_joints, 10)
         self.create_subscription(Odometry, state_topic, self._on_base, 10)
         self.create_subscription(Twist, "cmd_vel", self._on_cmd_vel, 10)
+        self.create_subscription(TwistStamped, "cmd_vel_stamped", self._on_cmd_vel_stamped, STAMPED_COMMAND_QOS)
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
         self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         self._impedance: LegImpedance | None = None
         if p["contact_model"] == "compliant" and p["impedance_source"] == "tce":
             self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
+        # The watchdog is a deadline, not a poll: each joint state handled restarts the timer, so it fires
+        # watchdog_timeout_s after the last one (a poll every timeout/3 fired up to 4/3 timeout late), then
+        # every watchdog_timeout_s while the silence lasts. Idle (cancelled) until the first joint state.
+        self._watchdog_timer = None
         if p["watchdog_timeout_s"] > 0.0:
-            self.create_timer(p["watchdog_timeout_s"] / 3.0, self._watchdog,
-                              clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self._watchdog_timer = self.create_timer(p["watchdog_timeout_s"], self._watchdog,
+                                                     clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self._watchdog_timer.cancel()
         self.get_logger().info(f"wbc ready: gait {gait.name}, state from '{state_topic}', "
                                f"{1.0 / p['control_period_s']:.0f} Hz")
 
@@ -148,8 +172,9 @@ class WbcNode(Node):
                                            "[-] base state older than this many periods: safe mode", low=1,
                                            high=1000),
             "watchdog_timeout_s": declare(self, "watchdog_timeout_s", 0.0,
-                                          "[s] wall time without joint_states before safe mode (0 = off; "
-                                          "keep off in lockstep)", low=0.0, high=10.0),
+                                          "[s] wall time without joint_states (from the end of handling "
+                                          "the last one) before safe mode (0 = off; keep off in lockstep)",
+                                          low=0.0, high=10.0),
             "safe_damping_nms_per_rad": declare(self, "safe_damping_nms_per_rad", 20.0,
                                                 "[N m s/rad] joint damping in safe mode", low=0.0, high=1000.0),
             "summary_path": declare(self, "summary_path", "", "JSON file for the tracking summary written "
@@ -206,8 +231,16 @@ class WbcNode(Node):
         if self._joints is not None and stamp <= self._joints[0]:
             return  # repeated or out-of-order sample: keep the newer one
         self._joints = (stamp, q, qd)
-        self._last_joint_wall = time.monotonic()
         self._maybe_tick()
+        self._feed_watchdog()
+
+    def _feed_watchdog(self) -> None:
+        """A joint state was handled (and maybe its tick computed): the watchdog's deadline starts now. It
+        counts from the end of the work, because the time a tick takes is not silence of the driver (a
+        joint state that arrived meanwhile waits in the queue, and the executor runs timers first)."""
+        self._last_joint_wall = time.monotonic()
+        if self._watchdog_timer is not None:
+            self._watchdog_timer.reset()
 
     def _restart(self, stamp_ns: int) -> None:
         """The robot's clock jumped back (simulation restarted): start the controller afresh."""
@@ -218,6 +251,8 @@ class WbcNode(Node):
         self._next_tick_ns = 0
         self._deferred_tick_ns = None
         self._last_command = None
+        self.command_input.reset()
+        self._pending_grids.clear()
 
     def _on_base(self, msg: Odometry) -> None:
         try:
@@ -231,16 +266,25 @@ class WbcNode(Node):
         if self._base is not None and stamp <= self._base[0]:
             return
         self._base = (stamp, base)
-        self._maybe_tick()
+        if self._maybe_tick():
+            self._feed_watchdog()
 
     def _on_cmd_vel(self, msg: Twist) -> None:
-        values = np.array([msg.linear.x, msg.linear.y, msg.angular.z])
-        if not np.all(np.isfinite(values)):
-            self._reject("cmd_vel", InputError("cmd_vel has NaN or inf"))
+        try:
+            self.command_input.unstamped((msg.linear.x, msg.linear.y, msg.angular.z))
+        except InputError as exc:
+            self._reject("cmd_vel", exc)
+
+    def _on_cmd_vel_stamped(self, msg: TwistStamped) -> None:
+        stamp = ns_from_stamp(msg.header.stamp)
+        try:
+            late = self.command_input.stamped(stamp, (msg.twist.linear.x, msg.twist.linear.y, msg.twist.angular.z))
+        except InputError as exc:
+            self._reject("cmd_vel_stamped", exc)
             return
-        v_max, w_max = self.p["max_linear_velocity_m_s"], self.p["max_yaw_rate_rad_s"]
-        self._cmd_vel = np.array([np.clip(values[0], -v_max, v_max), np.clip(values[1], -v_max, v_max),
-                                  np.clip(values[2], -w_max, w_max)])
+        if late:
+            self.get_logger().warn(f"cmd_vel_stamped for {stamp * 1e-9:.3f} s arrived after its tick "
+                                   f"({self.command_input.late} late)", throttle_duration_sec=1.0)
 
     def _on_footholds(self, msg: FootholdArray) -> None:
         for foothold in msg.footholds:
@@ -265,37 +309,58 @@ class WbcNode(Node):
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
-            self._grid = heightmap_grid(msg)
+            grid = heightmap_grid(msg)
         except InputError as exc:
             self._reject("heightmap", exc)
+            return
+        self._pending_grids.append((ns_from_stamp(msg.header.stamp), grid))
+
+    def _update_grid(self, stamp_ns: int) -> None:
+        """The newest heightmap stamped at least one control period before the tick comes into use.
+
+        A map stamped with the tick itself (or just before it) may reach this node before or after the
+        tick's joint state (other topic, no order between them), so using it at once made lockstep runs
+        depend on delivery order; the maps of earlier ticks have been delivered by the time the next
+        tick's joint state comes (the bridge waited for this node's command in between).
+        """
+        cutoff = stamp_ns - self.period_ns + TICK_TOLERANCE_NS
+        due = [(s, g) for s, g in self._pending_grids if s <= cutoff]
+        if due:
+            self._grid = max(due, key=lambda item: item[0])[1]
+            self._pending_grids = [(s, g) for s, g in self._pending_grids if s > cutoff]
 
     # -- the tick -----------------------------------------------------------------------------------------
-    def _maybe_tick(self) -> None:
+    def _maybe_tick(self) -> bool:
         """Compute the tick once its joint state and the base state expected for it have arrived (ground
         truth: the same stamp; estimate: the estimator's latest tick at or before it).
 
         That base state is on its way (the bridge publishes both each step, the estimator answers the
         bridge's samples), so a tick whose base state has not arrived yet is deferred; it is decided, with whatever base
         state is there, when the next tick's joint state arrives (the robot driver moved on). Safe mode
-        follows when that base state is older than ``stale_state_periods``.
+        follows when that base state is older than ``stale_state_periods``. Returns whether a tick (normal
+        or safe) was decided.
         """
         if self._joints is None or self._base is None:
-            return
+            return False
         stamp, q, qd = self._joints
         if not reaches_tick(stamp, self._next_tick_ns):
-            return  # not a control tick
+            return False  # not a control tick
         base_stamp, base = self._base
         age = stamp - base_stamp
         deferred_before = self._deferred_tick_ns is not None and stamp > self._deferred_tick_ns
         if base_stamp < self._expected_base_stamp(stamp) - TICK_TOLERANCE_NS and not deferred_before:
             self._deferred_tick_ns = stamp
-            return
+            self.deferred_ticks += 1
+            return False
         self._deferred_tick_ns = None
         self._next_tick_ns = tick_after(stamp, self.period_ns)
+        self.command_input.at_tick(stamp)
+        self._update_grid(stamp)
         if age > self.stale_ns:
             self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")
-            return
-        self._tick(stamp, base, q, qd)
+        else:
+            self._tick(stamp, base, q, qd)
+        return True
 
     def _expected_base_stamp(self, stamp_ns: int) -> int:
         """The stamp of the newest base state the source publishes at or before ``stamp_ns``: ground truth
@@ -313,7 +378,7 @@ class WbcNode(Node):
             height = self.map_aligner.aligned(height)
         normal = (lambda x, y: heightmap_normal(grid, x, y)) if grid is not None else None
         try:
-            out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self._cmd_vel, height, normal,
+            out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self.command_input.command, height, normal,
                                        impedance=self._impedance)
         except InputError as exc:
             self._reject("state", exc)
@@ -351,8 +416,12 @@ class WbcNode(Node):
         self.pub_diag.publish(diag)
 
     def _watchdog(self) -> None:
-        if self._joints is not None and time.monotonic() - self._last_joint_wall > self.p["watchdog_timeout_s"]:
-            self._safe_mode(self._joints[0], "no joint_states within the watchdog timeout")
+        silence_s = time.monotonic() - self._last_joint_wall
+        if self._joints is None or silence_s < self.p["watchdog_timeout_s"]:
+            return
+        self.watchdog_trips += 1
+        self._safe_mode(self._joints[0], f"no joint_states for {silence_s * 1e3:.1f} ms (watchdog_timeout_s "
+                                         f"{self.p['watchdog_timeout_s'] * 1e3:.1f} ms)")
 
     # -- outputs ------------------------------------------------------------------------------------------
     @staticmethod
@@ -404,9 +473,17 @@ class WbcNode(Node):
         return diag
 
 
+    @property
+    def cmd_vel(self) -> tuple[float, float, float]:
+        """The velocity command in force: vx, vy [m/s] (horizontal frame), yaw rate [rad/s]."""
+        command = self.command_input.command
+        return (float(command[0]), float(command[1]), float(command[2]))
+
     def summary(self) -> dict:
         aligner = self.map_aligner
         return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
+                "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
+                "late_cmd_vel": self.command_input.late, "cmd_vel_ignored": self.command_input.unstamped_ignored,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name}
 

@@ -1,8 +1,8 @@
 """Small helpers shared by the thin ROS 2 node adapters of every tal package.
 
-This is the only tal_core module that imports rclpy; algorithm modules never import it. It holds what
-every node needs the same way: declaring validated parameters with descriptions and ranges, stamp
-conversions, and the Jazzy ``main()`` pattern.
+This and ``fault_injection`` (a relay node for fault tests) are the tal_core modules that import rclpy;
+algorithm modules never import it. It holds what every node needs the same way: declaring validated
+parameters with descriptions and ranges, stamp conversions, and the Jazzy ``main()`` pattern.
 """
 
 from __future__ import annotations

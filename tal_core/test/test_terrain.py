@@ -336,6 +336,7 @@ class TestShippedCourses:
                 "vital_stairs",
                 "vital_gap_stairs",
                 "vital_rough",
+                "graph_tour",
             ]
         )
         for name in names:

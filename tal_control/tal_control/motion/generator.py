@@ -191,6 +191,11 @@ class MotionGenerator:
         """Switch gait at the next cycle boundary (see ``GaitScheduler.set_gait``)."""
         self._scheduler.set_gait(params)
 
+    @property
+    def body_pose_reference(self) -> tuple[float | None, float | None, float | None] | None:
+        """The body pose reference in use (base height [m], roll, pitch [rad]); None: the default pose."""
+        return self._pose_override
+
     def set_body_pose_reference(self, base_height_m: float | None = None, roll: float | None = None,
                                 pitch: float | None = None) -> None:
         """VPA's body pose reference: base origin world z [m], roll, pitch [rad] (None: keep default)."""
