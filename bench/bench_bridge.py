@@ -549,7 +549,18 @@ def parse_args() -> argparse.Namespace:
         "--quiet-budget-s", type=float, default=60.0, help="total time the run may spend waiting for quiet"
     )
     parser.add_argument("--out", type=Path, default=OUT_PATH)
-    return parser.parse_args()
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run (~1 min): 1 repeat x 1000 steps, 2 s lockstep, flat_rigid only, the environment's "
+        "discovery range only, no sensor_rate_hz run, no wait for a quiet machine",
+    )
+    args = parser.parse_args()
+    if args.quick:
+        args.repeats, args.steps, args.duration_s, args.courses = 1, 1000, 2.0, ["flat_rigid"]
+        args.skip_sensor_rate = args.skip_other_range = True
+        args.quiet_budget_s = 0.0
+    return args
 
 
 def main() -> int:

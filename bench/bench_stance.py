@@ -38,6 +38,7 @@ except ImportError as _exc:
     raise SystemExit(f"bench_stance: {_exc}; run it after `source scripts/env.sh`") from None
 
 OUT = Path(__file__).resolve().parent / "out"
+GOALS_MS = {"tce_update_median": 0.1, "c3wbc_cycle_median": 0.6}  # the goals (docstring)
 T1_STIFFNESS, DAMPING = 3500.0, 400.0
 
 
@@ -127,7 +128,8 @@ def main() -> int:
                 pooled[kind].setdefault(key, []).extend(values)
     wbc = {kind: {str(g): stats(pooled[kind][str(g)]) | {"fallbacks": int(sum(pooled[kind][f"{g}_fallbacks"]))}
                   for g in GROUPS} for kind in pooled}
-    summary = {"machine": machine_info(), "tce": tce, "contact_states": contact, "wbc": wbc}
+    summary = {"benchmark": "bench_stance", "machine": machine_info(), "settings": {"quick": args.quick},
+               "goals_ms": GOALS_MS, "tce": tce, "contact_states": contact, "wbc": wbc}
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "bench_stance.json").write_text(json.dumps(summary, indent=2))
     u, c = tce["update_ms"], contact["contact_states_ms"]

@@ -1,0 +1,662 @@
+#!/usr/bin/env python3
+"""Collect the benches' JSON (``bench/out/*.json``) into one table: ``results/bench.md``.
+
+Run after the benches (``make bench`` runs it last):  ``python bench/report.py [--out-dir DIR] [--output MD]``.
+
+One row per figure: what, the measured value with its unit, the goal (from the issues and DESIGN.md section 3;
+each bench's docstring names its own), the thesis' or the peer's number where one exists, measured / goal and
+whether the goal is met. A bench whose JSON is missing gives a "not run" row, one whose JSON lacks a field an
+"unreadable" row; nothing here raises on a partial ``bench/out``. Two optional inputs written by other runs
+add row groups when present: ``graph_rates.json`` (the real-time graph: per-node target and achieved rate,
+deadline misses, peak memory) and ``across_hosts.json`` (tests/test_across_hosts.py: the graph split over two
+network namespaces; its ``rows`` and its ``markdown`` section).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT_DIR = ROOT / "bench" / "out"
+OUTPUT = ROOT / "results" / "bench.md"
+
+# Thesis figures (seed 000_a1bc1bec5ccfad53.txt, line numbers there).
+THESIS_QP = "thesis: QP 0.12-0.15 ms with slacks (i5; l. 1698-1703)"
+THESIS_FRAMEWORK = "thesis: estimator + planner + WBC mean 0.68 ms sWBC, 0.74 ms STANCE, max < 2 ms (i7; l. 3459-3469)"
+THESIS_VFA_MS, THESIS_VFA_CNN_MS = 7.5, 3.5  # mean +- 1 ms per leg (l. 5565-5567)
+THESIS_VPA_MS, THESIS_VPA_CNN_MS = 720.0, 180.0  # mean +- 68 / 60 ms (l. 5568-5571)
+
+
+@dataclass(frozen=True)
+class Goal:
+    op: str  # "<=" (a time, a share) or ">=" (a rate, a real-time factor)
+    value: float
+    source: str = ""  # where the goal comes from
+
+    def text(self, unit: str) -> str:
+        return f"{self.op} {self.value:,.4g} {unit}".rstrip() + (f" ({self.source})" if self.source else "")
+
+
+@dataclass(frozen=True)
+class Row:
+    group: str
+    what: str
+    value: float | None = None  # None: not measured (see note)
+    unit: str = ""
+    goal: Goal | None = None
+    reference: str = ""  # the thesis' or the peer's number
+    note: str = ""  # conditions, spread, why not run
+
+    @property
+    def ratio(self) -> float | None:
+        """measured / goal (None without a goal or a value)."""
+        if self.goal is None or self.value is None or self.goal.value == 0:
+            return None
+        return self.value / self.goal.value
+
+    @property
+    def met(self) -> bool | None:
+        ratio = self.ratio
+        if ratio is None:
+            return None
+        return ratio <= 1.0 if self.goal.op == "<=" else ratio >= 1.0
+
+
+def fmt_number(x: float | None) -> str:
+    """Three significant digits, no exponent for the ranges benches produce."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    if x == 0:
+        return "0"
+    magnitude = math.floor(math.log10(abs(x)))
+    digits = max(0, 2 - magnitude)
+    text = f"{x:,.{digits}f}"
+    return text
+
+
+def _others(cpu: dict | None) -> str:
+    return "" if not cpu or cpu.get("other_cpus") is None else f"others used {cpu['other_cpus']:.2f} CPU"
+
+
+# -- per bench: JSON document -> rows ----------------------------------------------------------------------------
+def rows_bridge(doc: dict) -> list[Row]:
+    g, rows = "bridge (PyBullet HyQ, 1 kHz physics)", []
+    for course, s in doc["physics_only"].items():
+        busiest = max((r["cpu"]["other_cpus"] for r in s["runs"]), default=None)
+        rows.append(
+            Row(
+                g,
+                f"physics alone, {course} (BridgeCore + StandHold, no ROS): RTF median of {len(s['runs'])}",
+                s["median_rtf"],
+                "x",
+                Goal(">=", 3.0, "bench/README.md"),
+                note=f"min {s['min_rtf']:.2f}; others used {busiest:.2f} CPU at most",
+            )
+        )
+    for course, s in doc["physics_with_sensor_outputs"].items():
+        rows.append(
+            Row(
+                g,
+                f"physics + sensor outputs, {course} (no ROS): RTF median",
+                s["median_rtf"],
+                "x",
+                note=f"min {s['min_rtf']:.2f}",
+            )
+        )
+    for course, r in doc["lockstep_inprocess"].items():
+        rows.append(
+            Row(
+                g,
+                f"lockstep in-process, {course}, bridge + stand_controller, 1 executor: RTF",
+                r["real_time_factor"],
+                "x",
+                Goal(">=", 1.0, "real time, 250 ticks/s"),
+                note=f"{r['cpu_ms_per_control_tick']:.2f} ms CPU per 4 ms tick; {_others(r.get('cpu'))}",
+            )
+        )
+    for rng, runs in doc["lockstep_multiprocess"].items():
+        for name, r in runs.items():
+            if name == "first_command_probe":
+                what = f"2 processes, discovery {rng}: wait for the first command (1-tick run wall time)"
+                if "error" in r:
+                    rows.append(Row(g, what, note=f"failed: {r['error']}"))
+                else:
+                    rows.append(Row(g, what, r["wall_s"], "s", note=_others(r.get("cpu"))))
+                continue
+            what = (
+                f"lockstep 2 processes (installed sim_bridge + stand_controller), discovery {rng}"
+                + (", sensor_rate_hz 250" if name != "default" else "")
+                + ": RTF"
+            )
+            if "error" in r:
+                rows.append(Row(g, what, goal=Goal(">=", 1.0, "real time"), note=f"failed: {r['error']}"))
+            else:
+                rows.append(
+                    Row(
+                        g,
+                        what,
+                        float(r["real_time_factor"]),
+                        "x",
+                        Goal(">=", 1.0, "real time"),
+                        note=f"{r['commands_accepted']} commands, {r['lockstep_timeouts']} timeouts; "
+                        f"{_others(r.get('cpu'))}",
+                    )
+                )
+    return rows
+
+
+def rows_wbc(doc: dict) -> list[Row]:
+    g, rows = "sWBC (250 Hz)", []
+    summary, tsid = doc["summary"], doc["summary"].get("tsid") or {}
+    goals = doc.get("goals_ms", {"median": 0.4, "p99": 1.5})
+    for legs in ("4", "2"):
+        ours = summary["ours"][legs]
+        peer = tsid.get(legs)
+        ref = THESIS_FRAMEWORK if legs == "4" else ""
+        if peer:
+            ratio = ours["cycle"]["median"] / peer["cycle"]["median"]
+            ref = f"TSID 1.7.1 (peer, same states): {peer['cycle']['median']:.3f} ms, ours / TSID {ratio:.2f}" + (
+                f"; {ref}" if ref else ""
+            )
+        elif doc.get("tsid_error"):
+            ref = f"TSID not run: {doc['tsid_error']}" + (f"; {ref}" if ref else "")
+        rows.append(
+            Row(
+                g,
+                f"cycle (model.update + QP + torques), {legs} stance legs, median",
+                ours["cycle"]["median"],
+                "ms",
+                Goal("<=", goals["median"], "issue"),
+                ref,
+                note=f"{ours['cycle']['n']} cycles, {ours['not_solved']} not solved",
+            )
+        )
+        rows.append(
+            Row(g, f"cycle, {legs} stance legs, p99", ours["cycle"]["p99"], "ms", Goal("<=", goals["p99"], "issue"))
+        )
+        rows.append(
+            Row(
+                g,
+                f"OSQP solve alone, {legs} stance legs, median",
+                ours["osqp_solve"]["median"],
+                "ms",
+                reference=THESIS_QP,
+            )
+        )
+    worst = max(summary["ours"][legs]["cycle"]["max"] for legs in ("4", "2"))
+    rows.append(Row(g, "cycle, worst of both sequences (max)", worst, "ms", Goal("<=", 4.0, "4 ms tick at 250 Hz")))
+    return rows
+
+
+def rows_stance(doc: dict) -> list[Row]:
+    g, rows = "STANCE: TCE (250 Hz) and c3WBC", []
+    goals = doc.get("goals_ms", {"tce_update_median": 0.1, "c3wbc_cycle_median": 0.6})
+    update, contact = doc["tce"]["update_ms"], doc["contact_states"]["contact_states_ms"]
+    rows.append(
+        Row(
+            g,
+            "TCE update, 4 legs, full windows, median",
+            update["median"],
+            "ms",
+            Goal("<=", goals["tce_update_median"], "issue"),
+        )
+    )
+    rows.append(
+        Row(
+            g,
+            "TCE tick (contact states + update), sum of the p99s",
+            contact["p99"] + update["p99"],
+            "ms",
+            Goal("<=", 4.0, "4 ms tick at 250 Hz"),
+            note=f"contact states median {contact['median']:.3f} ms",
+        )
+    )
+    for legs in ("4", "2"):
+        rigid, compliant = doc["wbc"]["rigid"][legs], doc["wbc"]["compliant"][legs]
+        rows.append(
+            Row(
+                g,
+                f"c3WBC cycle, {legs} stance legs, median",
+                compliant["median"],
+                "ms",
+                Goal("<=", goals["c3wbc_cycle_median"], "issue"),
+                THESIS_FRAMEWORK if legs == "4" else "",
+                note=f"p99 {compliant['p99']:.3f} ms; {compliant['fallbacks']} fallbacks",
+            )
+        )
+        rows.append(
+            Row(
+                g,
+                f"c3WBC / sWBC cycle median, {legs} stance legs (same run)",
+                compliant["median"] / rigid["median"],
+                "x",
+                reference="thesis: STANCE / sWBC 0.74 / 0.68 = 1.09x (whole framework)" if legs == "4" else "",
+            )
+        )
+    return rows
+
+
+def rows_estimator(doc: dict) -> list[Row]:
+    g, rows = "state estimator (333 Hz)", []
+    budget = float(doc.get("budget_ms", 3.0))
+    for mode, s in doc["summary"].items():
+        u = s["update"]
+        rows.append(
+            Row(
+                g,
+                f"tick (StateEstimator.update), {mode} leg odometry, median",
+                u["median"],
+                "ms",
+                Goal("<=", 0.2, "issue"),
+                note=f"{u['n']} ticks",
+            )
+        )
+        rows.append(
+            Row(
+                g,
+                f"tick, {mode} leg odometry, p99",
+                u["p99"],
+                "ms",
+                Goal("<=", budget, f"{budget:g} ms period at 333 Hz"),
+                note=f"max {u['max']:.3f} ms",
+            )
+        )
+    return rows
+
+
+def rows_bags(doc: dict) -> list[Row]:
+    g, rows = "bags (record, read, replay)", []
+    goals = doc.get(
+        "goals",
+        {"recorder_cpu_share_of_one_core": 0.10, "replay_real_time_factor": 20.0, "memory_long_over_short": 1.2},
+    )
+    traffic = float(doc["messages_per_robot_second"])
+    real_time = Goal(">=", traffic, "the graph's traffic")
+    w, r = doc["writer"], doc["reader"]
+    rows.append(
+        Row(
+            g,
+            "BagWriter (zstd, 1 MiB chunks), graph traffic",
+            w["messages_per_s"],
+            "msg/s",
+            real_time,
+            note=f"{w['mb_per_s']:.1f} MB/s; {100 * w['cpu_share_of_one_core_at_real_time']:.1f} % of a core "
+            "per real-time second",
+        )
+    )
+    rows.append(
+        Row(
+            g,
+            "BagReader, decoding every message",
+            r["messages_per_s"],
+            "msg/s",
+            real_time,
+            note=f"{r['mb_per_s']:.1f} MB/s",
+        )
+    )
+    if "live_recorder" in doc:
+        lv = doc["live_recorder"]
+        rows.append(
+            Row(
+                g,
+                f"bag_recorder node live, {lv['duration_s']:.0f} s at real time: CPU share of one core",
+                100 * lv["recorder_cpu_share_of_one_core"],
+                "%",
+                Goal("<=", 100 * goals["recorder_cpu_share_of_one_core"], "issue"),
+                note=f"recorded {lv['recorded']:,} of {lv['published']:,} published",
+            )
+        )
+    for mode, rp in doc.get("replay", {}).items():
+        rows.append(
+            Row(
+                g,
+                f"offline replay (estimator + TCE, {mode}) of {rp['bag']}: x real time",
+                rp["real_time_factor"],
+                "x",
+                Goal(">=", goals["replay_real_time_factor"], "issue"),
+                note=f"{rp['bag_time_s']:.0f} s of robot time",
+            )
+        )
+    memory = doc.get("memory", [])
+    for case in ("write", "read"):
+        pair = sorted((m for m in memory if m["case"] == case), key=lambda m: m["duration_s"])
+        if len(pair) == 2:
+            rows.append(
+                Row(
+                    g,
+                    f"peak memory, {case}: {pair[1]['duration_s']:.0f} s bag / {pair[0]['duration_s']:.0f} s bag",
+                    pair[1]["peak_rss_mb"] / pair[0]["peak_rss_mb"],
+                    "x",
+                    Goal("<=", goals["memory_long_over_short"], "issue"),
+                    note=f"{pair[1]['peak_rss_mb']:.1f} vs {pair[0]['peak_rss_mb']:.1f} MB",
+                )
+            )
+    return rows
+
+
+def _worst_leg(results: dict, key: str = "median") -> tuple[float, str]:
+    values = {leg: r["stats"][key] for leg, r in results.items()}
+    return max(values.values()), f"legs {min(values.values()):.3f}-{max(values.values()):.3f} ms"
+
+
+def rows_vfa(doc: dict) -> list[Row]:
+    g, rows = "ViTAL: VFA (per leg)", []
+    goal = Goal("<=", float(doc.get("goal_ms", 1.0)), "issue 6")
+    thesis = f"thesis: {doc.get('thesis_mean_ms', THESIS_VFA_MS)} +- 1 ms mean (i7)"
+    lazy = doc["results"]["vfa"]
+    median, spread = _worst_leg(lazy)
+    mean = max(r["stats"]["mean"] for r in lazy.values())
+    rows.append(
+        Row(
+            g,
+            "exact VFA (lazy search), median of the worst leg",
+            median,
+            "ms",
+            goal,
+            thesis,
+            note=f"{spread}; mean {mean:.3f} ms (worst leg); {doc['inputs']['samples']} terrains",
+        )
+    )
+    p99, _ = _worst_leg(lazy, "p99")
+    rows.append(Row(g, "exact VFA, p99 of the worst leg", p99, "ms"))
+    full, spread = _worst_leg(doc["results"]["vfa_full"])
+    rows.append(Row(g, "full FEC on all candidates + argmin, median of the worst leg", full, "ms", note=spread))
+    return rows
+
+
+def rows_vfa_cnn(doc: dict) -> list[Row]:
+    g, rows = "ViTAL: VFA CNN (per leg)", []
+    goal = Goal("<=", float(doc.get("goal_ms", 0.5)), "issue 6")
+    thesis = f"thesis: {doc.get('thesis_mean_ms', THESIS_VFA_CNN_MS)} +- 1 ms mean (i7, CPU)"
+    median, spread = _worst_leg(doc["results"]["cnn"])
+    rows.append(
+        Row(
+            g,
+            "CNN VFA, one leg per call, median of the worst leg",
+            median,
+            "ms",
+            goal,
+            thesis,
+            note=f"{spread}; torch {doc.get('torch', '?')}, {doc.get('torch_threads', '?')} thread",
+        )
+    )
+    batch = doc["results"]["cnn_4legs"]["4legs"]
+    rows.append(
+        Row(
+            g,
+            "CNN VFA, 4 legs in one batch: time per leg, median",
+            batch["per_leg_stats"]["median"],
+            "ms",
+            goal,
+            thesis,
+        )
+    )
+    verified = doc["results"]["cnn_verified"]
+    median, spread = _worst_leg(verified)
+    fallbacks = sum(r.get("fallbacks", 0) for r in verified.values())
+    total = sum(r["stats"]["n"] for r in verified.values())
+    rows.append(
+        Row(
+            g,
+            "CNN VFA + exact verification (as the node runs it), median of the worst leg",
+            median,
+            "ms",
+            goal,
+            note=f"{spread}; fell back to the exact search {fallbacks} of {total}",
+        )
+    )
+    return rows
+
+
+def rows_vpa(doc: dict) -> list[Row]:
+    g, rows = "ViTAL: VPA (4 legs, N_h = 2)", []
+    goals = doc.get("goal_ms", {"exact": 50.0, "cnn": 20.0})
+    thesis = doc.get("thesis_mean_ms", {"exact": THESIS_VPA_MS, "cnn": THESIS_VPA_CNN_MS})
+    spread = {"exact": 68, "cnn": 60}
+    for mode in ("exact", "cnn"):
+        r = doc["results"].get(mode)
+        if r is None:
+            rows.append(Row(g, f"{mode} VPA update", note="not in the JSON"))
+            continue
+        median = r["stats"]["median"]
+        rows.append(
+            Row(
+                g,
+                f"{mode} VPA update, median",
+                median,
+                "ms",
+                Goal("<=", float(goals[mode]), "issue 6"),
+                f"thesis: {thesis[mode]:.0f} +- {spread[mode]} ms mean (i7)",
+                note=f"p99 {r['stats']['p99']:.1f} ms; {doc['inputs']['scenes']} scenes",
+            )
+        )
+        rows.append(
+            Row(
+                g,
+                f"{mode} VPA update rate (1 / median)",
+                1e3 / median,
+                "Hz",
+                Goal(">=", 5.0, "DESIGN.md: 5 Hz, goal 20 Hz"),
+                f"thesis: {1e3 / thesis[mode]:.1f} Hz" + (' ("roughly 5 Hz", l. 5571)' if mode == "cnn" else ""),
+            )
+        )
+    return rows
+
+
+def rows_graph_rates(doc: dict) -> list[Row]:
+    g, rows = "graph rates (real-time graph run)", []
+    for node, r in doc.get("nodes", {}).items():
+        target = r.get("target_hz")
+        note = ", ".join(f"{k.replace('_', ' ')} {r[k]}" for k in ("deadline_misses", "ticks") if k in r)
+        rows.append(
+            Row(
+                g,
+                f"{node}: achieved rate",
+                r.get("achieved_hz"),
+                "Hz",
+                Goal(">=", float(target), "DESIGN.md section 3") if target else None,
+                note=note,
+            )
+        )
+    if doc.get("peak_rss_mb") is not None:
+        rows.append(Row(g, "peak resident memory of the graph", doc["peak_rss_mb"], "MB"))
+    return rows
+
+
+def rows_across_hosts(doc: dict) -> list[Row]:
+    g, rows = "across hosts (2 network namespaces)", []
+    for r in doc.get("rows", []):
+        goal = Goal(r["goal_op"], float(r["goal"]), r.get("goal_source", "")) if r.get("goal") is not None else None
+        rows.append(
+            Row(g, r["what"], r.get("value"), r.get("unit", ""), goal, r.get("reference", ""), r.get("note", ""))
+        )
+    return rows
+
+
+# name -> (row group, rows, required?): required benches give a "not run" row when their JSON is missing.
+BENCHES: dict[str, tuple[str, Callable[[dict], list[Row]], bool]] = {
+    "bench_bridge": ("bridge (PyBullet HyQ, 1 kHz physics)", rows_bridge, True),
+    "bench_wbc": ("sWBC (250 Hz)", rows_wbc, True),
+    "bench_stance": ("STANCE: TCE (250 Hz) and c3WBC", rows_stance, True),
+    "bench_estimator": ("state estimator (333 Hz)", rows_estimator, True),
+    "bench_bags": ("bags (record, read, replay)", rows_bags, True),
+    "bench_vfa": ("ViTAL: VFA (per leg)", rows_vfa, True),
+    "bench_vfa_cnn": ("ViTAL: VFA CNN (per leg)", rows_vfa_cnn, True),
+    "bench_vpa": ("ViTAL: VPA (4 legs, N_h = 2)", rows_vpa, True),
+    "graph_rates": ("graph rates (real-time graph run)", rows_graph_rates, False),
+    "across_hosts": ("across hosts (2 network namespaces)", rows_across_hosts, False),
+}
+
+
+def load(out_dir: Path, name: str) -> tuple[dict | None, str]:
+    """(document, "") or (None, why not)."""
+    path = out_dir / f"{name}.json"
+    if not path.is_file():
+        return None, f"not run ({path.name} missing)"
+    try:
+        return json.loads(path.read_text()), ""
+    except (OSError, json.JSONDecodeError) as exc:
+        return None, f"unreadable {path.name}: {exc}"
+
+
+def collect(out_dir: Path) -> tuple[list[Row], dict[str, dict]]:
+    """All rows, in BENCHES order, and the documents that could be read."""
+    rows: list[Row] = []
+    docs: dict[str, dict] = {}
+    for name, (group, extract, required) in BENCHES.items():
+        doc, why = load(out_dir, name)
+        if doc is None:
+            if required or not why.startswith("not run"):
+                rows.append(Row(group, f"`bench/{name}.py`" if required else name, note=why))
+            continue
+        try:
+            rows += extract(doc)
+        except (KeyError, TypeError, ValueError, ZeroDivisionError, IndexError) as exc:
+            rows.append(Row(group, name, note=f"unreadable {name}.json: {type(exc).__name__} {exc}"))
+            continue
+        docs[name] = doc
+    return rows, docs
+
+
+def _size(name: str, doc: dict) -> str:
+    """The run's size, marked "reduced" when smaller than the bench's default."""
+
+    def mark(text: str, reduced: bool) -> str:
+        return f"{text} (reduced)" if reduced else text
+
+    if name == "bench_bridge":
+        s = doc.get("settings", {})
+        quick = s.get("quick") == "True"
+        return mark(
+            f"{s.get('repeats')} x {s.get('steps')} steps, lockstep {s.get('duration_s')} s",
+            quick or int(s.get("steps", 4000)) < 4000 or float(s.get("duration_s", 5.0)) < 5.0,
+        )
+    if name == "bench_wbc":
+        n = doc.get("states_per_sequence", 0)
+        return mark(f"{n} states x 2 sequences x {doc.get('rounds')} rounds", n < 500)
+    if name == "bench_stance":
+        return mark(
+            "--quick" if doc.get("settings", {}).get("quick") else "full", bool(doc.get("settings", {}).get("quick"))
+        )
+    if name == "bench_estimator":
+        n = doc.get("ticks_per_round", 0)
+        return mark(f"{n} ticks x {doc.get('rounds')} rounds per mode", n < 3000)
+    if name == "bench_bags":
+        quick = bool(doc.get("settings", {}).get("quick"))
+        return mark("--quick (10 s / 100 s bags, 5 s live)" if quick else "60 s / 600 s bags, 20 s live", quick)
+    if name in ("bench_vfa", "bench_vfa_cnn"):
+        n = doc.get("inputs", {}).get("samples", 0)
+        return mark(f"{n} terrains x {doc.get('rounds')} rounds", n < 200)
+    if name == "bench_vpa":
+        n = doc.get("inputs", {}).get("scenes", 0)
+        return mark(f"{n} scenes x {doc.get('rounds')} rounds", n < 40)
+    return "-"
+
+
+def _others_busy(doc: dict) -> float | None:
+    """Cores other processes kept busy on average while the bench measured (None: not recorded)."""
+    others = doc.get("machine", {}).get("other_processes_cores_busy", doc.get("other_processes_cores_busy"))
+    if isinstance(others, list):
+        others = [x for x in others if x is not None]
+        others = sum(others) / len(others) if others else None
+    return float(others) if isinstance(others, (int, float)) else None
+
+
+def _load_of_others(doc: dict) -> str:
+    m = doc.get("machine", {})
+    others = _others_busy(doc)
+    load = (
+        m.get("load_average_at_start_1_5_15min") or doc.get("load_average_at_start") or m.get("load_average_1_5_15min")
+    )
+    parts = []
+    if others is not None:
+        parts.append(f"others {others:.2f} cores")
+    if load:
+        parts.append(f"load avg {load[0]}")
+    return ", ".join(parts) or "-"
+
+
+def render(rows: list[Row], docs: dict[str, dict], machine: dict, note: str = "") -> str:
+    def cell(text: str) -> str:
+        return text.replace("|", "\\|") or "-"
+
+    lines = [
+        "# Benchmarks (`make bench`)",
+        "",
+        f"Written by `bench/report.py` on {machine.get('date')} from `bench/out/*.json`. Machine: "
+        f"{machine.get('cpus')} CPUs ({machine.get('cpu_model')}), Python {machine.get('python')}, "
+        f"{machine.get('platform')}, {machine.get('rmw')}, commit {machine.get('git_commit')}, load average "
+        f"{machine.get('load_average_1_5_15min')} (1/5/15 min). The machine is a 2-vCPU VM shared with other "
+        "engineers' builds and tests: every figure moves with their load (see Sources); compare figures of the "
+        "same run and read ratios rather than absolute times.",
+        "",
+        *(
+            [
+                f"While the benches that record it measured, other processes kept {min(busy):.2f}-{max(busy):.2f} of "
+                f"the {machine.get('cpus')} cores busy on average.",
+                "",
+            ]
+            if (busy := [b for b in map(_others_busy, docs.values()) if b is not None])
+            else []
+        ),
+        *([note.strip(), ""] if note.strip() else []),
+        "measured / goal: below 1 is good for a time or a share (goal `<=`), above 1 for a rate or a real-time "
+        "factor (goal `>=`).",
+        "",
+        "| group | what | measured | goal | measured / goal | met | thesis / peer | notes |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        value = (
+            "**not run**"
+            if r.value is None and r.note.startswith("not run")
+            else ("n/a" if r.value is None else f"{fmt_number(r.value)} {r.unit}".rstrip())
+        )
+        met = {None: "-", True: "yes", False: "**no**"}[r.met]
+        goal = r.goal.text(r.unit) if r.goal else ""
+        ratio = fmt_number(r.ratio) if r.ratio is not None else ""
+        lines.append(
+            f"| {cell(r.group)} | {cell(r.what)} | {cell(value)} | {cell(goal)} | {cell(ratio)} | {met} | "
+            f"{cell(r.reference)} | {cell(r.note)} |"
+        )
+    for name, (group, _, required) in BENCHES.items():
+        if not required and name not in docs:
+            lines.append(f'\nNo `bench/out/{name}.json`: the row group "{group}" is left out.')
+    lines += ["", "## Sources", "", "| JSON | date | commit | size | load while measuring |", "|---|---|---|---|---|"]
+    for name, doc in docs.items():
+        m = doc.get("machine", {})
+        lines.append(
+            f"| `bench/out/{name}.json` | {m.get('date', doc.get('date', '-'))} | "
+            f"{m.get('git_commit', '-')} | {_size(name, doc)} | {_load_of_others(doc)} |"
+        )
+    across = docs.get("across_hosts", {}).get("markdown")
+    if across:
+        lines += ["", across.strip()]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out-dir", type=Path, default=OUT_DIR, help="where the benches wrote their JSON")
+    parser.add_argument("--output", type=Path, default=OUTPUT, help="the markdown file to write")
+    parser.add_argument("--note", default="", help="a paragraph on the run's conditions, printed under the header")
+    args = parser.parse_args(argv)
+    rows, docs = collect(args.out_dir)
+    text = render(rows, docs, machine_info(), args.note)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(text)
+    not_run = sum(1 for r in rows if r.note.startswith(("not run", "unreadable")))
+    print(f"bench/report.py: {len(rows)} rows ({not_run} not run or unreadable) -> {args.output}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,177 @@
+"""bench/report.py: rows, ratios and goals from small bench JSON fixtures; missing benches give "not run" rows."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.fixture(scope="module")
+def report():
+    sys.path.insert(0, str(BENCH))  # report.py imports bench/machine.py as the benches do
+    try:
+        yield importlib.import_module("report")
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def _stats(median: float, p99: float | None = None, n: int = 100, **extra) -> dict:
+    return {
+        "n": n,
+        "median": median,
+        "p99": p99 if p99 is not None else 2 * median,
+        "max": 3 * median,
+        "mean": median,
+        **extra,
+    }
+
+
+WBC = {
+    "benchmark": "bench_wbc",
+    "machine": {"date": "2026-11-23T10:00:00+00:00", "git_commit": "abc1234", "other_processes_cores_busy": 0.5},
+    "states_per_sequence": 100,
+    "rounds": 2,
+    "goals_ms": {"median": 0.4, "p99": 1.5},
+    "summary": {
+        "ours": {
+            "4": {"cycle": _stats(0.6, 1.2), "osqp_solve": _stats(0.09), "not_solved": 0},
+            "2": {"cycle": _stats(0.8, 1.8), "osqp_solve": _stats(0.2), "not_solved": 1},
+        },
+        "tsid": {"4": {"cycle": _stats(0.12)}, "2": {"cycle": _stats(0.05)}},
+    },
+    "tsid_error": None,
+}
+
+VPA = {
+    "benchmark": "bench_vpa",
+    "machine": {"date": "2026-11-23T11:00:00+00:00", "git_commit": "abc1234"},
+    "rounds": 2,
+    "inputs": {"scenes": 10},
+    "thesis_mean_ms": {"exact": 720.0, "cnn": 180.0},
+    "goal_ms": {"exact": 50.0, "cnn": 20.0},
+    "results": {"exact": {"stats": _stats(200.0)}, "cnn": {"stats": _stats(16.0)}},
+}
+
+GRAPH_RATES = {
+    "nodes": {
+        "wbc": {"target_hz": 250, "achieved_hz": 200.0, "deadline_misses": 12, "ticks": 5000},
+        "state_estimator": {"target_hz": 333, "achieved_hz": 333.0, "deadline_misses": 0, "ticks": 6660},
+    },
+    "peak_rss_mb": 812.5,
+}
+
+
+def _write(directory: Path, name: str, document: dict) -> None:
+    (directory / f"{name}.json").write_text(json.dumps(document))
+
+
+def _by_what(rows, fragment: str):
+    found = [r for r in rows if fragment in r.what]
+    assert len(found) == 1, [r.what for r in rows]
+    return found[0]
+
+
+def test_rows_ratios_and_goals_from_fixtures(report, tmp_path) -> None:
+    _write(tmp_path, "bench_wbc", WBC)
+    _write(tmp_path, "bench_vpa", VPA)
+    rows, docs = report.collect(tmp_path)
+    assert set(docs) == {"bench_wbc", "bench_vpa"}
+
+    median4 = _by_what(rows, "torques), 4 stance legs, median")
+    assert median4.value == pytest.approx(0.6) and median4.unit == "ms"
+    assert (median4.goal.op, median4.goal.value) == ("<=", 0.4)
+    assert median4.ratio == pytest.approx(1.5) and median4.met is False
+    assert "TSID" in median4.reference and "5.00" in median4.reference  # 0.6 / 0.12, the peer ratio
+    p99 = _by_what(rows, "cycle, 4 stance legs, p99")
+    assert p99.ratio == pytest.approx(0.8) and p99.met is True
+    worst = _by_what(rows, "worst of both sequences")
+    assert worst.value == pytest.approx(2.4) and worst.goal.value == 4.0 and worst.met is True
+
+    exact = _by_what(rows, "exact VPA update, median")
+    assert exact.ratio == pytest.approx(4.0) and exact.met is False and "720" in exact.reference
+    cnn_rate = _by_what(rows, "cnn VPA update rate")
+    assert cnn_rate.value == pytest.approx(62.5) and cnn_rate.goal.op == ">=" and cnn_rate.met is True
+    assert cnn_rate.ratio == pytest.approx(12.5)
+
+
+def test_a_missing_bench_json_gives_a_not_run_row(report, tmp_path) -> None:
+    _write(tmp_path, "bench_vpa", VPA)
+    rows, _ = report.collect(tmp_path)
+    not_run = [r for r in rows if r.note.startswith("not run")]
+    assert {r.what for r in not_run} == {
+        f"`bench/{name}.py`"
+        for name in (
+            "bench_bridge",
+            "bench_wbc",
+            "bench_stance",
+            "bench_estimator",
+            "bench_bags",
+            "bench_vfa",
+            "bench_vfa_cnn",
+        )
+    }
+    assert all(r.value is None and r.ratio is None and r.met is None for r in not_run)
+    text = report.render(rows, {}, {"date": "today"})
+    assert "| sWBC (250 Hz) | `bench/bench_wbc.py` | **not run** |" in text
+
+
+def test_a_json_without_the_expected_fields_gives_an_unreadable_row(report, tmp_path) -> None:
+    _write(tmp_path, "bench_estimator", {"summary": {"rigid": {}}})
+    (tmp_path / "bench_stance.json").write_text("{not json")
+    rows, docs = report.collect(tmp_path)
+    assert "bench_estimator" not in docs
+    assert any(r.group.startswith("state estimator") and r.note.startswith("unreadable") for r in rows)
+    assert any(r.group.startswith("STANCE") and r.note.startswith("unreadable bench_stance.json") for r in rows)
+
+
+def test_optional_graph_rates_are_left_out_when_absent_and_listed_when_present(report, tmp_path) -> None:
+    rows, _ = report.collect(tmp_path)
+    assert not any(r.group.startswith("graph rates") for r in rows)
+    _write(tmp_path, "graph_rates", GRAPH_RATES)
+    rows, _ = report.collect(tmp_path)
+    wbc = _by_what(rows, "wbc: achieved rate")
+    assert wbc.ratio == pytest.approx(0.8) and wbc.met is False and "deadline misses 12" in wbc.note
+    assert _by_what(rows, "state_estimator: achieved rate").met is True
+    assert _by_what(rows, "peak resident memory").value == pytest.approx(812.5)
+
+
+def test_across_hosts_rows_and_section(report, tmp_path) -> None:
+    _write(
+        tmp_path,
+        "across_hosts",
+        {
+            "rows": [
+                {
+                    "what": "lockstep wall time per tick, added",
+                    "value": 0.3,
+                    "unit": "ms",
+                    "goal_op": "<=",
+                    "goal": 4.0,
+                    "goal_source": "4 ms tick",
+                }
+            ],
+            "markdown": "## Across hosts\n\nmeasured here",
+        },
+    )
+    rows, docs = report.collect(tmp_path)
+    row = _by_what(rows, "per tick, added")
+    assert row.ratio == pytest.approx(0.075) and row.met is True
+    assert "## Across hosts" in report.render(rows, docs, {})
+
+
+def test_main_writes_the_markdown(report, tmp_path) -> None:
+    _write(tmp_path, "bench_wbc", WBC)
+    output = tmp_path / "results" / "bench.md"
+    assert report.main(["--out-dir", str(tmp_path), "--output", str(output), "--note", "Quiet machine."]) == 0
+    text = output.read_text()
+    assert "| group | what | measured | goal | measured / goal | met | thesis / peer | notes |" in text
+    assert "0.600 ms" in text and "1.50 |" in text  # measured and measured / goal
+    assert "100 states x 2 sequences x 2 rounds (reduced)" in text
+    assert "CPUs" in text  # machine info
+    assert "\nQuiet machine.\n" in text
