@@ -2,9 +2,9 @@
 # `make run SCENARIO=...`: run one scenario of the full node graph and print its summary.
 # Scenarios:
 #   tour            (default) the whole graph, each node its own process: HyQ trots at 0.2 m/s for 40 s of sim
-#                   time (lockstep) over rigid ground, T1 and T2 soft patches and 4 stairs up (course graph_tour):
+#                   time (lockstep) over rigid ground, T1 and T2 soft patches, 4 stairs up and down (course graph_tour):
 #                   sim_bridge (121x121 heightmap) + state_estimator (terrain-aware leg odometry) + tce + wbc
-#                   (c3WBC with the TCE's impedance, on the ground-truth base like the vfa/vpa) + vfa + vpa
+#                   (sWBC; CONTACT_MODEL=compliant: c3WBC with the TCE's impedance; on the ground-truth base like the vfa/vpa) + vfa + vpa
 #                   (VPA CNN, 20 Hz) + bag_recorder + cmd_vel_script; prints the summary of graph_report
 #   tour_realtime   the same following the wall clock (rates and deadline misses as the machine holds them)
 #   stance           STANCE: HyQ crawls at 0.1 m/s over the transition course (rigid, T1 soft, T2, T3,
