@@ -57,7 +57,7 @@ from tal_msgs.msg import (
     WbcDiagnostics,
 )
 
-from .locomotion import BaseState, LocomotionController, TickOutput, impedance_from_estimates
+from .locomotion import BaseState, ImpedanceGate, LocomotionController, TickOutput
 from .locomotion import TerrainImpedance as LegImpedance
 from .map_alignment import HeightmapAligner
 from .motion.gait import PRESETS as GAITS
@@ -128,6 +128,8 @@ class WbcNode(Node):
         self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         self._impedance: LegImpedance | None = None
+        self.impedance_gate = ImpedanceGate(p["terrain_stiffness_n_per_m"], p["terrain_damping_ns_per_m"],
+                                            p["impedance_min_confidence"])
         if p["contact_model"] == "compliant" and p["impedance_source"] == "tce":
             self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
         # The watchdog is a deadline, not a poll: each joint state handled restarts the timer, so it fires
@@ -196,6 +198,10 @@ class WbcNode(Node):
             "terrain_damping_ns_per_m": declare(self, "terrain_damping_ns_per_m", 400.0,
                                                 "[N s/m] c3WBC damping when fixed or not estimated", low=0.0,
                                                 high=1e6, read_only=True),
+            "impedance_min_confidence": declare(self, "impedance_min_confidence", 0.1,
+                                                "[-] a TCE estimate is adopted per leg from this confidence on; "
+                                                "below it the leg keeps its last adopted value",
+                                                low=0.0, high=1.0, read_only=True),
             "friction_coefficient": declare(self, "friction_coefficient", s.friction_coefficient,
                                             "[-] mu of the friction pyramids", low=0.01, high=5.0),
             "min_normal_force_n": declare(self, "min_normal_force_n", s.min_normal_force_n,
@@ -302,10 +308,10 @@ class WbcNode(Node):
         self.controller.motion.set_body_pose_reference(*values)
 
     def _on_impedance(self, msg: TerrainImpedance) -> None:
-        """Per-leg estimates where valid and finite; the fixed values elsewhere."""
-        self._impedance = impedance_from_estimates(
+        """Per leg, the estimate when valid and confident enough, else the last adopted (``ImpedanceGate``)."""
+        self._impedance = self.impedance_gate.update(
             np.array(msg.stiffness_normal, dtype=float), np.array(msg.damping_normal, dtype=float),
-            np.array(msg.valid, dtype=bool), self.p["terrain_stiffness_n_per_m"], self.p["terrain_damping_ns_per_m"])
+            np.array(msg.valid, dtype=bool), np.array(msg.confidence, dtype=float))
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
@@ -485,7 +491,9 @@ class WbcNode(Node):
                 "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
                 "late_cmd_vel": self.command_input.late, "cmd_vel_ignored": self.command_input.unstamped_ignored,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
-                "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name}
+                "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name,
+                "impedance_adopted_per_leg": self.impedance_gate.adopted.tolist(),
+                "impedance_held_per_leg": self.impedance_gate.held.tolist()}
 
     def destroy_node(self) -> None:
         write_summary(self.p["summary_path"], self.summary())

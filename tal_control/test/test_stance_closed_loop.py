@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from tal_control.experiments.closed_loop import ClosedLoopConfig, ClosedLoopLog, run_closed_loop
+from tal_control.locomotion import ImpedanceGate
 from tal_control.experiments.stance_experiments import contact_losses, controller_config, grf_error, ramp_commands
 from tal_control.motion.trunk import TrunkOscillation
 from tal_control.wbc import WbcSettings
@@ -38,6 +39,43 @@ def test_invalid_closed_loop_and_wbc_settings_are_rejected() -> None:
         ClosedLoopConfig(terrain_stiffness_n_per_m=-1.0)
     with pytest.raises(InputError, match="penetration_history"):
         WbcSettings(penetration_history="guessed")
+    with pytest.raises(InputError, match="max_load_ramp_stance_fraction"):
+        WbcSettings(max_load_ramp_stance_fraction=0.0)
+    with pytest.raises(InputError, match="min_confidence"):
+        ImpedanceGate(2e6, 400.0, min_confidence=1.5)
+
+
+def test_impedance_gate_adopts_confident_estimates_and_holds_the_rest() -> None:
+    gate = ImpedanceGate(2e6, 400.0, min_confidence=0.1)
+    valid = np.array([True, True, True, False])
+    first = gate.update(np.array([3500.0, 100.0, np.nan, 8000.0]), np.array([380.0, 50.0, 400.0, 400.0]),
+                        valid, np.array([0.5, 0.0, 0.9, 0.9]))
+    # LF adopted; RF's clamped 100 N/m with R^2 ~ 0 refused; LH NaN refused; RH not valid: the fallback.
+    np.testing.assert_array_equal(first.stiffness_normal, [3500.0, 2e6, 2e6, 2e6])
+    np.testing.assert_array_equal(first.damping_normal, [380.0, 400.0, 400.0, 400.0])
+    # A mixed window (a foot crossing onto rigid ground) has confidence 0: LF keeps 3500 N/m.
+    second = gate.update(np.array([9e5, 8000.0, 8000.0, 8000.0]), np.array([np.nan, 400.0, 400.0, -1.0]),
+                         np.ones(4, bool), np.array([0.0, 0.2, 0.2, 0.2]))
+    np.testing.assert_array_equal(second.stiffness_normal, [3500.0, 8000.0, 8000.0, 8000.0])
+    np.testing.assert_array_equal(second.damping_normal, [380.0, 400.0, 400.0, 400.0])  # -1 refused: held
+    np.testing.assert_array_equal(gate.adopted, [1, 1, 1, 1])
+    np.testing.assert_array_equal(gate.held, [1, 1, 1, 0])
+    with pytest.raises(InputError, match="4 entries"):
+        gate.update(np.ones(3), np.ones(4), np.ones(4, bool), np.ones(4))
+
+
+@pytest.mark.slow
+def test_stance_trots_on_t1() -> None:
+    """STANCE in a trot on T1 (3500 N/m): with the thesis' load ramps (0.51 s, longer than the 0.4 s
+    stance) the c3WBC dropped HyQ within 1.1 s; capped at a quarter of the stance it trots."""
+    log = run_closed_loop(controller_config("stance", name="stance_trot_t1", course="flat_t1", gait="trot",
+                                            commands=((0.0, 0.0, 0.0, 0.0), (1.0, 0.2, 0.0, 0.0)),
+                                            duration_s=6.0, progress=False))
+    assert not log.fell and not np.any(log.fallback)
+    assert log.base_position[-1, 0] > 0.6                          # 0.2 m/s from t = 1 s
+    np.testing.assert_allclose(log.impedance_stiffness[-1], 3500.0, rtol=0.05)
+    stance = log.stance & log.foot_contact & log.after(3.0)[:, None]
+    assert np.mean(np.abs(log.penetration_des[stance] - log.penetration[stance])) < 0.005
 
 
 def test_ramp_commands_follow_the_thesis_acceleration() -> None:

@@ -57,7 +57,13 @@ class TceNode(Node):
                                      "fit damping too (thesis: no; removes the stiffness bias on soft ground)",
                                      read_only=True),
             estimate_tangential=declare(self, "estimate_tangential", False,
-                                        "also fit a tangential stiffness per leg (pooled t1/t2)", read_only=True))
+                                        "also fit a tangential stiffness per leg (pooled t1/t2)", read_only=True),
+            relief_radius_m=declare(self, "relief_radius_m", 0.04,
+                                    "[m] radius around the foot centre over which the surface relief is taken",
+                                    low=0.0, high=1.0, read_only=True),
+            max_surface_relief_m=declare(self, "max_surface_relief_m", 0.01,
+                                         "[m] more relief under the foot (an edge): the stance sample is left out",
+                                         low=0.0, high=10.0, read_only=True))
         self.model = RobotModel.from_name(robot)
         self.tce = TerrainComplianceEstimator(self.model, settings)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
@@ -152,6 +158,7 @@ class TceNode(Node):
         return {
             "ticks": self.ticks, "rejected_inputs": self.rejected_inputs,
             "samples_outside_map": self.samples_outside_map,
+            "edge_samples_per_leg": self.tce.edge_samples.tolist(),
             "final": {leg.name: {"stiffness_n_per_m": clean(e.stiffness_n_per_m),
                                  "damping_ns_per_m": clean(e.damping_ns_per_m), "confidence": e.confidence,
                                  "valid": e.valid, "samples": e.samples} for leg, e in zip(LEGS, estimates)},

@@ -123,6 +123,39 @@ def test_contact_states_recover_forces_and_penetration(model) -> None:
         tce.contact_states(q, v, np.full(12, np.nan), height=lambda x, y: 0.0)
 
 
+def test_stance_samples_at_a_step_edge_are_left_out(model) -> None:
+    """A foot 2 cm from a 0.1 m riser: one height under its centre is not the surface it presses, so its
+    samples are counted as edge samples and never enter the fit; on the flat tread they do."""
+    q = model.neutral_q()
+    q[2] -= 0.01
+    v = np.zeros(model.nv)
+    model.update(q, v)
+    lf_x = float(model.foot_positions()[Leg.LF, 0])
+    tau = np.zeros(12)
+    h = model.nonlinear_effects()
+    to_v = model.canonical_joint_v_indices()
+    for leg in Leg:
+        tau_leg = model.leg_torques_for_foot_force(leg, np.array([0.0, 0.0, 200.0]))
+        for j, vi in enumerate(model.leg_joint_v_indices(leg)):
+            tau[int(np.flatnonzero(to_v == vi)[0])] = tau_leg[j] + h[vi]
+
+    def stairs(x: float, y: float) -> float:   # a riser 2 cm in front of LF's foot only
+        return 0.1 if (x > lf_x + 0.02 and y > 0.0) else 0.0
+
+    tce = TerrainComplianceEstimator(model)
+    samples = tce.contact_states(q, v, tau, height=stairs)
+    assert samples[Leg.LF].surface_relief_m == pytest.approx(0.1)
+    assert all(samples[leg].surface_relief_m == 0.0 for leg in (Leg.RF, Leg.LH, Leg.RH))
+    estimates = tce.update(samples)
+    assert estimates[Leg.LF].samples == 0 and estimates[Leg.RF].samples == 1
+    np.testing.assert_array_equal(tce.edge_samples, [1, 0, 0, 0])
+    unknown = tce.contact_states(q, v, tau, height=lambda x, y: np.nan if x > lf_x + 0.02 else 0.0)
+    tce.update(unknown)                             # relief next to unknown cells is NaN: left out too
+    assert tce.edge_samples[Leg.LF] == 2
+    with pytest.raises(InputError, match="max_surface_relief_m"):
+        TceSettings(max_surface_relief_m=float("nan"))
+
+
 def test_batched_windows_match_single_channel_fits() -> None:
     """All legs fitted together give the same estimates as one window per leg, samples fed per leg."""
     settings = TceSettings(window=120, min_samples=30)

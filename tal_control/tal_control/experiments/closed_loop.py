@@ -27,10 +27,10 @@ import numpy as np
 
 from tal_control.locomotion import (
     BaseState,
+    ImpedanceGate,
     LocomotionController,
     TerrainImpedance,
     TickOutput,
-    impedance_from_estimates,
 )
 from tal_control.map_alignment import HeightmapAligner
 from tal_control.motion.gait import PRESETS, GaitParameters
@@ -73,7 +73,8 @@ class ClosedLoopConfig:
     stop_on_fall: end the run at the first fallen sample (the log ends there).
     impedance_source (c3WBC): "none" (the WBC settings' defaults), "fixed" (terrain_stiffness_n_per_m and
     terrain_damping_ns_per_m for every leg) or "tce" (STANCE: the online TCE on the ground-truth base
-    state, as the thesis' motion capture, with the fixed values until a leg's estimate is valid).
+    state, as the thesis' motion capture; per leg the fixed values until an estimate with confidence >=
+    impedance_min_confidence is adopted, then the last adopted one: ``ImpedanceGate``).
     trunk_oscillation: sinusoidal height/roll excitation of the trunk reference (aggressive manoeuvres).
     state_estimator: None -> the controller runs on the ground-truth base state; settings -> on the
     proprioceptive estimate (IMU with ``imu_noise`` = (gyro [rad/s], accel [m/s^2]) white-noise std per
@@ -103,6 +104,7 @@ class ClosedLoopConfig:
     trunk_oscillation: TrunkOscillation | None = None
     state_estimator: StateEstimatorSettings | None = None
     imu_noise: tuple[float, float] = (0.0, 0.0)
+    impedance_min_confidence: float = 0.1
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.duration_s) and self.duration_s > 0.0):
@@ -321,6 +323,8 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
         controller.motion.set_trunk_oscillation(config.trunk_oscillation)
     tce = (TerrainComplianceEstimator(RobotModel(description), config.tce)
            if config.impedance_source == "tce" else None)
+    impedance_gate = ImpedanceGate(config.terrain_stiffness_n_per_m, config.terrain_damping_ns_per_m,
+                                   config.impedance_min_confidence)
     fixed = TerrainImpedance(np.full(NUM_LEGS, config.terrain_stiffness_n_per_m),
                              np.full(NUM_LEGS, config.terrain_damping_ns_per_m))
     radius = description.foot_radius_m
@@ -361,9 +365,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                     tce_d = np.array([e.damping_ns_per_m for e in estimates])
                     tce_conf = np.array([e.confidence for e in estimates])
                     tce_contact = np.array([smp.in_contact for smp in samples])
-                    impedance = impedance_from_estimates(
-                        tce_k, tce_d, np.array([e.valid for e in estimates]),
-                        config.terrain_stiffness_n_per_m, config.terrain_damping_ns_per_m)
+                    impedance = impedance_gate.update(tce_k, tce_d, np.array([e.valid for e in estimates]), tce_conf)
                 if estimated is not None and tce is not None:
                     estimated.impedance = legs_from_impedance_arrays(
                         tce_k, tce_d, np.array([e.valid for e in estimates]),

@@ -65,12 +65,20 @@ class WbcSettings:
     # model integrates open loop and drifts from the real sinking wherever the terrain model is off (a fresh
     # TCE estimate, damping-dominated touchdowns); "measured" keeps F = K eps + D deps/dt anchored to it.
     penetration_history: str = "desired"
+    # c3WBC load ramps: T = 4.6 / sqrt(k / m_e) (thesis) is 0.51 s on T1 with two legs in stance, longer than
+    # a whole trot stance (0.4 s): the load factor then never reaches 1, the stance legs' force bound falls
+    # from mid-stance and HyQ dropped onto T1 within 1.1 s (measured). The ramp is capped at this fraction of
+    # the gait's stance duration (the thesis' crawl on T1: 0.41 s of 1.6 s, under the cap).
+    max_load_ramp_stance_fraction: float = 0.25
 
     def __post_init__(self) -> None:
         if self.contact_model not in ("rigid", "compliant"):
             raise InputError(f"contact_model must be 'rigid' or 'compliant', got {self.contact_model!r}")
         if self.penetration_history not in ("desired", "measured"):
             raise InputError(f"penetration_history must be 'desired' or 'measured', got {self.penetration_history!r}")
+        if not 0.0 < self.max_load_ramp_stance_fraction <= 0.5:
+            raise InputError(f"max_load_ramp_stance_fraction must be in (0, 0.5], "
+                             f"got {self.max_load_ramp_stance_fraction!r}")
 
 
 @dataclass
