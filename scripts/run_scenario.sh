@@ -4,7 +4,8 @@
 #   tour            (default) the whole graph, each node its own process: HyQ trots at 0.2 m/s for 40 s of sim
 #                   time (lockstep) over rigid ground, T1 and T2 soft patches, 4 stairs up and down (course graph_tour):
 #                   sim_bridge (121x121 heightmap) + state_estimator (terrain-aware leg odometry) + tce + wbc
-#                   (sWBC; CONTACT_MODEL=compliant: c3WBC with the TCE's impedance; on the ground-truth base like the vfa/vpa) + vfa + vpa
+#                   (STANCE: c3WBC with the TCE's impedance; CONTACT_MODEL=rigid: sWBC; on the ground-truth base like
+#                   the vfa/vpa) + vfa + vpa
 #                   (VPA CNN, 20 Hz) + bag_recorder + cmd_vel_script; prints the summary of graph_report
 #   tour_realtime   the same following the wall clock (rates and deadline misses as the machine holds them)
 #   stance           STANCE: HyQ crawls at 0.1 m/s over the transition course (rigid, T1 soft, T2, T3,
@@ -96,7 +97,7 @@ stance() {
 
 tour() {
     local speed="${SPEED_M_S:-0.2}" duration="${DURATION_S:-40.0}" mode="${MODE:-lockstep}"
-    local contact_model="${CONTACT_MODEL:-rigid}" odometry="${LEG_ODOMETRY:-terrain_aware}"
+    local contact_model="${CONTACT_MODEL:-compliant}" odometry="${LEG_ODOMETRY:-terrain_aware}"
     local dir="$RUN_ROOT"
     local topics="${RECORDED_TOPICS%]}, 'footholds', 'body_pose_reference']"
     echo "[run] tour: the whole graph ($mode). HyQ trots at $speed m/s over rigid -> T1 -> T2 -> rigid -> 4 stairs" \

@@ -36,6 +36,7 @@ from .run_report import TRUNK_LINKS, format_estimator, format_report
 
 SOFT_N_PER_M = 1e5  # [N/m] patches softer than this are shaded in the trajectory plot
 LOOKBACK_S = 2.5  # [s] the TCE window is 250 stance samples at 250 Hz: ~1.7 s of trot at duty factor 0.6
+ADOPT_CONFIDENCE = 0.1  # [-] the wbc's impedance_min_confidence default: estimates it adopts
 
 
 @dataclass(frozen=True)
@@ -101,7 +102,8 @@ class BagSeries:
     estimate_t_s: np.ndarray
     estimate_position: np.ndarray
     stamps: dict[str, list[int]]
-    stiffness: dict[str, list[tuple[float, str, float, float]]]   # patch -> (t [s], leg, x [m], k [N/m])
+    stiffness: dict[str, list[tuple[float, str, float, float, float]]]   # patch -> (t [s], leg, x [m], k [N/m],
+    #                                                                    confidence [-])
 
 
 def read_bag(bag: Path, course_name: str, lookback_s: float = LOOKBACK_S) -> BagSeries:
@@ -138,7 +140,7 @@ def read_bag(bag: Path, course_name: str, lookback_s: float = LOOKBACK_S) -> Bag
                 k = msg.stiffness_normal[i]
                 patches = {patch for _, patch in recent[i]}
                 if msg.valid[i] and math.isfinite(k) and len(patches) == 1:
-                    stiffness[patches.pop()].append((t, leg, foot_x[i], k))
+                    stiffness[patches.pop()].append((t, leg, foot_x[i], k, msg.confidence[i]))
     as_array = lambda rows: np.array(rows, dtype=float).reshape(-1, 3)  # noqa: E731
     return BagSeries(np.array(gt_t), as_array(gt_p), np.array(est_t), as_array(est_p), dict(stamps),
                      dict(stiffness))
@@ -153,7 +155,10 @@ def stiffness_table(series: BagSeries, course_name: str) -> list[dict]:
         xs = np.array([s[2] for s in samples])
         true_k = float(np.median(course.properties_array(xs, np.zeros_like(xs)).stiffness_n_per_m))
         median = float(np.median(k))
+        confident = k[np.array([s[4] for s in samples]) >= ADOPT_CONFIDENCE]
         rows.append({"patch": patch, "true_n_per_m": true_k, "median_n_per_m": median,
+                     "confident_share": confident.size / k.size,
+                     "confident_median_n_per_m": float(np.median(confident)) if confident.size else math.nan,
                      "p10_n_per_m": float(np.percentile(k, 10)), "p90_n_per_m": float(np.percentile(k, 90)),
                      "samples": int(k.size), "error_pct": 100.0 * (median - true_k) / true_k})
     return rows
@@ -169,13 +174,16 @@ def format_graph_sections(rates: list[RateResult], stiffness: list[dict], resour
         lines.append(f"| {r.node} | {r.topic} | {f(r.target_hz)} | {r.messages} | {f(r.sim_rate_hz)} | "
                      f"{f(r.wall_rate_hz)} | {'n/a' if r.missed_ticks is None else r.missed_ticks} |")
     lines += ["", "## Terrain stiffness: TCE estimates vs truth per patch", "",
-              f"Estimates of a leg whose contacts in the preceding {LOOKBACK_S} s all lay on the patch.", "",
-              "| patch | true [N/m] | median estimate [N/m] | 10-90 % [N/m] | error of the median [%] | samples |",
-              "|---|---|---|---|---|---|"]
+              f"Estimates of a leg whose contacts in the preceding {LOOKBACK_S} s all lay on the patch. The "
+              f"c3WBC adopts an estimate from confidence {ADOPT_CONFIDENCE} on (``ImpedanceGate``); on rigid "
+              "ground the TCE reports a lower bound (std F / std p >= 5e4 N/m).", "",
+              "| patch | true [N/m] | median estimate [N/m] | 10-90 % [N/m] | error of the median [%] | samples "
+              "| confident (adopted) share | median of the confident [N/m] |",
+              "|---|---|---|---|---|---|---|---|"]
     for row in stiffness:
         lines.append(f"| {row['patch']} | {row['true_n_per_m']:.4g} | {row['median_n_per_m']:.4g} | "
                      f"{row['p10_n_per_m']:.4g} - {row['p90_n_per_m']:.4g} | {row['error_pct']:+.2f} | "
-                     f"{row['samples']} |")
+                     f"{row['samples']} | {row['confident_share']:.2f} | {row['confident_median_n_per_m']:.4g} |")
     if vfa is not None or vpa is not None:
         lines += ["", "## ViTAL", ""]
         if vfa is not None:

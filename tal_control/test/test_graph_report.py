@@ -44,6 +44,7 @@ def _write_walk(path: Path) -> None:
                 true_k = 3500.0 if 2.0 <= x < 4.0 else 2.0e6
                 impedance.stiffness_normal[i] = true_k * (2.0 if i == 0 else 1.0)
                 impedance.valid[i] = True
+                impedance.confidence[i] = 0.05 if i == 1 else 0.9   # RF below the wbc's threshold
             bag.write("/ground_truth/contacts", contacts, t_ns)
             bag.write("/terrain_impedance", impedance, t_ns)
 
@@ -60,5 +61,7 @@ def test_an_estimate_counts_for_a_patch_only_once_the_lookback_lies_on_it(tmp_pa
     assert rows["soft_t1"]["true_n_per_m"] == 3500.0
     assert rows["soft_t1"]["median_n_per_m"] == 3500.0     # 3 of 4 legs exact, LF doubled
     assert rows["soft_t1"]["p90_n_per_m"] == 7000.0
+    assert rows["soft_t1"]["confident_share"] == pytest.approx(0.75, abs=0.01)   # RF's are not adopted
+    assert rows["soft_t1"]["confident_median_n_per_m"] == 3500.0                 # LH, RH exact, LF doubled
     assert rows["default"]["true_n_per_m"] == 2.0e6
     assert rows["soft_t1"]["samples"] == len(t1) == pytest.approx(4 * (25.0 - 12.5) / 0.020, abs=8)

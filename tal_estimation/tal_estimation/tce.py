@@ -56,6 +56,12 @@ class TceSettings:
     stiffness_range_n_per_m: tuple[float, float] = (100.0, 1e8)
     damping_range_ns_per_m: tuple[float, float] = (0.0, 1e5)
     min_relative_determinant: float = 1e-8  # det(P^T W P) / (a c) below this: p and dp/dt collinear
+    # Rigid ground: sub-millimetre sinkage is below what the kinematics resolve, so the LS slope is noise (R^2
+    # ~ 0) and a leg stepping from soft onto rigid ground kept its soft estimate. A window whose force varies
+    # by at least min_force_variation_n (std) while std(F) / std(p) >= rigid_stiffness_n_per_m shows ground at
+    # least that stiff: the estimate is that ratio (>= |LS slope|), flagged rigid, confidence = fill ratio.
+    rigid_stiffness_n_per_m: float = 5e4
+    min_force_variation_n: float = 30.0
     # Edge contacts: where the undeformed surface within relief_radius_m of the foot centre spans more than
     # max_surface_relief_m (a foot at a stair edge or against a riser), one height under the centre is not
     # the surface the foot presses and F = k p does not hold: such samples are left out. On graph_tour's
@@ -72,7 +78,7 @@ class TceSettings:
         if not (math.isfinite(self.contact_force_threshold_n) and self.contact_force_threshold_n >= 0.0):
             raise InputError(f"TCE contact_force_threshold_n must be finite and >= 0, "
                              f"got {self.contact_force_threshold_n!r}")
-        for name in ("relief_radius_m", "max_surface_relief_m"):
+        for name in ("relief_radius_m", "max_surface_relief_m", "rigid_stiffness_n_per_m", "min_force_variation_n"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise InputError(f"TCE {name} must be finite and >= 0, got {value!r}")
@@ -93,6 +99,7 @@ class LegEstimate:
     valid: bool = False
     clamped: bool = False                   # the fit was outside the physical range and was clamped
     stale: bool = False                     # the last window could not be fitted: previous estimate kept
+    rigid: bool = False                     # the window shows ground at least rigid_stiffness_n_per_m stiff
 
 
 class KelvinVoigtWindows:
@@ -154,6 +161,14 @@ class KelvinVoigtWindows:
         total_w = sums[_W]
         mean_p = float(w @ pen) / total_w
         variance_p = max(sums[_PP] / total_w - mean_p**2, 0.0)
+        variance_f = max(sums[_FF] / total_w - (sums[_F] / total_w) ** 2, 0.0)
+        std_f, std_p = math.sqrt(variance_f), math.sqrt(variance_p)
+        if std_f >= s.min_force_variation_n and std_f >= s.rigid_stiffness_n_per_m * std_p:
+            ratio = std_f / std_p if std_p > 0.0 else math.inf
+            est.stiffness_n_per_m = float(min(ratio, s.stiffness_range_n_per_m[1]))
+            est.confidence = count / s.window
+            est.valid, est.stale, est.clamped, est.rigid = True, False, False, True
+            return
         if math.sqrt(sums[_PP] / total_w) < s.min_penetration_m or math.sqrt(variance_p) < \
                 s.min_penetration_variation_m:
             self._keep_previous(est)
@@ -179,7 +194,7 @@ class KelvinVoigtWindows:
         est.stiffness_n_per_m, est.damping_ns_per_m = k_clamped, d_clamped
         fill = count / s.window
         est.confidence = float(np.clip(fill * max(r2, 0.0), 0.0, 1.0)) * (0.5 if est.clamped else 1.0)
-        est.valid, est.stale = True, False
+        est.valid, est.stale, est.rigid = True, False, False
 
     @staticmethod
     def _keep_previous(est: LegEstimate) -> None:

@@ -63,7 +63,13 @@ class TceNode(Node):
                                     low=0.0, high=1.0, read_only=True),
             max_surface_relief_m=declare(self, "max_surface_relief_m", 0.01,
                                          "[m] more relief under the foot (an edge): the stance sample is left out",
-                                         low=0.0, high=10.0, read_only=True))
+                                         low=0.0, high=10.0, read_only=True),
+            rigid_stiffness_n_per_m=declare(self, "rigid_stiffness_n_per_m", 5e4,
+                                            "[N/m] std(F)/std(p) from which a window counts as rigid ground",
+                                            low=0.0, high=1e9, read_only=True),
+            min_force_variation_n=declare(self, "min_force_variation_n", 30.0,
+                                          "[N] force std a window needs to be called rigid", low=0.0, high=1e4,
+                                          read_only=True))
         self.model = RobotModel.from_name(robot)
         self.tce = TerrainComplianceEstimator(self.model, settings)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
