@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from tal_control.experiments.closed_loop import ClosedLoopConfig, ClosedLoopLog, run_closed_loop
-from tal_control.locomotion import ImpedanceGate
 from tal_control.experiments.stance_experiments import contact_losses, controller_config, grf_error, ramp_commands
+from tal_control.locomotion import ImpedanceGate
 from tal_control.motion.trunk import TrunkOscillation
 from tal_control.wbc import WbcSettings
 from tal_core.errors import InputError
