@@ -56,7 +56,10 @@ def test_sigint_stops_every_node(tmp_path) -> None:
     process = subprocess.Popen(
         ["bash", str(RUN_GRAPH), "-d", str(tmp_path), "-w", "sim_bridge",
          "-s", "sim_bridge.mode:=realtime", "tal_sim_bridge/sim_bridge", "tal_control/stand_controller"],
-        env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # As from a terminal: under a background job (`make test &`) SIGINT arrives ignored, and bash
+        # cannot trap a signal that was ignored when it started (seen: the graph outlived the test).
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     log = tmp_path / "sim_bridge.log"
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not (log.exists() and "sim_bridge ready" in log.read_text()):
