@@ -32,6 +32,10 @@ RUN_ROOT="$ROOT/runs/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
 # What make run records into runs/<timestamp>/bag (rosbag2 MCAP; sim time as log time).
 RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/contacts', 'joint_command', \
 'state_estimate', 'contact_estimate', 'terrain_impedance', 'gait_state', 'wbc/diagnostics', 'cmd_vel', 'cmd_vel_stamped']"
+# ROS parameters are typed: DURATION_S=20 would reach a double parameter as an integer and stop the node.
+for var in DURATION_S SPEED_M_S; do
+    if [[ "${!var:-}" =~ ^-?[0-9]+$ ]]; then printf -v "$var" '%s.0' "${!var}"; fi
+done
 # A private DDS domain per run, so concurrent runs and tests do not see each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
 
