@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tal_core.errors import InputError
+from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.state import BaseState
 
@@ -52,18 +53,19 @@ class ImpedanceGate:
             if not (np.isfinite(value) and value >= 0.0):
                 raise InputError(f"{name} must be finite and >= 0, got {value!r}")
         self.min_confidence = float(min_confidence)
-        self.stiffness = np.full(4, float(fallback_stiffness_n_per_m))
-        self.damping = np.full(4, float(fallback_damping_ns_per_m))
-        self.adopted = np.zeros(4, dtype=np.int64)    # estimates taken, per leg
-        self.held = np.zeros(4, dtype=np.int64)       # estimates refused (value held), per leg
+        self.stiffness = np.full(NUM_LEGS, float(fallback_stiffness_n_per_m))
+        self.damping = np.full(NUM_LEGS, float(fallback_damping_ns_per_m))
+        self.adopted = np.zeros(NUM_LEGS, dtype=np.int64)    # estimates taken, per leg
+        self.held = np.zeros(NUM_LEGS, dtype=np.int64)       # estimates refused (value held), per leg
 
     def update(self, stiffness: np.ndarray, damping: np.ndarray, valid: np.ndarray,
                confidence: np.ndarray) -> TerrainImpedance:
-        """Fold one TCE update (4,) each into the per-leg values and return the impedance to use."""
+        """Fold one TCE update (NUM_LEGS,) each into the per-leg values and return the impedance to use."""
         k, d = np.asarray(stiffness, dtype=float), np.asarray(damping, dtype=float)
         c = np.asarray(confidence, dtype=float)
-        if k.shape != (4,) or d.shape != (4,) or np.shape(valid) != (4,) or c.shape != (4,):
-            raise InputError(f"impedance arrays must have 4 entries, got {k.shape}, {d.shape}, "
+        legs = (NUM_LEGS,)
+        if k.shape != legs or d.shape != legs or np.shape(valid) != legs or c.shape != legs:
+            raise InputError(f"impedance arrays must have {NUM_LEGS} entries, got {k.shape}, {d.shape}, "
                              f"{np.shape(valid)}, {c.shape}")
         take = np.asarray(valid, dtype=bool) & np.isfinite(k) & (k > 0.0) & np.isfinite(c) & (c >= self.min_confidence)
         self.stiffness = np.where(take, k, self.stiffness)
