@@ -233,7 +233,7 @@ class ContactSample:
     penetration_rate_m_s: float  # along the normal, contact frame
     foot_position_m: np.ndarray | None = None   # (3,) foot-sphere centre
     foot_velocity_m_s: np.ndarray | None = None  # (3,)
-    surface_relief_m: float = 0.0  # height span of the surface around the foot (NaN: partly unknown)
+    surface_relief_m: float = 0.0  # height span of the surface around a stance foot (NaN: partly unknown)
 
 
 def foot_penetration(foot_centre_m: np.ndarray, radius_m: float, surface_z_m: float, normal: np.ndarray) -> float:
@@ -323,10 +323,12 @@ class TerrainComplianceEstimator:
             n = n / np.linalg.norm(n)
             surface_z = float(height(x, y))
             penetration = foot_penetration(feet[leg], radius, surface_z, n)
-            around = [float(height(x + dx, y + dy)) for dx, dy in self._relief_offsets]
-            relief = max(around + [surface_z]) - min(around + [surface_z])
             rate = float(-(n @ velocities[leg]))
             in_contact = bool(n @ force >= self.settings.contact_force_threshold_n)
+            relief = 0.0  # only stance samples enter the fit: four more look-ups for those alone
+            if in_contact:
+                around = [surface_z] + [float(height(x + dx, y + dy)) for dx, dy in self._relief_offsets]
+                relief = float(np.ptp(around))   # NaN where a look-up is unknown (Python's max would skip it)
             samples.append(ContactSample(in_contact, force, n, penetration, rate, feet[leg].copy(),
                                          velocities[leg].copy(), relief))
         return samples
