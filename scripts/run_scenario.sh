@@ -36,6 +36,8 @@ RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/cont
 for var in DURATION_S SPEED_M_S; do
     if [[ "${!var:-}" =~ ^-?[0-9]+$ ]]; then printf -v "$var" '%s.0' "${!var}"; fi
 done
+# Every scenario with the wbc also starts cmd_vel_script: the wbc's first tick waits for it (lockstep).
+COMMAND_SOURCE_WAIT_S=10.0
 # A private DDS domain per run, so concurrent runs and tests do not see each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
 
@@ -57,7 +59,7 @@ walk() {
     bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge \
         -s "sim_bridge.course:=$course" -s "sim_bridge.duration_s:=$duration" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
-        -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.state_source:=$state_source" \
+        -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" -s "wbc.state_source:=$state_source" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
         -s "bag_recorder.topics:=$topics" \
@@ -84,7 +86,7 @@ stance() {
         -s "sim_bridge.heightmap_rows:=81" -s "sim_bridge.heightmap_cols:=81" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=crawl" -s "wbc.contact_model:=compliant" -s "wbc.impedance_source:=tce" \
-        -s "wbc.summary_path:=$dir/wbc_summary.json" \
+        -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" \
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=terrain_aware" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
@@ -112,7 +114,7 @@ tour() {
         -s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \
-        -s "wbc.state_source:=ground_truth" -s "wbc.summary_path:=$dir/wbc_summary.json" \
+        -s "wbc.state_source:=ground_truth" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" \
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=$odometry" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \

@@ -230,7 +230,7 @@ def run_graph(net: Namespaces, split: bool, env: dict[str, str], out: Path) -> d
     }  # fmt: skip
     controller = {
         ("tal_estimation", "state_estimator"): {"summary_path": str(out / "estimator_summary.json")},
-        ("tal_control", "wbc"): {"gait": "trot", "state_source": "estimate",
+        ("tal_control", "wbc"): {"gait": "trot", "state_source": "estimate", "command_source_wait_s": "10.0",
                                  "summary_path": str(out / "wbc_summary.json")},
         ("tal_control", "cmd_vel_script"): {"profile": f"[0.0, 0.0, 0.0, 0.0, {CMD_START_S}, {SPEED_M_S}, 0.0, 0.0]"},
     }  # fmt: skip

@@ -41,7 +41,7 @@ def run_trot(run_dir: Path) -> dict:
         ["bash", str(RUN_GRAPH), "-d", str(run_dir), "-w", "sim_bridge",
          "-s", "sim_bridge.course:=flat_rigid", "-s", f"sim_bridge.duration_s:={DURATION_S}",
          "-s", f"sim_bridge.summary_path:={run_dir / 'bridge.json'}",
-         "-s", "wbc.gait:=trot", "-s", f"wbc.summary_path:={run_dir / 'wbc.json'}",
+         "-s", "wbc.gait:=trot", "-s", "wbc.command_source_wait_s:=10.0", "-s", f"wbc.summary_path:={run_dir / 'wbc.json'}",
          "-s", f"bag_recorder.output:={run_dir / 'bag'}", "-s", "bag_recorder.use_sim_time:=true",
          "-s", "bag_recorder.topics:=['ground_truth/odom', 'joint_command']",
          "-s", f"cmd_vel_script.profile:={PROFILE}", *NODES],

@@ -230,3 +230,28 @@ def test_stamped_commands_apply_from_their_tick_and_late_ones_are_counted(contex
         executor.shutdown()
         wbc.destroy_node()
         robot.node.destroy_node()
+
+
+def test_first_tick_waits_for_the_command_source(context, spin_until) -> None:
+    """With command_source_wait_s the lockstep run does not start (no joint_command) until a cmd_vel_stamped
+    publisher exists; the bridge keeps repeating its initial state meanwhile, and the first command follows
+    once the command source appears."""
+    bridge = SimBridgeNode(context=context, parameter_overrides=[Parameter("duration_s", value=0.2)])
+    wbc = WbcNode(context=context, parameter_overrides=[Parameter("state_source", value="ground_truth"),
+                                                        Parameter("command_source_wait_s", value=60.0)])
+    executor = SingleThreadedExecutor(context=context)
+    for node in (bridge, wbc):
+        executor.add_node(node)
+    script = None
+    try:
+        spin_until(executor, lambda: False, 1.5)
+        assert wbc.ticks == 0 and wbc.command_source_waits > 0 and bridge.core.commands.accepted == 0
+        script = CmdVelScriptNode(context=context)
+        executor.add_node(script)
+        assert spin_until(executor, lambda: bridge.finished, 120.0)
+    finally:
+        executor.shutdown()
+        for node in (bridge, wbc, script):
+            if node is not None:
+                node.destroy_node()
+    assert wbc.ticks >= 50 and bridge.final_summary["lockstep_timeouts"] == 0

@@ -114,6 +114,11 @@ class WbcNode(Node):
         self.deferred_ticks = 0   # ticks whose base state had not arrived with their joint state
         self.watchdog_trips = 0   # safe-mode commands sent by the wall-clock watchdog
         self._last_joint_wall = time.monotonic()
+        # Lockstep runs start when the wbc sends its first command; a command source discovered later (seen
+        # across two network namespaces: 0.9 s of sim time) missed its first stamped commands.
+        self._source_deadline = None if p["command_source_wait_s"] <= 0.0 else \
+            time.monotonic() + p["command_source_wait_s"]
+        self.command_source_waits = 0
         self.stats = TrackingStats()
 
         self.pub_command = self.create_publisher(JointCommand, "joint_command", 10)
@@ -173,6 +178,11 @@ class WbcNode(Node):
             "stale_state_periods": declare(self, "stale_state_periods", 3,
                                            "[-] base state older than this many periods: safe mode", low=1,
                                            high=1000),
+            "command_source_wait_s": declare(self, "command_source_wait_s", 0.0,
+                                             "[s] wall time the first tick waits for a cmd_vel_stamped "
+                                             "publisher to be discovered (lockstep: sim time starts with the "
+                                             "command source connected); 0 = no wait", low=0.0, high=120.0,
+                                             read_only=True),
             "watchdog_timeout_s": declare(self, "watchdog_timeout_s", 0.0,
                                           "[s] wall time without joint_states (from the end of handling "
                                           "the last one) before safe mode (0 = off; keep off in lockstep)",
@@ -235,6 +245,8 @@ class WbcNode(Node):
             self.pub_command.publish(self._last_command)
             return
         if self._joints is not None and stamp <= self._joints[0]:
+            if stamp == self._joints[0] and self._source_deadline is not None:
+                self._maybe_tick()  # the driver repeats its first state while we wait for the command source
             return  # repeated or out-of-order sample: keep the newer one
         self._joints = (stamp, q, qd)
         self._maybe_tick()
@@ -346,7 +358,7 @@ class WbcNode(Node):
         follows when that base state is older than ``stale_state_periods``. Returns whether a tick (normal
         or safe) was decided.
         """
-        if self._joints is None or self._base is None:
+        if self._joints is None or self._base is None or self._awaiting_command_source():
             return False
         stamp, q, qd = self._joints
         if not reaches_tick(stamp, self._next_tick_ns):
@@ -366,6 +378,20 @@ class WbcNode(Node):
             self._safe_mode(stamp, f"base state is {age * 1e-6:.1f} ms old")
         else:
             self._tick(stamp, base, q, qd)
+        return True
+
+    def _awaiting_command_source(self) -> bool:
+        """True while the first tick waits (``command_source_wait_s``) for a cmd_vel_stamped publisher."""
+        if self._source_deadline is None:
+            return False
+        found = self.count_publishers("cmd_vel_stamped") > 0
+        if found or time.monotonic() > self._source_deadline:
+            if not found:
+                self.get_logger().warn(f"no cmd_vel_stamped publisher after {self.p['command_source_wait_s']} s: "
+                                       "starting without one")
+            self._source_deadline = None
+            return False
+        self.command_source_waits += 1
         return True
 
     def _expected_base_stamp(self, stamp_ns: int) -> int:
@@ -489,6 +515,7 @@ class WbcNode(Node):
         aligner = self.map_aligner
         return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
                 "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
+                "command_source_waits": self.command_source_waits,
                 "late_cmd_vel": self.command_input.late, "cmd_vel_ignored": self.command_input.unstamped_ignored,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name,

