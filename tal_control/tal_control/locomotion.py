@@ -19,7 +19,8 @@ from tal_core.robot_model import RobotModel
 from tal_core.state import BaseState
 
 from .motion.gait import GaitParameters
-from .motion.generator import MeasuredState, MotionGenerator, MotionTargets
+from .motion.generator import MeasuredState, MotionGenerator, MotionParameters, MotionTargets
+from .motion.touchdown import SupportTargets, TouchdownSearch
 from .wbc import StandardWbc, WbcGains, WbcReferences, WbcSettings, WbcSolution
 
 HeightFunction = Callable[[float, float], float]
@@ -81,23 +82,30 @@ class TickOutput:
     targets: MotionTargets
     solution: WbcSolution
     measured: MeasuredState
+    support: SupportTargets | None = None  # contact feedback's supports and searches (None: not given)
 
 
 class LocomotionController:
     """Motion generator + sWBC for one robot."""
 
     def __init__(self, model: RobotModel, gait: GaitParameters, gains: WbcGains | None = None,
-                 settings: WbcSettings | None = None, nominal_height_m: float | None = None) -> None:
+                 settings: WbcSettings | None = None, nominal_height_m: float | None = None,
+                 motion: MotionParameters | None = None) -> None:
         self.model = model
-        self.motion = MotionGenerator(model.description, gait, nominal_height_m=nominal_height_m)
+        self.motion = MotionGenerator(model.description, gait, nominal_height_m=nominal_height_m, params=motion)
         self.wbc = StandardWbc(model, gains, settings)
+        self.touchdown_search = TouchdownSearch()
         self.ticks = 0
 
     def tick(self, t_s: float, base: BaseState, joint_position: np.ndarray, joint_velocity: np.ndarray,
              cmd_vel: Sequence[float], terrain_height: HeightFunction | None = None,
              terrain_normal: Callable[[float, float], np.ndarray] | None = None,
-             impedance: TerrainImpedance | None = None) -> TickOutput:
+             impedance: TerrainImpedance | None = None, foot_contact: np.ndarray | None = None) -> TickOutput:
         """Compute joint torques for the state at sim time ``t_s`` [s]. Raises InputError on bad input.
+
+        ``foot_contact`` (4,) bool: which feet touch the ground now (None: trust the gait plan). With it, a
+        planned stance foot that does not touch is no support: it searches downwards for the ground
+        (``TouchdownSearch``) and carries no planned force.
 
         ``impedance`` (c3WBC): per-leg terrain stiffness/damping in the contact frame; None uses the WBC
         settings' defaults. In compliant mode the legs load and unload over T = 4.6 / sqrt(k / m_e)
@@ -120,20 +128,32 @@ class LocomotionController:
         if self.wbc.compliant:
             load_factor = self._terrain_aware_load_factor(targets, impedance)
         stiffness = impedance.stiffness_normal if impedance is not None else None
+        stance, touchdown = targets.stance, targets.touchdown_positions
+        foot = (targets.foot_position, targets.foot_velocity, targets.foot_acceleration)
+        support = None
+        if foot_contact is not None:
+            support = self.touchdown_search.update(t_s, targets.stance, np.asarray(foot_contact, dtype=bool),
+                                                   *foot, measured.foot_positions)
+            for leg in np.flatnonzero(support.anchored):
+                self.motion.anchor_stance_foot(int(leg), measured.foot_positions[leg])
+            touchdown = np.where(support.anchored[:, None], measured.foot_positions, touchdown)
+            stance = support.supported
+            load_factor = np.where(stance, load_factor, 0.0)
+            foot = (support.foot_position, support.foot_velocity, support.foot_acceleration)
         refs = WbcReferences(
             com_position=trunk.com_position, com_velocity=trunk.com_velocity,
             com_acceleration=trunk.com_acceleration, world_R_base=trunk.world_R_base,
             angular_velocity=trunk.angular_velocity, angular_acceleration=trunk.angular_acceleration,
-            foot_position=targets.foot_position, foot_velocity=targets.foot_velocity,
-            foot_acceleration=targets.foot_acceleration, stance=targets.stance,
-            load_factor=load_factor, touchdown_position=targets.touchdown_positions,
+            foot_position=foot[0], foot_velocity=foot[1],
+            foot_acceleration=foot[2], stance=stance,
+            load_factor=load_factor, touchdown_position=touchdown,
             normals=targets.normals, stiffness_normal=stiffness,
             stiffness_tangential=None if impedance is None else impedance.stiffness_tangential,
             damping_normal=None if impedance is None else impedance.damping_normal,
             damping_tangential=None if impedance is None else impedance.damping_tangential)
         solution = self.wbc.solve(q, v, refs)
         self.ticks += 1
-        return TickOutput(tau=solution.tau, targets=targets, solution=solution, measured=measured)
+        return TickOutput(tau=solution.tau, targets=targets, solution=solution, measured=measured, support=support)
 
     def _terrain_aware_load_factor(self, targets: MotionTargets, impedance: TerrainImpedance | None) -> np.ndarray:
         """Load factor ramps over T_l/u = 4.6 / sqrt(k / m_e) per leg (1 % settling of the foot-mass system),

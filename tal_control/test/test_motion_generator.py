@@ -251,6 +251,29 @@ def test_external_foothold_replaces_the_target_of_the_current_step(hyq):
     assert np.max(np.abs(np.diff(feet, axis=0))) < 2.0 * DT
 
 
+def test_touchdown_depth_ends_the_swing_below_the_foothold_and_anchor_moves_the_stance_foot(hyq):
+    depth = 0.02
+    generator = MotionGenerator(hyq, TROT, params=MotionParameters(touchdown_depth_m=depth))
+    radius = generator.foot_radius_m
+    history = replay(generator, standing_state(hyq), 2.0, cmd_vel=(0.2, 0.0, 0.0))
+    touchdowns = [(i, leg) for i, h in enumerate(history) for leg in Leg if i and h.gait.touchdown_event[leg]]
+    assert touchdowns
+    for i, leg in touchdowns:
+        before = history[i - 1]
+        np.testing.assert_allclose(before.foot_position[leg],
+                                   before.target_footholds[leg] + [0.0, 0.0, radius - depth], atol=1e-3)
+    generator.anchor_stance_foot(Leg.LH, [1.0, 2.0, 0.3])
+    state = replayed(history[-1])
+    after = generator.update(2.0, state, (0.2, 0.0, 0.0))
+    np.testing.assert_allclose(after.touchdown_positions[Leg.LH], [1.0, 2.0, 0.3])
+    with pytest.raises(InputError):
+        generator.anchor_stance_foot(Leg.LH, [np.nan, 0.0, 0.0])
+    with pytest.raises(InputError):
+        generator.anchor_stance_foot(7, [0.0, 0.0, 0.0])
+    with pytest.raises(MotionConfigError):
+        MotionParameters(touchdown_depth_m=-0.01)
+
+
 def test_stand_to_trot_and_terrain_heights(hyq):
     generator = MotionGenerator(hyq, STAND)
     state = standing_state(hyq)

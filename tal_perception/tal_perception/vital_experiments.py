@@ -4,7 +4,10 @@
 
 Every run is ``tal_control``'s lockstep closed loop (sWBC on the ground-truth base state, 250 Hz; physics
 1 kHz) with ``VitalLoop`` as its tick hook (VFA + VPA or TBR, the nodes' planners, a perfect 121 x 121
-heightmap at 20 Hz). Experiments (thesis, ViTAL results):
+heightmap at 20 Hz; VFA and VPA both exact, the VPA at 20 Hz). The controller gets the simulator's foot
+contacts (a planned stance foot that does not touch searches for the ground instead of being loaded,
+``TouchdownSearch``) and ends each swing ``touchdown_depth_m`` below the foothold. Experiments (thesis,
+ViTAL results):
 
 * ``speeds``: the stairs (rise 0.1 m, go 0.25 m, up and down; course ``vital_stairs``) at 0.2, 0.3, 0.4
   and 0.5 m/s with VFA + VPA: success, leg and foot collisions, mean absolute pitch and height tracking
@@ -53,6 +56,8 @@ class VitalRun:
     goal_x_m: float
     initial_x_m: float = 0.0
     slack_s: float = 8.0  # [s] beyond the time the goal takes at the commanded speed
+    contact_feedback: bool = True  # the controller gets the simulator's foot contacts (TouchdownSearch)
+    touchdown_depth_m: float = 0.02  # [m] swings end this far below the foothold (MotionParameters)
 
     @property
     def duration_s(self) -> float:
@@ -93,7 +98,7 @@ def _stairs(name: str, speed: float, loop: VitalLoopSettings | None, x0: float =
 
 def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[VitalRun]]:
     """The runs of each experiment; runs with equal settings are shared (run once)."""
-    vital = VitalLoopSettings(monitor_period_s=0.2)
+    vital = VitalLoopSettings(monitor_period_s=0.2, vpa_use_cnn=False)
     tbr = replace(vital, pose_source="tbr")
     runs: dict[str, list[VitalRun]] = {}
     if "speeds" in only:
@@ -122,6 +127,7 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
     import torch
 
     from tal_control.experiments.closed_loop import ClosedLoopConfig, run_closed_loop
+    from tal_control.motion.generator import MotionParameters
     from tal_core.robot_description import load_robot_description
     from tal_core.robot_model import RobotModel
     from tal_core.terrain import load_course
@@ -134,7 +140,9 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
     config = ClosedLoopConfig(name=run.name, course=course, gait="trot",
                               commands=((0.0, 0.0, 0.0, 0.0), (START_S, run.speed_mps, 0.0, 0.0)),
                               duration_s=run.duration_s if max_sim_s is None else min(run.duration_s, max_sim_s),
-                              initial_xy=(run.initial_x_m, 0.0), progress=progress)
+                              initial_xy=(run.initial_x_m, 0.0), progress=progress,
+                              contact_feedback=run.contact_feedback,
+                              motion=MotionParameters(touchdown_depth_m=run.touchdown_depth_m))
     started = time.perf_counter()
     log = run_closed_loop(config, hook=loop)
     wall = time.perf_counter() - started
@@ -202,8 +210,9 @@ HEADER = ("| run | speed [m/s] | success | x end [m] | leg collisions (LF, RF, L
 def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRunResult]) -> None:
     lines = ["# ViTAL in the closed loop", "",
              "`python -m tal_perception.vital_experiments --out results/vital` (part of `make experiments`). "
-             "HyQ, trot, sWBC on the ground-truth base, lockstep PyBullet; VFA exact, VPA with the CNN at 20 Hz, "
-             "N_h = 2, C_int unless the run says otherwise. Collisions are events (a collision starting): leg = "
+             "HyQ, trot, sWBC on the ground-truth base with the simulator's foot contacts (late touchdowns search "
+             "for the ground), swings ending 2 cm below the foothold; lockstep PyBullet; VFA exact, VPA exact at "
+             "20 Hz, N_h = 2, C_int unless the run says otherwise. Collisions are events (a collision starting): leg = "
              "shin/knee cylinder in the terrain by more than 5 mm; foot = swing foot hitting the terrain.", ""]
     titles = {"speeds": "Stairs (rise 0.1 m, go 0.25 m) at four speeds, VFA + VPA",
               "tbr": "VPA vs TBR on the stairs at 0.2 m/s (3 runs each)",

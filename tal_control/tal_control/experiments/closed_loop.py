@@ -34,6 +34,7 @@ from tal_control.locomotion import (
 )
 from tal_control.map_alignment import HeightmapAligner
 from tal_control.motion.gait import PRESETS, GaitParameters
+from tal_control.motion.generator import MotionParameters
 from tal_control.motion.trunk import TrunkOscillation
 from tal_control.wbc import WbcGains, WbcSettings
 from tal_core.errors import InputError
@@ -80,6 +81,9 @@ class ClosedLoopConfig:
     proprioceptive estimate (IMU with ``imu_noise`` = (gyro [rad/s], accel [m/s^2]) white-noise std per
     physics step, joint states, measured torques), ticking on its own grid and initialised at the true
     start pose, exactly as the state_estimator node does it.
+    contact_feedback: the controller gets the simulator's foot contacts (``LocomotionController.tick``'s
+    foot_contact: a planned stance foot that does not touch searches for the ground and carries no force).
+    motion: the motion generator's parameters (None: defaults).
     """
 
     name: str = "run"
@@ -105,6 +109,8 @@ class ClosedLoopConfig:
     state_estimator: StateEstimatorSettings | None = None
     imu_noise: tuple[float, float] = (0.0, 0.0)
     impedance_min_confidence: float = 0.1
+    contact_feedback: bool = False
+    motion: MotionParameters | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.duration_s) and self.duration_s > 0.0):
@@ -300,7 +306,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
             f"{settings.control_period_s} s differs from the control period "
             f"{config.physics_dt_s * config.control_decimation} s"
         )
-    controller = LocomotionController(model, gait, gains=config.gains, settings=settings)
+    controller = LocomotionController(model, gait, gains=config.gains, settings=settings, motion=config.motion)
     course = config.course if isinstance(config.course, Course) else load_course(config.course)
     sim = Simulation(
         description,
@@ -370,9 +376,11 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                     estimated.impedance = legs_from_impedance_arrays(
                         tce_k, tce_d, np.array([e.valid for e in estimates]),
                         np.array([normal_fn(*c.position_m[:2]) for c in sim.foot_contacts()]))
+                touching = (np.array([c.in_contact for c in sim.foot_contacts()], dtype=bool)
+                            if config.contact_feedback else None)
                 out = controller.tick(
                     t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd, control_height_fn,
-                    normal_fn, impedance=impedance,
+                    normal_fn, impedance=impedance, foot_contact=touching,
                 )
                 if aligner is not None:
                     aligner.update(t, out.measured.foot_positions, out.targets.load_factor, radius, height_fn)

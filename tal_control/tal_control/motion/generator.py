@@ -46,20 +46,25 @@ class MotionParameters:
     foothold's distance from the hip at touchdown (None: 0.4 x nominal hip-to-foot height).
     retarget_until_progress [-]: nominal footholds stop following the velocity after this swing progress.
     retarget_threshold_m [m]: smaller foothold changes are ignored. min_external_time_left_s [s]: external
-    footholds for a swing with less time left are ignored. trunk: None builds it from the robot model."""
+    footholds for a swing with less time left are ignored. touchdown_depth_m [m]: the swing ends this far
+    below the foothold's surface, so that a foot whose target height is a little too high (heightmap
+    cells at a stair edge, tracking error) still reaches the ground by the planned touchdown instead of
+    hovering into its stance. trunk: None builds it from the robot model."""
 
     k_feedback: float = DEFAULT_K_FEEDBACK
     max_foothold_offset_m: float | None = None
     retarget_until_progress: float = 0.7
     retarget_threshold_m: float = 0.002
     min_external_time_left_s: float = 0.05
+    touchdown_depth_m: float = 0.0
     trunk: TrunkParameters | None = None
 
     def __post_init__(self) -> None:
         checks = {"k_feedback": self.k_feedback >= 0.0,
                   "retarget_threshold_m": self.retarget_threshold_m >= 0.0,
                   "retarget_until_progress": 0.0 <= self.retarget_until_progress <= 1.0,
-                  "min_external_time_left_s": self.min_external_time_left_s >= 0.0}
+                  "min_external_time_left_s": self.min_external_time_left_s >= 0.0,
+                  "touchdown_depth_m": 0.0 <= self.touchdown_depth_m <= 0.1}
         if self.max_foothold_offset_m is not None:
             checks["max_foothold_offset_m"] = self.max_foothold_offset_m > 0.0
         for name, ok in checks.items():
@@ -232,6 +237,18 @@ class MotionGenerator:
         self._pending[leg] = (int(step_count), point)
         return True
 
+    def anchor_stance_foot(self, leg: Leg | int, xyz: Sequence[float]) -> None:
+        """Move ``leg``'s stance anchor (touchdown sample) to ``xyz`` [m] (world): where the foot touched
+        after a late touchdown (``TouchdownSearch``), instead of where it hovered at the planned one."""
+        point = np.asarray(xyz, dtype=float).reshape(-1)
+        if point.shape != (3,) or not np.all(np.isfinite(point)):
+            raise InputError(f"anchor_stance_foot: xyz must be 3 finite values [m], got {xyz!r}")
+        try:
+            leg = Leg(int(leg))
+        except ValueError:
+            raise InputError(f"anchor_stance_foot: unknown leg {leg!r}") from None
+        self._touchdown[leg] = point
+
     # --- the tick ---
     def update(self, t_s: float, measured: MeasuredState, cmd_vel: Sequence[float],
                terrain_height_fn: HeightFunction | None = None, *,
@@ -314,7 +331,7 @@ class MotionGenerator:
     def _swing_feet(self, phase: GaitPhase, measured: MeasuredState, nominal: np.ndarray,
                     terrain_height_fn: HeightFunction | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Start, re-plan and sample the swing trajectories; stance feet rest at their touchdown."""
-        lift = np.array([0.0, 0.0, self.foot_radius_m])
+        lift = np.array([0.0, 0.0, self.foot_radius_m - self.params.touchdown_depth_m])
         positions, velocities, accelerations = self._touchdown.copy(), np.zeros((4, 3)), np.zeros((4, 3))
         for leg in LEGS:
             if not phase.swing[leg]:
