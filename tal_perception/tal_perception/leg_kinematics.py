@@ -180,7 +180,7 @@ class LegKinematics:
         precomputed per leg (``_IkConstants``), which keeps the per-call overhead low.
         """
         c = self._constants[leg]
-        solution = _solve(c, x, y, z)
+        solution = _solve(c, *_haa_frame(c, x, y, z))
         reachable = solution.reachable
         origins = solution.origins()
         knee = np.empty((3, reachable.shape[0]))  # (3, N), returned transposed
@@ -198,7 +198,7 @@ class LegKinematics:
         return IkResult(joints=joints, reachable=reachable, within_limits=solution.within, knee_xyz=knee, hfe_xyz=hfe)
 
     def within_limits_xyz(
-        self, leg: Leg, x: FloatArray, y: FloatArray, z: FloatArray
+        self, leg: Leg, x: FloatArray, y: FloatArray, z: FloatArray, cells: NDArray[np.intp] | None = None
     ) -> tuple[BoolArray, JointOrigins]:
         """Joint-limit check of foot positions given as three (N,) arrays [m], base frame, and the HFE and
         KFE origins of the M configurations within the limits only (in batch order).
@@ -206,8 +206,11 @@ class LegKinematics:
         Same numbers as ``inverse_xyz`` (same operations, element by element), for callers that only
         look at feasible legs (the VPA's leg collision): the joint origins of the rejected targets are
         never built, and their base-frame rows are built one at a time, on demand (``JointOrigins``).
+        With ``cells`` (N,), x and y are per-cell arrays (C,) and target k is (x[cells[k]], y[cells[k]],
+        z[k]): the x and y terms of the change to the HAA frame are then summed once per cell (many
+        targets share a cell: the VPA's hip heights).
         """
-        solution = _solve(self._constants[leg], x, y, z)
+        solution = _solve(self._constants[leg], *_haa_frame(self._constants[leg], x, y, z, cells))
         return solution.within, solution.origins(np.flatnonzero(solution.within))
 
 
@@ -264,17 +267,38 @@ class _IkSolution:
         return JointOrigins(c, knee_x, knee_e2, knee_w, hfe_e2, hfe_w)
 
 
-def _solve(c: _IkConstants, x: FloatArray, y: FloatArray, z: FloatArray) -> _IkSolution:
-    """Closed-form IK (nominal branches) of foot targets (N,) x, y, z [m], base frame: joint cosines and
-    sines, reachability (with the reach margin) and the joint-limit check (with the limit margin)."""
-    finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
-    rx, ry, rz = x - c.h[0], y - c.h[1], z - c.h[2]
-    if not finite.all():
-        rx, ry, rz = (np.where(finite, v, 0.0) for v in (rx, ry, rz))
+def _haa_frame(
+    c: _IkConstants, x: FloatArray, y: FloatArray, z: FloatArray, cells: NDArray[np.intp] | None = None
+) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
+    """Foot targets [m] (base frame) relative to the HAA origin, along u, e2 and w: (finite, X, Y, W),
+    each (N,); non-finite targets are moved to the origin (``finite`` False). With ``cells`` see
+    ``LegKinematics.within_limits_xyz`` (X, Y, W of finite targets unchanged: same sums, same order)."""
     u, e2, wa = c.u, c.e2, c.w
-    x_t = u[0] * rx + u[1] * ry + u[2] * rz
-    y_t = e2[0] * rx + e2[1] * ry + e2[2] * rz
-    w_t = wa[0] * rx + wa[1] * ry + wa[2] * rz
+    if cells is None:
+        finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        rx, ry, rz = x - c.h[0], y - c.h[1], z - c.h[2]
+        if not finite.all():
+            rx, ry, rz = (np.where(finite, v, 0.0) for v in (rx, ry, rz))
+        x_t = u[0] * rx + u[1] * ry + u[2] * rz
+        y_t = e2[0] * rx + e2[1] * ry + e2[2] * rz
+        w_t = wa[0] * rx + wa[1] * ry + wa[2] * rz
+        return finite, x_t, y_t, w_t
+    finite_xy = np.isfinite(x) & np.isfinite(y)  # (C,)
+    rx, ry = np.where(finite_xy, x - c.h[0], 0.0), np.where(finite_xy, y - c.h[1], 0.0)
+    finite = finite_xy[cells] & np.isfinite(z)
+    rz = z - c.h[2]
+    if not finite.all():
+        rz = np.where(finite, rz, 0.0)
+    x_t = (u[0] * rx + u[1] * ry)[cells] + u[2] * rz
+    y_t = (e2[0] * rx + e2[1] * ry)[cells] + e2[2] * rz
+    w_t = (wa[0] * rx + wa[1] * ry)[cells] + wa[2] * rz
+    return finite, x_t, y_t, w_t
+
+
+def _solve(c: _IkConstants, finite: BoolArray, x_t: FloatArray, y_t: FloatArray, w_t: FloatArray) -> _IkSolution:
+    """Closed-form IK (nominal branches) of foot targets (N,) given in the HAA frame (``_haa_frame``):
+    joint cosines and sines, reachability (with the reach margin) and the joint-limit check (with the
+    limit margin)."""
     d = c.d
     rho_sq = w_t * w_t + y_t * y_t
     y_p = np.sqrt(np.maximum(rho_sq - d * d, 0.0))

@@ -208,8 +208,8 @@ class PoseEvaluator:
         by = float(g.haa_origin[1] - instant.hip[1])
         bz_height = float(g.haa_origin[2]) - (prep.inp.hip_height_m + hip_heights)  # (H',)
         bz = bz_height[pair_h]
-        x, y, z = (instant.x + bx)[pair_c], (instant.y + by)[pair_c], instant.z[pair_c] + bz
-        within, origins = ev.kinematics.within_limits_xyz(leg, x, y, z)
+        z = instant.z[pair_c] + bz
+        within, origins = ev.kinematics.within_limits_xyz(leg, instant.x + bx, instant.y + by, z, cells=pair_c)
         good = within  # becomes within & clear below
         idx = np.flatnonzero(within)
         if idx.size:
@@ -218,8 +218,8 @@ class PoseEvaluator:
             passed = np.zeros(hip_heights.size, dtype=bool)
             passed[pair_h[good]] = True
             return (flat & passed[:, None]).reshape(ok.shape)
-        result = np.zeros_like(flat)
-        result[pair_h[good], pair_c[good]] = True
+        result = flat.copy()
+        result[flat] = good  # np.nonzero's pairs are in the order of the boolean mask (C order)
         return result.reshape(ok.shape)
 
     def _leg_clear(
@@ -237,10 +237,10 @@ class PoseEvaluator:
         # looking anything up (unknown cells count as the highest known, see fec_grid). A point
         # a + (b - a) f is monotonic in f in floating point too (each rounding is), so the lowest point
         # of a segment is one of its two end samples: 4 candidates instead of every sample.
-        ends = [hfe_z + (knee_z - hfe_z) * f for f in (thigh_f[0], thigh_f[-1])]
-        ends += [knee_z + (foot_z - knee_z) * f for f in (shin_f[0], shin_f[-1])]
-        lowest_end = np.minimum(np.minimum(ends[0] - lift, ends[1] - lift), np.minimum(ends[2] - lift, ends[3] - lift))
-        clear = lowest_end >= self._patch_top(prep)
+        # (min(p) - lift is the min of p - lift exactly, as rounding is monotonic.)
+        ends = [_segment_sample(hfe_z, knee_z, f) for f in (thigh_f[0], thigh_f[-1])]
+        ends += [_segment_sample(knee_z, foot_z, f) for f in (shin_f[0], shin_f[-1])]
+        clear = np.minimum(np.minimum(ends[0], ends[1]), np.minimum(ends[2], ends[3])) - lift >= self._patch_top(prep)
         check = np.flatnonzero(~clear)
         if check.size:
             b = (bx, by, bz[check])
@@ -266,6 +266,12 @@ class _Instant:
     z: FloatArray
     hip: FloatArray
     uniform: bool
+
+
+def _segment_sample(start: FloatArray, end: FloatArray, fraction: float) -> FloatArray:
+    """start + (end - start) * fraction [m], as the FEC samples a leg segment; fraction 0 gives start
+    itself without arithmetic (the same value)."""
+    return start if fraction == 0.0 else start + (end - start) * fraction
 
 
 def _drop_empty(ok: BoolArray, rows: NDArray[np.intp]) -> tuple[BoolArray, NDArray[np.intp]]:

@@ -109,6 +109,17 @@ def test_within_limits_xyz_gives_the_inverse_numbers_of_the_feasible_targets(
         np.testing.assert_array_equal(origins.hfe(axis), full.hfe_xyz[axis][within])
     some = np.array([0, 3, 5])
     np.testing.assert_array_equal(origins.knee(2, some), full.knee_xyz[2][within][some])
+    # Per-cell x, y shared by several targets (the VPA's hip heights): the same numbers again.
+    cells = rng.integers(0, 300, x.size)
+    x_cells, y_cells = x[:300].copy(), y[:300].copy()
+    x, y = x_cells[cells], y_cells[cells]
+    full = kinematics.inverse_xyz(leg, x, y, z)
+    within, origins = kinematics.within_limits_xyz(leg, x_cells, y_cells, z, cells=cells)
+    np.testing.assert_array_equal(within, full.within_limits)
+    assert 0 < within.sum() < within.size
+    for axis in range(3):
+        np.testing.assert_array_equal(origins.knee(axis), full.knee_xyz[axis][within])
+        np.testing.assert_array_equal(origins.hfe(axis), full.hfe_xyz[axis][within])
 
 
 def test_bad_input_is_rejected(model: RobotModel, kinematics: LegKinematics) -> None:
