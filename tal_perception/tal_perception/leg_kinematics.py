@@ -180,64 +180,157 @@ class LegKinematics:
         precomputed per leg (``_IkConstants``), which keeps the per-call overhead low.
         """
         c = self._constants[leg]
-        finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
-        rx, ry, rz = x - c.h[0], y - c.h[1], z - c.h[2]
-        if not finite.all():
-            rx, ry, rz = (np.where(finite, v, 0.0) for v in (rx, ry, rz))
-        u, e2, wa = c.u, c.e2, c.w
-        x_t = u[0] * rx + u[1] * ry + u[2] * rz
-        y_t = e2[0] * rx + e2[1] * ry + e2[2] * rz
-        w_t = wa[0] * rx + wa[1] * ry + wa[2] * rz
-        d = c.d
-        rho_sq = w_t * w_t + y_t * y_t
-        y_p = np.sqrt(np.maximum(rho_sq - d * d, 0.0))
-        if c.hip_branch < 0.0:
-            y_p = -y_p
-        # HAA angle: from (d, y_p) (foot in the unrotated HAA body) to (w_t, y_t), both of norm rho.
-        inv_rho_sq = 1.0 / np.maximum(rho_sq, 1e-12)
-        cos_haa = (d * w_t + y_p * y_t) * inv_rho_sq
-        sin_haa = (y_p * w_t - d * y_t) * inv_rho_sq
-        # Planar two-link problem from HFE to the foot.
-        tx, ty = x_t - c.hfe_x, y_p - c.hfe_y
-        dist_sq = tx * tx + ty * ty
-        cos_gamma = np.clip((dist_sq - c.l_sq_sum) * c.inv_2l1l2, -1.0, 1.0)
-        sin_gamma = np.sqrt(1.0 - cos_gamma * cos_gamma)
-        if c.knee_branch < 0.0:
-            sin_gamma = -sin_gamma
-        # The shin, rotated by the knee, is the thigh direction rotated by gamma and scaled to l2.
-        sx = c.l2_ux * cos_gamma - c.l2_uy * sin_gamma
-        sy = c.l2_ux * sin_gamma + c.l2_uy * cos_gamma
-        rx2, ry2 = sx + c.thigh[0], sy + c.thigh[1]  # HFE -> foot at theta1 = 0
-        inv_dist_sq = 1.0 / np.maximum(dist_sq, 1e-12)
-        cos_1 = (rx2 * tx + ry2 * ty) * inv_dist_sq
-        sin_1 = (rx2 * ty - ry2 * tx) * inv_dist_sq
-        cos_2 = (c.shin[0] * sx + c.shin[1] * sy) * c.inv_l2_sq  # KFE rotation: shin -> rotated shin
-        sin_2 = (c.shin[0] * sy - c.shin[1] * sx) * (c.inv_l2_sq * c.kfe_sign)
-        cosines, sines = (cos_haa, cos_1, cos_2), (sin_haa, sin_1, sin_2)
+        solution = _solve(c, *_haa_frame(c, x, y, z))
+        reachable = solution.reachable
+        origins = solution.origins()
+        knee = np.empty((3, reachable.shape[0]))  # (3, N), returned transposed
+        hfe = np.empty((3, reachable.shape[0]))
+        for i in range(3):
+            knee[i] = origins.knee(i)
+            hfe[i] = origins.hfe(i)
+        if not reachable.all():
+            knee[:, ~reachable] = np.nan
+            hfe[:, ~reachable] = np.nan
+        joints = None
+        if with_joints:
+            joints = np.arctan2(np.stack(solution.sines, axis=-1), np.stack(solution.cosines, axis=-1))
+            joints[~reachable] = np.nan
+        return IkResult(joints=joints, reachable=reachable, within_limits=solution.within, knee_xyz=knee, hfe_xyz=hfe)
+
+    def within_limits_xyz(
+        self, leg: Leg, x: FloatArray, y: FloatArray, z: FloatArray, cells: NDArray[np.intp] | None = None
+    ) -> tuple[BoolArray, JointOrigins]:
+        """Joint-limit check of foot positions given as three (N,) arrays [m], base frame, and the HFE and
+        KFE origins of the M configurations within the limits only (in batch order).
+
+        Same numbers as ``inverse_xyz`` (same operations, element by element), for callers that only
+        look at feasible legs (the VPA's leg collision): the joint origins of the rejected targets are
+        never built, and their base-frame rows are built one at a time, on demand (``JointOrigins``).
+        With ``cells`` (N,), x and y are per-cell arrays (C,) and target k is (x[cells[k]], y[cells[k]],
+        z[k]): the x and y terms of the change to the HAA frame are then summed once per cell (many
+        targets share a cell: the VPA's hip heights).
+        """
+        solution = _solve(self._constants[leg], *_haa_frame(self._constants[leg], x, y, z, cells))
+        return solution.within, solution.origins(np.flatnonzero(solution.within))
+
+
+@dataclass(frozen=True, eq=False)
+class JointOrigins:
+    """HFE and KFE joint origins of M leg configurations, kept in HAA-body coordinates [m] (X along the
+    HAA axis u; e2 and w rotated by the HAA joint, see the module docstring).
+
+    ``knee(i)`` / ``hfe(i)`` give base-frame coordinate i (0: x, 1: y, 2: z) [m] of all M origins, or of
+    the entries ``select``; building one row at a time lets a caller skip the rows it does not need.
+    """
+
+    constants: _IkConstants
+    knee_u: FloatArray  # (M,) KFE origin along u
+    knee_e2: FloatArray  # (M,) KFE origin along e2
+    knee_w: FloatArray  # (M,) KFE origin along w
+    hfe_e2: FloatArray  # (M,) HFE origin along e2 (along u it is the constant hfe_x)
+    hfe_w: FloatArray  # (M,) HFE origin along w
+
+    def knee(self, axis: int, select: NDArray[np.intp] | slice = slice(None)) -> FloatArray:
+        """(M,) or (len(select),) base-frame coordinate ``axis`` of the KFE origins [m]."""
+        c, s = self.constants, select
+        return c.h[axis] + self.knee_u[s] * c.u[axis] + self.knee_e2[s] * c.e2[axis] + self.knee_w[s] * c.w[axis]
+
+    def hfe(self, axis: int, select: NDArray[np.intp] | slice = slice(None)) -> FloatArray:
+        """(M,) or (len(select),) base-frame coordinate ``axis`` of the HFE origins [m]."""
+        c, s = self.constants, select
+        return (c.h[axis] + c.hfe_x * c.u[axis]) + self.hfe_e2[s] * c.e2[axis] + self.hfe_w[s] * c.w[axis]
+
+
+@dataclass(frozen=True, eq=False)
+class _IkSolution:
+    """Cosines and sines (N,) of the HAA, HFE and KFE angles of a batch of targets, reachability and
+    the joint-limit check (see ``LegKinematics.inverse_xyz``)."""
+
+    constants: _IkConstants
+    cosines: tuple[FloatArray, FloatArray, FloatArray]
+    sines: tuple[FloatArray, FloatArray, FloatArray]
+    reachable: BoolArray
+    within: BoolArray
+
+    def origins(self, select: NDArray[np.intp] | None = None) -> JointOrigins:
+        """HFE and KFE origins of all configurations, or of the entries ``select``."""
+        c = self.constants
+        (cos_haa, cos_1, _), (sin_haa, sin_1, _) = self.cosines, self.sines
+        if select is not None:
+            cos_haa, sin_haa, cos_1, sin_1 = cos_haa[select], sin_haa[select], cos_1[select], sin_1[select]
         knee_x = c.hfe_x + cos_1 * c.thigh[0] - sin_1 * c.thigh[1]
         knee_y = c.hfe_y + sin_1 * c.thigh[0] + cos_1 * c.thigh[1]
         knee_e2 = knee_y * cos_haa - c.knee_w * sin_haa
         knee_w = knee_y * sin_haa + c.knee_w * cos_haa
         hfe_e2 = c.hfe_y * cos_haa - c.hfe_w * sin_haa
         hfe_w = c.hfe_y * sin_haa + c.hfe_w * cos_haa
-        knee = np.empty((3, x_t.shape[0]))  # (3, N), returned transposed
-        hfe = np.empty((3, x_t.shape[0]))
-        for i in range(3):
-            knee[i] = c.h[i] + knee_x * u[i] + knee_e2 * e2[i] + knee_w * wa[i]
-            hfe[i] = (c.h[i] + c.hfe_x * u[i]) + hfe_e2 * e2[i] + hfe_w * wa[i]
-        reachable = finite & (rho_sq >= d * d) & (dist_sq <= c.max_dist_sq) & (dist_sq >= c.min_dist_sq)
-        # q in [lower + m, upper - m]  <=>  cos(q - mid) >= cos(half - m): no atan2 needed.
-        within = reachable.copy() if c.limits_nonempty else np.zeros_like(reachable)
-        for i in range(3):
-            within &= cosines[i] * c.cos_mid[i] + sines[i] * c.sin_mid[i] >= c.cos_half[i]
-        if not reachable.all():
-            knee[:, ~reachable] = np.nan
-            hfe[:, ~reachable] = np.nan
-        joints = None
-        if with_joints:
-            joints = np.arctan2(np.stack(sines, axis=-1), np.stack(cosines, axis=-1))
-            joints[~reachable] = np.nan
-        return IkResult(joints=joints, reachable=reachable, within_limits=within, knee_xyz=knee, hfe_xyz=hfe)
+        return JointOrigins(c, knee_x, knee_e2, knee_w, hfe_e2, hfe_w)
+
+
+def _haa_frame(
+    c: _IkConstants, x: FloatArray, y: FloatArray, z: FloatArray, cells: NDArray[np.intp] | None = None
+) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
+    """Foot targets [m] (base frame) relative to the HAA origin, along u, e2 and w: (finite, X, Y, W),
+    each (N,); non-finite targets are moved to the origin (``finite`` False). With ``cells`` see
+    ``LegKinematics.within_limits_xyz`` (X, Y, W of finite targets unchanged: same sums, same order)."""
+    u, e2, wa = c.u, c.e2, c.w
+    if cells is None:
+        finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        rx, ry, rz = x - c.h[0], y - c.h[1], z - c.h[2]
+        if not finite.all():
+            rx, ry, rz = (np.where(finite, v, 0.0) for v in (rx, ry, rz))
+        x_t = u[0] * rx + u[1] * ry + u[2] * rz
+        y_t = e2[0] * rx + e2[1] * ry + e2[2] * rz
+        w_t = wa[0] * rx + wa[1] * ry + wa[2] * rz
+        return finite, x_t, y_t, w_t
+    finite_xy = np.isfinite(x) & np.isfinite(y)  # (C,)
+    rx, ry = np.where(finite_xy, x - c.h[0], 0.0), np.where(finite_xy, y - c.h[1], 0.0)
+    finite = finite_xy[cells] & np.isfinite(z)
+    rz = z - c.h[2]
+    if not finite.all():
+        rz = np.where(finite, rz, 0.0)
+    x_t = (u[0] * rx + u[1] * ry)[cells] + u[2] * rz
+    y_t = (e2[0] * rx + e2[1] * ry)[cells] + e2[2] * rz
+    w_t = (wa[0] * rx + wa[1] * ry)[cells] + wa[2] * rz
+    return finite, x_t, y_t, w_t
+
+
+def _solve(c: _IkConstants, finite: BoolArray, x_t: FloatArray, y_t: FloatArray, w_t: FloatArray) -> _IkSolution:
+    """Closed-form IK (nominal branches) of foot targets (N,) given in the HAA frame (``_haa_frame``):
+    joint cosines and sines, reachability (with the reach margin) and the joint-limit check (with the
+    limit margin)."""
+    d = c.d
+    rho_sq = w_t * w_t + y_t * y_t
+    y_p = np.sqrt(np.maximum(rho_sq - d * d, 0.0))
+    if c.hip_branch < 0.0:
+        y_p = -y_p
+    # HAA angle: from (d, y_p) (foot in the unrotated HAA body) to (w_t, y_t), both of norm rho.
+    inv_rho_sq = 1.0 / np.maximum(rho_sq, 1e-12)
+    cos_haa = (d * w_t + y_p * y_t) * inv_rho_sq
+    sin_haa = (y_p * w_t - d * y_t) * inv_rho_sq
+    # Planar two-link problem from HFE to the foot.
+    tx, ty = x_t - c.hfe_x, y_p - c.hfe_y
+    dist_sq = tx * tx + ty * ty
+    cos_gamma = np.clip((dist_sq - c.l_sq_sum) * c.inv_2l1l2, -1.0, 1.0)
+    sin_gamma = np.sqrt(1.0 - cos_gamma * cos_gamma)
+    if c.knee_branch < 0.0:
+        sin_gamma = -sin_gamma
+    # The shin, rotated by the knee, is the thigh direction rotated by gamma and scaled to l2.
+    sx = c.l2_ux * cos_gamma - c.l2_uy * sin_gamma
+    sy = c.l2_ux * sin_gamma + c.l2_uy * cos_gamma
+    rx2, ry2 = sx + c.thigh[0], sy + c.thigh[1]  # HFE -> foot at theta1 = 0
+    inv_dist_sq = 1.0 / np.maximum(dist_sq, 1e-12)
+    cos_1 = (rx2 * tx + ry2 * ty) * inv_dist_sq
+    sin_1 = (rx2 * ty - ry2 * tx) * inv_dist_sq
+    cos_2 = (c.shin[0] * sx + c.shin[1] * sy) * c.inv_l2_sq  # KFE rotation: shin -> rotated shin
+    sin_2 = (c.shin[0] * sy - c.shin[1] * sx) * (c.inv_l2_sq * c.kfe_sign)
+    cosines, sines = (cos_haa, cos_1, cos_2), (sin_haa, sin_1, sin_2)
+    reachable = finite & (rho_sq >= d * d) & (dist_sq <= c.max_dist_sq) & (dist_sq >= c.min_dist_sq)
+    # q in [lower + m, upper - m]  <=>  cos(q - mid) >= cos(half - m): no atan2 needed.
+    within = reachable.copy() if c.limits_nonempty else np.zeros_like(reachable)
+    for i in range(3):
+        within &= cosines[i] * c.cos_mid[i] + sines[i] * c.sin_mid[i] >= c.cos_half[i]
+    return _IkSolution(c, cosines, sines, reachable, within)
 
 
 @dataclass(frozen=True)

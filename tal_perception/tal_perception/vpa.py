@@ -23,6 +23,7 @@ from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import ThreadpoolController
 
 from tal_core.heightmap import HeightMapGrid
 from tal_core.legs import LEGS, Leg
@@ -119,6 +120,12 @@ class PoseAdapter:
         if nsf_model is not None and hasattr(nsf_model, "check"):
             nsf_model.check(self.settings.rbf_count, fec.patch_cells)
         self.default_relative = np.array([model.nominal_base_height_m, 0.0, 0.0])
+        # The update is single-threaded numpy; the optimiser's BLAS/LAPACK calls are tiny (6 variables)
+        # and gain nothing from OpenBLAS threads, whose workers busy-wait after each call and so take
+        # the update's core on a loaded machine (one L-BFGS-B solve: 11.6 ms with 2 BLAS threads, 1.0 ms
+        # with 1, while another job kept one of 2 cores busy). Limited during ``update`` only; the
+        # results do not depend on it.
+        self._blas = ThreadpoolController()
         self._previous_world: FloatArray | None = None  # last output pose (world height, roll, pitch)
         self._reference_m: float | None = None  # last body reference [m] world z
 
@@ -148,7 +155,8 @@ class PoseAdapter:
             return self._hold_default(VpaStatus.NO_MAP, base)
         if map_age_s > self.settings.max_map_age_s:
             return self._hold_default(VpaStatus.STALE_MAP, base)
-        return self._adapt(grid, base, float(yaw), twist_h, gait)
+        with self._blas.limit(limits=1, user_api="blas"):
+            return self._adapt(grid, base, float(yaw), twist_h, gait)
 
     # -- stages ----------------------------------------------------------------------------------------
     def map_centres(self, base: FloatArray, yaw: float, twist: FloatArray) -> tuple[FloatArray, float]:

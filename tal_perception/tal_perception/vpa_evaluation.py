@@ -13,8 +13,12 @@ Only kinematic feasibility (KF) and leg collision (LC) depend on z_h. They are e
 set of (height, cell) pairs, one instant at a time: a cell can only count if every cell within the
 uncertainty margin is safe, so after each instant only the cells within the margin of a still possible
 safe candidate are kept (dilate(erode(ok))). Instants whose foot position is the same for every cell
-(the lift-off sample) are evaluated once per height. Per instant, KF & LC equal the FEC's (an
-unreachable foot is never within the limits, so ``clear | ~reachable`` reduces to ``clear``).
+(the lift-off sample) are evaluated once per height, and a height left without any possible safe cell
+is dropped from the stack. Per instant, KF & LC equal the FEC's (an unreachable foot is never within
+the limits, so ``clear | ~reachable`` reduces to ``clear``); the knee and hip joint positions are only
+built for the legs within the joint limits, and the terrain is only looked up for the legs whose lowest
+segment end reaches below the patch's highest terrain. Every number is computed with the same
+floating-point operations as the FEC's, so the counts are identical, not merely close.
 
 The result equals ``FootholdEvaluator.evaluate(...).safe_count`` at each height (tested);
 ``reference_counts`` is that slow loop.
@@ -33,6 +37,7 @@ from tal_perception.errors import PerceptionInputError
 from tal_perception.fec import FootholdEvaluator, PreparedPatch
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
+from tal_perception.leg_kinematics import JointOrigins
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -78,10 +83,18 @@ class PoseEvaluator:
         self._shape = (n, n)
 
     # -- stacked morphology over heights --------------------------------------------------------------
+    def _padded(self, ok: BoolArray, outside: bool) -> BoolArray:
+        """(H, rows + 2k, cols + 2k) copy of ``ok`` framed by ``outside`` (cheaper than np.pad, which
+        costs more than the morphology itself on these small stacks)."""
+        k, (rows, cols) = self._margin_pad, self._shape
+        padded = np.full((ok.shape[0], rows + 2 * k, cols + 2 * k), outside)
+        padded[:, k : k + rows, k : k + cols] = ok
+        return padded
+
     def _erode(self, ok: BoolArray) -> BoolArray:
         """Erosion of a (H, rows, cols) stack with the margin disc, outside the patch ignored (= safe)."""
         k, (rows, cols) = self._margin_pad, self._shape
-        padded = np.pad(ok, ((0, 0), (k, k), (k, k)), constant_values=True)
+        padded = self._padded(ok, True)
         result = ok.copy()
         for di, dj in self._margin_offsets:
             result &= padded[:, k + di : k + di + rows, k + dj : k + dj + cols]
@@ -89,7 +102,7 @@ class PoseEvaluator:
 
     def _dilate(self, ok: BoolArray) -> BoolArray:
         k, (rows, cols) = self._margin_pad, self._shape
-        padded = np.pad(ok, ((0, 0), (k, k), (k, k)), constant_values=False)
+        padded = self._padded(ok, False)
         result = ok.copy()
         for di, dj in self._margin_offsets:
             result |= padded[:, k + di : k + di + rows, k + dj : k + dj + cols]
@@ -113,14 +126,20 @@ class PoseEvaluator:
         base = np.zeros(heights.size, dtype=bool)
         base[known] = ev._foot_trajectory_ok(prep, known)  # noqa: SLF001 - same package, height independent
         base &= ev.roughness_ok(prep)
-        ok = np.broadcast_to(base.reshape(self._shape), (self.hip_heights.size, *self._shape)).copy()
-        ok = self._dilate(self._erode(ok)) & ok  # cells that can matter for the count at all
+        # The stack holds one layer per hip height still in play (``rows``: their indices): a height
+        # without any possible safe cell left is dropped, the remaining instants never look at it again.
+        layer = base.reshape(1, *self._shape)
+        layer = self._dilate(self._erode(layer)) & layer  # cells that can matter for the count at all
+        ok = np.broadcast_to(layer, (self.hip_heights.size, *self._shape)).copy()
+        rows = np.arange(self.hip_heights.size)
         for instant in self._instants(prep):
-            if not ok.any():
+            ok, rows = _drop_empty(ok, rows)
+            if rows.size == 0:
                 break
-            ok = self._apply_instant(prep, instant, ok)
+            ok = self._apply_instant(prep, instant, ok, self.hip_heights[rows])
             ok = self._dilate(self._erode(ok)) & ok
-        nsf = self._erode(ok).reshape(self.hip_heights.size, -1).sum(axis=1).astype(np.int64)
+        ok, rows = _drop_empty(ok, rows)
+        nsf[rows] = self._erode(ok).sum(axis=(1, 2))
         return PoseEvaluation(inp.leg, self.hip_heights.copy(), nsf, reference, heights.size)
 
     def reference_counts(self, leg: Leg, heights: FloatArray, twist: FloatArray, gait: GaitTiming) -> NDArray:
@@ -150,9 +169,9 @@ class PoseEvaluator:
         """[m] highest value of the leg-radius max-filtered terrain (the LC look-up table)."""
         return float(np.max(prep.leg_terrain.flat[:-1]))
 
-    def _instants(self, prep: PreparedPatch) -> list[tuple[FloatArray, FloatArray, FloatArray, FloatArray]]:
-        """Foot centres (x, y, z), each (cells,), and the hip xy (2,) [m] of every KF/LC instant, patch
-        frame: touchdown and next lift-off first (they reject most), then the swing samples."""
+    def _instants(self, prep: PreparedPatch) -> list[_Instant]:
+        """The KF/LC instants, patch frame: touchdown and next lift-off first (they reject most), then the
+        swing samples; instants with one foot point for every cell first of all (see ``_Instant``)."""
         ev = self.evaluator
         gait = prep.inp.gait
         every = np.arange(prep.cand_x.size)
@@ -161,62 +180,104 @@ class PoseEvaluator:
         hips = prep.hip_touchdown + prep.hip_velocity * np.concatenate(
             [[0.0, gait.stance_duration_s], prep.swing_times - gait.swing_duration_s]
         )[:, None]
-        instants = [(prep.cand_x, prep.cand_y, td_z, hips[0]), (prep.cand_x, prep.cand_y, td_z, hips[1])]
-        instants += [(sx[i], sy[i], sz[i], hips[2 + i]) for i in range(sx.shape[0])]
+        points = [(prep.cand_x, prep.cand_y, td_z), (prep.cand_x, prep.cand_y, td_z)]
+        points += [(sx[i], sy[i], sz[i]) for i in range(sx.shape[0])]
+        instants = [_Instant(x, y, z, hip, _same_point(x, y, z)) for (x, y, z), hip in zip(points, hips)]
         # Instants with one foot point for all cells (the swing start) cost one IK per height and can
         # remove whole heights: they go first (stable sort keeps the order of the others).
-        return sorted(instants, key=lambda instant: not _same_point(instant[0], instant[1], instant[2]))
+        return sorted(instants, key=lambda instant: not instant.uniform)
 
     def _apply_instant(
-        self, prep: PreparedPatch, instant: tuple[FloatArray, FloatArray, FloatArray, FloatArray], ok: BoolArray
+        self, prep: PreparedPatch, instant: _Instant, ok: BoolArray, hip_heights: FloatArray
     ) -> BoolArray:
-        """ok & (IK within limits and leg clear of the terrain at this instant) for the alive pairs."""
-        fx, fy, fz, hip = instant
+        """ok & (IK within limits and leg clear of the terrain at this instant) for the alive pairs of the
+        stack ok (H', rows, cols) whose layers are at ``hip_heights`` (H',) [m] above the reference."""
         ev = self.evaluator
-        g = ev.kinematics.geometry[prep.inp.leg]
-        s = ev.settings
+        leg = prep.inp.leg
+        g = ev.kinematics.geometry[leg]
         flat = ok.reshape(ok.shape[0], -1)
-        alive_h, alive_c = np.nonzero(flat)
-        uniform = _same_point(fx, fy, fz)
-        if uniform:  # same foot point for every cell (swing start): once per alive height
-            first = int(np.flatnonzero(~np.isnan(fz))[0])
-            heights_alive = np.unique(alive_h)
-            pair_h, pair_c = heights_alive, np.full(heights_alive.size, first)
+        if instant.uniform:  # same foot point for every cell (swing start): once per alive height
+            pair_h = np.flatnonzero(flat.any(axis=1))
+            pair_c = np.full(pair_h.size, int(np.flatnonzero(~np.isnan(instant.z))[0]))
         else:
-            pair_h, pair_c = alive_h, alive_c
-        # patch frame -> base frame (level base at hip height z_h): subtract the hip, add the HAA origin
-        bx = float(g.haa_origin[0] - hip[0])
-        by = float(g.haa_origin[1] - hip[1])
-        bz = float(g.haa_origin[2]) - (prep.inp.hip_height_m + self.hip_heights[pair_h])
-        px, py, pz = fx[pair_c], fy[pair_c], fz[pair_c]
-        ik = ev.kinematics.inverse_xyz(prep.inp.leg, px + bx, py + by, pz + bz)
-        good = ik.within_limits
-        idx = np.flatnonzero(good)
+            pair_h, pair_c = np.nonzero(flat)
+        # patch frame -> base frame (level base at hip height z_h): subtract the hip, add the HAA origin.
+        # x and y only depend on the cell, z only on the cell and the height: both sums are made on the
+        # small per-cell / per-height arrays and gathered (the same sums, element by element).
+        bx = float(g.haa_origin[0] - instant.hip[0])
+        by = float(g.haa_origin[1] - instant.hip[1])
+        bz_height = float(g.haa_origin[2]) - (prep.inp.hip_height_m + hip_heights)  # (H',)
+        bz = bz_height[pair_h]
+        z = instant.z[pair_c] + bz
+        within, origins = ev.kinematics.within_limits_xyz(leg, instant.x + bx, instant.y + by, z, cells=pair_c)
+        good = within  # becomes within & clear below
+        idx = np.flatnonzero(within)
         if idx.size:
-            b = (bx, by, bz[idx])
-            knee = [ik.knee_xyz[i][idx] - b[i] for i in range(3)]
-            hfe = [ik.hfe_xyz[i][idx] - b[i] for i in range(3)]
-            foot = (px[idx], py[idx], pz[idx])
-            thigh_f, shin_f = (f[:, None] for f in ev._segment_fractions[prep.inp.leg])  # noqa: SLF001
-            points = [np.concatenate([hfe[i] + (knee[i] - hfe[i]) * thigh_f, knee[i] + (foot[i] - knee[i]) * shin_f])
-                      for i in range(3)]  # fmt: skip
-            lowest = points[2] - (s.leg_radius_m + s.leg_clearance_m)
-            # Exact shortcut: a leg whose every point is above the patch's highest terrain is clear
-            # without looking anything up (unknown cells count as the highest known, see fec_grid).
-            clear = lowest.min(axis=0) >= self._patch_top(prep)
-            check = np.flatnonzero(~clear)
-            if check.size:
-                terrain = prep.leg_terrain(points[0][:, check], points[1][:, check])
-                clear[check] = (lowest[:, check] >= terrain).all(axis=0)
-            good[idx] = clear
-        result = np.zeros_like(flat)
-        if uniform:
-            passed = np.zeros(self.hip_heights.size, dtype=bool)
+            good[idx] = self._leg_clear(prep, instant, origins, pair_c[idx], bx, by, bz[idx])
+        if instant.uniform:
+            passed = np.zeros(hip_heights.size, dtype=bool)
             passed[pair_h[good]] = True
-            result = flat & passed[:, None]
-        else:
-            result[alive_h[good], alive_c[good]] = True
+            return (flat & passed[:, None]).reshape(ok.shape)
+        result = flat.copy()
+        result[flat] = good  # np.nonzero's pairs are in the order of the boolean mask (C order)
         return result.reshape(ok.shape)
+
+    def _leg_clear(
+        self, prep: PreparedPatch, instant: _Instant, origins: JointOrigins, cells: NDArray[np.intp],
+        bx: float, by: float, bz: FloatArray,
+    ) -> BoolArray:  # fmt: skip
+        """LC of M feasible legs: thigh and shin points (patch frame) clear of the leg-radius max-filtered
+        terrain. origins (M) in the base frame, cells (M,) their foot cells, b* the base -> patch shift."""
+        ev = self.evaluator
+        s = ev.settings
+        thigh_f, shin_f = ev._segment_fractions[prep.inp.leg]  # noqa: SLF001 - same package
+        lift = s.leg_radius_m + s.leg_clearance_m
+        knee_z, hfe_z, foot_z = origins.knee(2) - bz, origins.hfe(2) - bz, instant.z[cells]
+        # Exact shortcut: a leg whose every point is above the patch's highest terrain is clear without
+        # looking anything up (unknown cells count as the highest known, see fec_grid). A point
+        # a + (b - a) f is monotonic in f in floating point too (each rounding is), so the lowest point
+        # of a segment is one of its two end samples: 4 candidates instead of every sample.
+        # (min(p) - lift is the min of p - lift exactly, as rounding is monotonic.)
+        ends = [_segment_sample(hfe_z, knee_z, f) for f in (thigh_f[0], thigh_f[-1])]
+        ends += [_segment_sample(knee_z, foot_z, f) for f in (shin_f[0], shin_f[-1])]
+        clear = np.minimum(np.minimum(ends[0], ends[1]), np.minimum(ends[2], ends[3])) - lift >= self._patch_top(prep)
+        check = np.flatnonzero(~clear)
+        if check.size:
+            b = (bx, by, bz[check])
+            feet = (instant.x[cells[check]], instant.y[cells[check]], foot_z[check])
+            points = []
+            for i in range(3):
+                knee, hfe = origins.knee(i, check) - b[i], origins.hfe(i, check) - b[i]
+                thigh = hfe + (knee - hfe) * thigh_f[:, None]
+                shin = knee + (feet[i] - knee) * shin_f[:, None]
+                points.append(np.concatenate([thigh, shin]))
+            terrain = prep.leg_terrain(points[0], points[1])
+            clear[check] = (points[2] - lift >= terrain).all(axis=0)
+        return clear
+
+
+@dataclass(frozen=True, eq=False)
+class _Instant:
+    """One KF/LC instant, patch frame: foot centres x, y, z (cells,) [m], hip xy (2,) [m], and whether
+    every known cell has the same foot point (the swing start: evaluated once per height)."""
+
+    x: FloatArray
+    y: FloatArray
+    z: FloatArray
+    hip: FloatArray
+    uniform: bool
+
+
+def _segment_sample(start: FloatArray, end: FloatArray, fraction: float) -> FloatArray:
+    """start + (end - start) * fraction [m], as the FEC samples a leg segment; fraction 0 gives start
+    itself without arithmetic (the same value)."""
+    return start if fraction == 0.0 else start + (end - start) * fraction
+
+
+def _drop_empty(ok: BoolArray, rows: NDArray[np.intp]) -> tuple[BoolArray, NDArray[np.intp]]:
+    """The layers of the stack ok (H', rows, cols) that still have a True cell, and their ``rows``."""
+    keep = ok.any(axis=(1, 2))
+    return (ok, rows) if keep.all() else (ok[keep], rows[keep])
 
 
 def _same_point(x: FloatArray, y: FloatArray, z: FloatArray) -> bool:

@@ -89,6 +89,39 @@ def test_margins_shrink_the_workspace(model: RobotModel) -> None:
     assert not (tight & ~loose).any()
 
 
+@pytest.mark.parametrize("leg", LEGS, ids=lambda leg: leg.name)
+def test_within_limits_xyz_gives_the_inverse_numbers_of_the_feasible_targets(
+    model: RobotModel, kinematics: LegKinematics, leg: Leg
+) -> None:
+    """The VPA's lean IK: same limit check and bit-identical joint origins as ``inverse_xyz``, for the
+    targets within the limits only (a mix of feasible, out-of-limit, unreachable and NaN targets)."""
+    rng = np.random.default_rng(4)
+    hip = kinematics.geometry[leg].haa_origin
+    targets = hip + rng.uniform([-0.5, -0.4, -0.9], [0.5, 0.4, 0.1], (2000, 3))
+    targets[::97] = np.nan
+    x, y, z = targets.T
+    full = kinematics.inverse_xyz(leg, x, y, z)
+    within, origins = kinematics.within_limits_xyz(leg, x, y, z)
+    np.testing.assert_array_equal(within, full.within_limits)
+    assert 0 < within.sum() < within.size
+    for axis in range(3):
+        np.testing.assert_array_equal(origins.knee(axis), full.knee_xyz[axis][within])
+        np.testing.assert_array_equal(origins.hfe(axis), full.hfe_xyz[axis][within])
+    some = np.array([0, 3, 5])
+    np.testing.assert_array_equal(origins.knee(2, some), full.knee_xyz[2][within][some])
+    # Per-cell x, y shared by several targets (the VPA's hip heights): the same numbers again.
+    cells = rng.integers(0, 300, x.size)
+    x_cells, y_cells = x[:300].copy(), y[:300].copy()
+    x, y = x_cells[cells], y_cells[cells]
+    full = kinematics.inverse_xyz(leg, x, y, z)
+    within, origins = kinematics.within_limits_xyz(leg, x_cells, y_cells, z, cells=cells)
+    np.testing.assert_array_equal(within, full.within_limits)
+    assert 0 < within.sum() < within.size
+    for axis in range(3):
+        np.testing.assert_array_equal(origins.knee(axis), full.knee_xyz[axis][within])
+        np.testing.assert_array_equal(origins.hfe(axis), full.hfe_xyz[axis][within])
+
+
 def test_bad_input_is_rejected(model: RobotModel, kinematics: LegKinematics) -> None:
     with pytest.raises(PerceptionInputError, match=r"leg LF: foot positions must have shape \(N, 3\), got \(3,\)"):
         kinematics.inverse(Leg.LF, np.zeros(3))

@@ -17,10 +17,12 @@ from tal_perception.fec import FootholdEvaluator
 from tal_perception.rbf import RbfBasis
 from tal_perception.tbr import TerrainBasedReference
 from tal_perception.terrain_samples import random_terrain
+from tal_perception.vfa import extract_patch
 from tal_perception.vpa import PoseAdapter, VpaStatus
 from tal_perception.vpa_dataset import TROT_GAIT
 from tal_perception.vpa_evaluation import PoseEvaluator
 from tal_perception.vpa_optimizer import HipHeightModel, PoseOptimizer, PoseProblem, Solver
+from tal_perception.vpa_scenes import SCENE_KINDS, vpa_scenes
 from tal_perception.vpa_settings import CostKind, VpaSettings
 
 SETTINGS = VpaSettings()
@@ -105,6 +107,31 @@ def test_shared_evaluation_equals_the_fec_at_every_height(
     reference = pose_evaluator.reference_counts(leg, heights, np.array(twist, dtype=float), TROT_GAIT)
     np.testing.assert_array_equal(fast, reference)
     assert fast.max() > 0
+
+
+@pytest.mark.parametrize(("seed", "legs"), [(3, (Leg.LF, Leg.RH)), (4, (Leg.RF, Leg.LH))])
+def test_shared_evaluation_equals_the_fec_on_whole_robot_scene_maps(
+    hyq: RobotModel, evaluator: FootholdEvaluator, pose_evaluator: PoseEvaluator, seed: int, legs: tuple[Leg, ...]
+) -> None:
+    """The leg maps the VPA really evaluates (bench scenes: both horizon stages, yawed, turning): the
+    shortcuts of the shared evaluation (dropped heights, joint origins of feasible legs only, segment
+    ends before the terrain look-up) give exactly the FEC's count at every height."""
+    adapter = PoseAdapter(RobotModel(hyq.description), evaluator=evaluator)
+    fec = evaluator.settings
+    rng = np.random.default_rng(seed)
+    total = 0
+    for scene in vpa_scenes(seed, len(SCENE_KINDS), hyq.nominal_base_height_m):
+        if scene.kind == "flat":
+            continue
+        yaw = float(rng.uniform(-0.5, 0.5))
+        centres, _ = adapter.map_centres(scene.base_position, yaw, scene.twist)
+        stage = int(rng.integers(centres.shape[0]))
+        for leg in legs:
+            heights = extract_patch(scene.grid, centres[stage, leg], yaw, fec.patch_cells, fec.resolution_m)
+            fast = pose_evaluator.evaluate(leg, heights, scene.twist, TROT_GAIT).nsf
+            np.testing.assert_array_equal(fast, pose_evaluator.reference_counts(leg, heights, scene.twist, TROT_GAIT))
+            total += int(fast.sum())
+    assert total > 0
 
 
 def test_unknown_cells_are_unsafe(pose_evaluator: PoseEvaluator) -> None:
