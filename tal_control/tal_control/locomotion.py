@@ -105,7 +105,8 @@ class LocomotionController:
 
         ``foot_contact`` (4,) bool: which feet touch the ground now (None: trust the gait plan). With it, a
         planned stance foot that does not touch is no support: it searches downwards for the ground
-        (``TouchdownSearch``) and carries no planned force.
+        (``TouchdownSearch``) and carries no planned force; a swinging foot that touches late in its swing
+        is a support from then on.
 
         ``impedance`` (c3WBC): per-leg terrain stiffness/damping in the contact frame; None uses the WBC
         settings' defaults. In compliant mode the legs load and unload over T = 4.6 / sqrt(k / m_e)
@@ -133,12 +134,14 @@ class LocomotionController:
         support = None
         if foot_contact is not None:
             support = self.touchdown_search.update(t_s, targets.stance, np.asarray(foot_contact, dtype=bool),
-                                                   *foot, measured.foot_positions)
+                                                   *foot, measured.foot_positions, targets.gait.swing_progress)
             for leg in np.flatnonzero(support.anchored):
                 self.motion.anchor_stance_foot(int(leg), measured.foot_positions[leg])
             touchdown = np.where(support.anchored[:, None], measured.foot_positions, touchdown)
+            touchdown = np.where(support.early[:, None], support.foot_position, touchdown)
             stance = support.supported
-            load_factor = np.where(stance, load_factor, 0.0)
+            # An early touchdown loads as a stance leg's ramp would have by then: fully.
+            load_factor = np.where(support.early, 1.0, np.where(stance, load_factor, 0.0))
             foot = (support.foot_position, support.foot_velocity, support.foot_acceleration)
         refs = WbcReferences(
             com_position=trunk.com_position, com_velocity=trunk.com_velocity,

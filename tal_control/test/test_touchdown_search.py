@@ -84,3 +84,25 @@ def test_controller_plans_no_force_on_a_stance_foot_that_does_not_touch() -> Non
     assert out_fed.support is not None and out_fed.support.searching.tolist() == [False, False, True, False]
     assert out_fed.solution.forces[touching, 2].sum() > 0.9 * model.total_mass_kg * 9.81  # still carried
     assert out_fed.support.foot_velocity[2, 2] < 0.0
+
+
+def test_a_swing_foot_landing_late_in_its_swing_is_held_as_a_support() -> None:
+    search = TouchdownSearch(early_touchdown_progress=0.7)
+    swing = [False, True, True, False]
+    touching = np.array([True, True, True, True])
+    out = search.update(0.0, ~np.array(swing), touching, FEET.copy(), ZEROS, ZEROS, FEET,
+                        swing_progress=np.array([0.0, 0.8, 0.3, 0.0]))
+    # RF (80 % through its swing) landed early; LH (30 %: lift-off or a trip) did not.
+    assert out.early.tolist() == [False, True, False, False]
+    assert out.supported.tolist() == [True, True, False, True]
+    moved = FEET + [0.05, 0.0, -0.01]
+    later = search.update(0.01, ~np.array(swing), touching, moved, ZEROS, ZEROS, moved,
+                          swing_progress=np.array([0.0, 0.85, 0.35, 0.0]))
+    np.testing.assert_allclose(later.foot_position[1], FEET[1])  # held where it landed
+    np.testing.assert_allclose(later.foot_velocity[1], 0.0)
+    lifted = search.update(0.02, ~np.array(swing), np.array([True, False, True, True]), FEET.copy(), ZEROS, ZEROS,
+                           FEET, swing_progress=np.array([0.0, 0.9, 0.4, 0.0]))
+    assert not lifted.early[1] and not lifted.supported[1]  # lost the ground: a swing foot again
+    assert search.early_touchdowns.tolist() == [0, 1, 0, 0]
+    with pytest.raises(MotionConfigError):
+        TouchdownSearch(early_touchdown_progress=0.0)

@@ -9,6 +9,12 @@ keeps such a leg out of the support set and lowers its foot along the surface no
 ``search_speed_mps`` below the point where it should have touched down, by at most ``max_depth_m``, until
 a contact is reported; then the leg becomes a support, anchored where it touched.
 
+The converse, an early touchdown: a swinging foot that touches the ground after ``early_touchdown_progress``
+of its swing (it is coming down onto a step that is higher, or a surface that is nearer, than planned) is a
+support from then on, held where it touched, instead of being pushed on through the ground by the swing
+task while the WBC plans no force for it. Contacts earlier in the swing (lift-off, tripping on an edge)
+stay swing contacts.
+
 Contact flags come from outside: the simulator's contacts in the offline closed loop, the state
 estimator's ``contact_estimate`` in the graph. World frame, [m], [s]; legs LF, RF, LH, RH.
 """
@@ -29,14 +35,16 @@ from tal_core.legs import NUM_LEGS
 class SupportTargets:
     """The legs the WBC may load this tick and the foot references of those it may not.
 
-    supported (4,): planned stance and touching. searching (4,): planned stance, not touching (their
-    foot_position/velocity/acceleration rows are the descent; the other rows are the motion's).
-    anchored (4,): legs that touched after a search this tick (their stance anchor moved to the foot).
+    supported (4,): touching and either planned stance or landed early. searching (4,): planned stance,
+    not touching (their foot_position/velocity/acceleration rows are the descent; the other rows are the
+    motion's). anchored (4,): legs that touched after a search this tick (their stance anchor moved to the
+    foot). early (4,): swinging legs that landed early (supports held where they touched).
     """
 
     supported: np.ndarray
     searching: np.ndarray
     anchored: np.ndarray
+    early: np.ndarray
     foot_position: np.ndarray
     foot_velocity: np.ndarray
     foot_acceleration: np.ndarray
@@ -45,21 +53,29 @@ class SupportTargets:
 class TouchdownSearch:
     """Per-leg state machine (see the module docstring). One ``update`` per control tick."""
 
-    def __init__(self, search_speed_mps: float = 0.2, max_depth_m: float = 0.08) -> None:
+    def __init__(self, search_speed_mps: float = 0.2, max_depth_m: float = 0.08,
+                 early_touchdown_progress: float = 0.7) -> None:
         for name, value in (("search_speed_mps", search_speed_mps), ("max_depth_m", max_depth_m)):
             if not (math.isfinite(value) and value > 0.0):
                 raise MotionConfigError(f"TouchdownSearch: {name} must be > 0, got {value!r}")
+        if not (math.isfinite(early_touchdown_progress) and 0.0 < early_touchdown_progress <= 1.0):
+            raise MotionConfigError(f"TouchdownSearch: early_touchdown_progress must be in (0, 1], "
+                                    f"got {early_touchdown_progress!r}")
         self.search_speed_mps = float(search_speed_mps)
         self.max_depth_m = float(max_depth_m)
+        self.early_touchdown_progress = float(early_touchdown_progress)
+        self._landed = np.full((NUM_LEGS, 3), np.nan)  # [m] where an early touchdown held the foot
         self._start = np.full((NUM_LEGS, 3), np.nan)  # [m] where each search began (nan: not searching)
         self._started_s = np.zeros(NUM_LEGS)           # [s]
         self.searches = np.zeros(NUM_LEGS, dtype=np.int64)  # searches started, per leg (diagnostics)
+        self.early_touchdowns = np.zeros(NUM_LEGS, dtype=np.int64)  # per leg (diagnostics)
 
     def update(self, t_s: float, stance: np.ndarray, contact: np.ndarray, foot_position: np.ndarray,
                foot_velocity: np.ndarray, foot_acceleration: np.ndarray,
-               measured_foot_position: np.ndarray) -> SupportTargets:
+               measured_foot_position: np.ndarray, swing_progress: np.ndarray | None = None) -> SupportTargets:
         """stance (4,): planned stance; contact (4,): touching now; foot_* (4, 3): the motion's foot
-        references; measured_foot_position (4, 3) [m]. Returns the supports and the references to use."""
+        references; measured_foot_position (4, 3) [m]; swing_progress (4,) [0, 1] of the swinging legs
+        (None: no early touchdowns). Returns the supports and the references to use."""
         stance = np.asarray(stance, dtype=bool)
         contact = np.asarray(contact, dtype=bool)
         measured = np.asarray(measured_foot_position, dtype=float)
@@ -85,5 +101,21 @@ class TouchdownSearch:
             position[leg] = self._start[leg] - np.array([0.0, 0.0, min(depth, self.max_depth_m)])
             velocity[leg] = (0.0, 0.0, -self.search_speed_mps if descending else 0.0)
             acceleration[leg] = 0.0
-        return SupportTargets(supported=stance & contact, searching=searching, anchored=anchored,
-                              foot_position=position, foot_velocity=velocity, foot_acceleration=acceleration)
+        early = np.zeros(NUM_LEGS, dtype=bool)
+        if swing_progress is not None:
+            progress = np.asarray(swing_progress, dtype=float).reshape(-1)
+            if progress.shape != (NUM_LEGS,):
+                raise InputError(f"TouchdownSearch.update: swing_progress must have 4 entries, got {progress.shape}")
+            held = np.isfinite(self._landed[:, 0])
+            # Once landed early, a leg stays a support while it touches, until its planned stance begins.
+            early = ~stance & contact & (held | (progress >= self.early_touchdown_progress))
+            for leg in np.flatnonzero(early & ~held):
+                self._landed[leg] = measured[leg]
+                self.early_touchdowns[leg] += 1
+            position[early] = self._landed[early]
+            velocity[early] = 0.0
+            acceleration[early] = 0.0
+        self._landed[~early] = np.nan
+        return SupportTargets(supported=(stance & contact) | early, searching=searching, anchored=anchored,
+                              early=early, foot_position=position, foot_velocity=velocity,
+                              foot_acceleration=acceleration)
