@@ -195,7 +195,7 @@ def save_model(net: VfaNet, path: Path, metadata: dict[str, object] | None = Non
         "format": "tal_perception.vfa_cnn/1",
         "net": {"channels": list(cfg.channels), "hidden": cfg.hidden, "safe_head": cfg.safe_head},
         "encoding": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg.encoding).items()},
-        "state_dict": {k: v.detach().to(torch.float16) for k, v in net.state_dict().items()},
+        "state_dict": {k: v.detach().to(torch.float16).contiguous() for k, v in net.state_dict().items()},
         "metadata": metadata or {},
     }
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -207,18 +207,23 @@ def generate(
     legs: tuple[Leg, ...] = LEGS,
     progress: bool = True,
     description: str = "labelling",
+    start: int = 0,
 ) -> VfaDataset:
-    """``count`` samples per leg in ``legs``, each its own random tuple labelled by the full exact FEC.
+    """``count`` samples per leg in ``legs``, each its own random tuple labelled by the full exact FEC
+    (samples ``start`` .. ``count - 1`` of each leg: a set of ``count`` is the set of ``start``
+    concatenated with this one).
 
     Sample k of leg j uses ``default_rng([seed, j, k])`` (j = the leg's index in LEGS), so a sample does
-    not depend on the count or on which other legs are generated. About 7 ms per sample on this machine.
+    not depend on the count or on which other legs are generated. About 4-9 ms per sample on this machine.
     """
     if isinstance(count, bool) or not isinstance(count, int) or count < 1:
         raise FecConfigError(f"count must be an integer >= 1, got {count!r}")
+    if isinstance(start, bool) or not isinstance(start, int) or not 0 <= start < count:
+        raise FecConfigError(f"start must be an integer in [0, count), got {start!r}")
     s = evaluator.settings
     n = s.patch_cells
     order = search_order(n)
-    jobs = [(leg, k) for k in range(count) for leg in legs]
+    jobs = [(leg, k) for k in range(start, count) for leg in legs]
     total = len(jobs)
     heights = np.empty((total, n, n), np.float32)
     hip = np.empty(total, np.float32)
@@ -270,7 +275,8 @@ def load_or_generate(
     evaluator: FootholdEvaluator, path: Path, seed: int, count: int, description: str = "labelling"
 ) -> VfaDataset:
     """The cached set at ``path`` if it was made with ``seed`` and at least ``count`` samples per leg (its
-    first ``count`` per leg are exactly the set of that size, see ``generate``), else a new one (saved)."""
+    first ``count`` per leg are exactly the set of that size, see ``generate``), else a new one (saved); a
+    smaller cache of the same seed in the same folder is extended rather than relabelled."""
     if path.exists():
         data = VfaDataset.load(path)
         if data.seed == seed and len(data) >= count * len(LEGS):
@@ -278,10 +284,30 @@ def load_or_generate(
             LOG.info("using the cached dataset %s (%d of its %d samples, seed %d)", path, used, len(data), seed)
             return data if len(data) == count * len(LEGS) else data.subset(np.arange(count * len(LEGS)))
         LOG.info("cached %s has another seed or size; regenerating", path)
-    data = generate(evaluator, seed, count, description=description)
+    smaller = _smaller_cache(path, seed, count)
+    if smaller is not None:
+        part = VfaDataset.load(smaller)
+        start = len(part) // len(LEGS)
+        LOG.info("extending the cached dataset %s (%d per leg) to %d per leg", smaller, start, count)
+        data = VfaDataset.concatenate([part, generate(evaluator, seed, count, description=description, start=start)])
+    else:
+        data = generate(evaluator, seed, count, description=description)
     data.save(path)
     LOG.info("saved %s (%d samples, %.1f MB)", path, len(data), path.stat().st_size / 1e6)
     return data
+
+
+def _smaller_cache(path: Path, seed: int, count: int) -> Path | None:
+    """The largest ``<prefix>_seed<seed>_n<m>.npz`` beside ``path`` with m < count, if any (``path`` is named so)."""
+    prefix, sep, _ = path.stem.rpartition(f"_seed{seed}_n")
+    if not sep:
+        return None
+    sizes = []
+    for other in path.parent.glob(f"{prefix}_seed{seed}_n*.npz"):
+        size = other.stem.rsplit("_n", 1)[1]
+        if size.isdigit() and 0 < int(size) < count:
+            sizes.append((int(size), other))
+    return max(sizes)[1] if sizes else None
 
 
 def mix_description() -> str:
