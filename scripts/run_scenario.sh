@@ -5,7 +5,9 @@
 #                   time (lockstep) over rigid ground, T1 and T2 soft patches, 4 stairs up and down (course graph_tour):
 #                   sim_bridge (121x121 heightmap) + state_estimator (terrain-aware leg odometry) + tce + wbc
 #                   (STANCE: c3WBC with the TCE's impedance; CONTACT_MODEL=rigid: sWBC; on the ground-truth base like
-#                   the vfa/vpa) + vfa + vpa
+#                   the vfa/vpa; with the bridge's ground_truth/contacts as foot contact sensors for late and
+#                   early touchdowns and swings ending 2 cm below the foothold: CONTACT_SOURCE=none,
+#                   TOUCHDOWN_DEPTH_M=0 turn them off) + vfa + vpa
 #                   (VPA CNN, 20 Hz) + bag_recorder + cmd_vel_script; prints the summary of graph_report
 #   tour_realtime   the same following the wall clock (rates and deadline misses as the machine holds them)
 #   stance           STANCE: HyQ crawls at 0.1 m/s over the transition course (rigid, T1 soft, T2, T3,
@@ -33,7 +35,7 @@ RUN_ROOT="$ROOT/runs/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
 RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/contacts', 'joint_command', \
 'state_estimate', 'contact_estimate', 'terrain_impedance', 'gait_state', 'wbc/diagnostics', 'cmd_vel', 'cmd_vel_stamped']"
 # ROS parameters are typed: DURATION_S=20 would reach a double parameter as an integer and stop the node.
-for var in DURATION_S SPEED_M_S; do
+for var in DURATION_S SPEED_M_S TOUCHDOWN_DEPTH_M; do
     if [[ "${!var:-}" =~ ^-?[0-9]+$ ]]; then printf -v "$var" '%s.0' "${!var}"; fi
 done
 # Every scenario with the wbc also starts cmd_vel_script: the wbc's first tick waits for it (lockstep).
@@ -104,6 +106,7 @@ stance() {
 tour() {
     local speed="${SPEED_M_S:-0.2}" duration="${DURATION_S:-40.0}" mode="${MODE:-lockstep}"
     local contact_model="${CONTACT_MODEL:-compliant}" odometry="${LEG_ODOMETRY:-terrain_aware}"
+    local contact_source="${CONTACT_SOURCE:-ground_truth}" touchdown_depth="${TOUCHDOWN_DEPTH_M:-0.02}"
     local dir="$RUN_ROOT"
     local topics="${RECORDED_TOPICS%]}, 'footholds', 'body_pose_reference']"
     echo "[run] tour: the whole graph ($mode). HyQ trots at $speed m/s over rigid -> T1 -> T2 -> rigid -> 4 stairs" \
@@ -115,6 +118,7 @@ tour() {
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \
         -s "wbc.state_source:=ground_truth" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" \
+        -s "wbc.contact_source:=$contact_source" -s "wbc.touchdown_depth_m:=$touchdown_depth" \
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=$odometry" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \

@@ -19,7 +19,7 @@ from tal_control.wbc_node import WbcNode
 from tal_core.node_utils import stamp_from_ns
 from tal_core.robot_model import RobotModel
 from tal_estimation.state_estimator_node import StateEstimatorNode
-from tal_msgs.msg import GaitState, JointCommand, WbcDiagnostics
+from tal_msgs.msg import ContactState, GaitState, JointCommand, WbcDiagnostics
 from tal_sim_bridge.sim_bridge_node import SimBridgeNode
 
 pytestmark = pytest.mark.ros
@@ -255,3 +255,40 @@ def test_first_tick_waits_for_the_command_source(context, spin_until) -> None:
             if node is not None:
                 node.destroy_node()
     assert wbc.ticks >= 50 and bridge.final_summary["lockstep_timeouts"] == 0
+
+
+def test_contact_feedback_waits_for_the_ticks_contacts_and_searches_with_a_hovering_foot(context, spin_until) -> None:
+    """contact_source ground_truth: a tick waits for the contacts of its stamp (the bridge sends them right
+    after the joint state); a planned stance foot reported without contact searches for the ground."""
+    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand"),
+                                                        Parameter("state_source", value="ground_truth"),
+                                                        Parameter("contact_source", value="ground_truth")])
+    robot = FakeRobot(context)
+    contacts = robot.node.create_publisher(ContactState, "ground_truth/contacts", 10)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(wbc)
+    executor.add_node(robot.node)
+    try:
+        assert spin_until(executor, lambda: robot.matched() and contacts.get_subscription_count() >= 1, 20.0)
+        robot.publish_odom(0)
+        robot.publish_joints(0)
+        spin_until(executor, lambda: False, 0.3)
+        assert robot.commands == []  # waiting for the tick's contacts
+        message = ContactState()
+        message.header.stamp = stamp_from_ns(0)
+        message.in_contact = [True, True, False, True]
+        contacts.publish(message)
+        assert spin_until(executor, lambda: len(robot.commands) >= 1, 10.0)
+        assert wbc.controller.touchdown_search.searches.tolist() == [0, 0, 1, 0]
+        assert wbc.summary()["touchdown_searches_per_leg"] == [0, 0, 1, 0]
+        # Contacts that stop coming: the tick after is decided when the next joint state arrives, on the plan.
+        robot.publish_odom(4_000_000)
+        robot.publish_joints(4_000_000)
+        robot.publish_odom(8_000_000)
+        robot.publish_joints(8_000_000)
+        assert spin_until(executor, lambda: len(robot.commands) >= 2, 10.0)
+        assert wbc.deferred_ticks >= 1
+    finally:
+        executor.shutdown()
+        wbc.destroy_node()
+        robot.node.destroy_node()

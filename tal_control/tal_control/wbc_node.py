@@ -4,7 +4,10 @@ Subscribes: joint_states, the base state (``ground_truth/odom`` or ``state_estim
 state_source), cmd_vel_stamped (TwistStamped, applied from the first tick at or after its stamp: a
 lockstep run with a scripted command does not depend on when the script's process runs), cmd_vel (Twist,
 applied from the tick after it arrives, unless stamped commands are in use; see velocity_command),
-footholds, body_pose_reference, terrain/heightmap.
+footholds, body_pose_reference, terrain/heightmap, and with contact_source ground_truth
+ground_truth/contacts (the simulator's foot contacts standing in for foot contact sensors: a planned
+stance foot that does not touch searches for the ground, a swing foot that lands late in its swing is a
+support; ``TouchdownSearch``).
 Publishes: joint_command (feed-forward torques), gait_state, wbc/diagnostics.
 
 Ticks lie on the sim-time grid k * control_period_s. A tick is computed once the joint state of that
@@ -49,6 +52,7 @@ from tal_core.robot_model import RobotModel
 from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid, heightmap_normal
 from tal_msgs.msg import (
     BodyPoseReference,
+    ContactState,
     FootholdArray,
     GaitState,
     HeightMap,
@@ -61,6 +65,7 @@ from .locomotion import BaseState, ImpedanceGate, LocomotionController, TickOutp
 from .locomotion import TerrainImpedance as LegImpedance
 from .map_alignment import HeightmapAligner
 from .motion.gait import PRESETS as GAITS
+from .motion.generator import MotionParameters
 from .msg_conversions import gait_state_message
 from .tracking_stats import TrackingStats
 from .velocity_command import VelocityCommandInput
@@ -90,7 +95,8 @@ class WbcNode(Node):
                                friction_coefficient=p["friction_coefficient"],
                                min_normal_force_n=p["min_normal_force_n"],
                                max_normal_force_n=p["max_normal_force_n"], control_period_s=p["control_period_s"])
-        self.controller = LocomotionController(self.model, gait, gains, settings)
+        self.controller = LocomotionController(self.model, gait, gains, settings,
+                                               motion=MotionParameters(touchdown_depth_m=p["touchdown_depth_m"]))
         self.joint_names = list(self.model.description.joint_names)
         self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
         self.period_ns = round(p["control_period_s"] * 1e9)
@@ -112,6 +118,8 @@ class WbcNode(Node):
         self.rejected_inputs = 0
         self.ticks = 0
         self.deferred_ticks = 0   # ticks whose base state had not arrived with their joint state
+        self._contacts: tuple[int, np.ndarray] | None = None  # (stamp [ns], (4,) touching) latest contacts
+        self.ticks_without_contacts = 0  # contact_source set, but no fresh contacts for the tick (plan used)
         self.watchdog_trips = 0   # safe-mode commands sent by the wall-clock watchdog
         self._last_joint_wall = time.monotonic()
         # Lockstep runs start when the wbc sends its first command; a command source discovered later (seen
@@ -132,6 +140,8 @@ class WbcNode(Node):
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
         self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
+        if p["contact_source"] == "ground_truth":
+            self.create_subscription(ContactState, "ground_truth/contacts", self._on_contacts, 10)
         self._impedance: LegImpedance | None = None
         self.impedance_gate = ImpedanceGate(p["terrain_stiffness_n_per_m"], p["terrain_damping_ns_per_m"],
                                             p["impedance_min_confidence"])
@@ -195,6 +205,13 @@ class WbcNode(Node):
                                                low=0.0, high=5.0),
             "max_yaw_rate_rad_s": declare(self, "max_yaw_rate_rad_s", 1.0, "[rad/s] cmd_vel clamp", low=0.0,
                                           high=5.0),
+            "contact_source": declare(self, "contact_source", "none",
+                                      "foot contacts for late and early touchdowns: none (trust the gait plan) "
+                                      "or ground_truth (ground_truth/contacts, the simulator's contacts as foot "
+                                      "contact sensors)", choices=("none", "ground_truth"), read_only=True),
+            "touchdown_depth_m": declare(self, "touchdown_depth_m", 0.0,
+                                         "[m] swings end this far below the foothold (a target a little too "
+                                         "high still meets the ground)", low=0.0, high=0.1, read_only=True),
             "contact_model": declare(self, "contact_model", "rigid",
                                      "rigid (sWBC) or compliant (c3WBC; with impedance_source tce: STANCE)",
                                      choices=("rigid", "compliant"), read_only=True),
@@ -264,8 +281,10 @@ class WbcNode(Node):
         """The robot's clock jumped back (simulation restarted): start the controller afresh."""
         self.get_logger().warn(f"joint_states time jumped back to {stamp_ns * 1e-9:.3f} s: restarting the controller")
         self.controller = LocomotionController(self.model, self.controller.motion.gait, self.controller.wbc.gains,
-                                               self.controller.wbc.settings)
+                                               self.controller.wbc.settings, motion=self.controller.motion.params)
         self._joints = self._base = None
+        if self._contacts is not None and self._contacts[0] > stamp_ns:
+            self._contacts = None  # from before the restart
         self._next_tick_ns = 0
         self._deferred_tick_ns = None
         self._last_command = None
@@ -286,6 +305,26 @@ class WbcNode(Node):
         self._base = (stamp, base)
         if self._maybe_tick():
             self._feed_watchdog()
+
+    def _on_contacts(self, msg: ContactState) -> None:
+        flags = np.array(msg.in_contact, dtype=bool)  # bool[4] in the message definition
+        stamp = ns_from_stamp(msg.header.stamp)
+        if self._contacts is not None and stamp + CLOCK_RESET_NS < self._contacts[0]:
+            self._contacts = None  # restarted clock
+        if self._contacts is not None and stamp <= self._contacts[0]:
+            return
+        self._contacts = (stamp, flags)
+        if self._maybe_tick():
+            self._feed_watchdog()
+
+    def _contacts_for(self, stamp_ns: int) -> np.ndarray | None:
+        """The contact flags of the tick at ``stamp_ns`` (None: not used, or none fresh: the gait plan)."""
+        if self.p["contact_source"] == "none":
+            return None
+        if self._contacts is None or stamp_ns - self._contacts[0] > self.stale_ns:
+            self.ticks_without_contacts += 1
+            return None
+        return self._contacts[1]
 
     def _on_cmd_vel(self, msg: Twist) -> None:
         try:
@@ -366,7 +405,11 @@ class WbcNode(Node):
         base_stamp, base = self._base
         age = stamp - base_stamp
         deferred_before = self._deferred_tick_ns is not None and stamp > self._deferred_tick_ns
-        if base_stamp < self._expected_base_stamp(stamp) - TICK_TOLERANCE_NS and not deferred_before:
+        # The bridge publishes the tick's contacts right after its joint state, like ground-truth odometry.
+        contacts_missing = self.p["contact_source"] != "none" and (
+            self._contacts is None or self._contacts[0] < stamp - TICK_TOLERANCE_NS)
+        if ((base_stamp < self._expected_base_stamp(stamp) - TICK_TOLERANCE_NS or contacts_missing)
+                and not deferred_before):
             self._deferred_tick_ns = stamp
             self.deferred_ticks += 1
             return False
@@ -411,7 +454,7 @@ class WbcNode(Node):
         normal = (lambda x, y: heightmap_normal(grid, x, y)) if grid is not None else None
         try:
             out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, self.command_input.command, height, normal,
-                                       impedance=self._impedance)
+                                       impedance=self._impedance, foot_contact=self._contacts_for(stamp_ns))
         except InputError as exc:
             self._reject("state", exc)
             self._safe_mode(stamp_ns, str(exc))
@@ -515,6 +558,9 @@ class WbcNode(Node):
         aligner = self.map_aligner
         return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
                 "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
+                "ticks_without_contacts": self.ticks_without_contacts,
+                "touchdown_searches_per_leg": self.controller.touchdown_search.searches.tolist(),
+                "early_touchdowns_per_leg": self.controller.touchdown_search.early_touchdowns.tolist(),
                 "command_source_waits": self.command_source_waits,
                 "late_cmd_vel": self.command_input.late, "cmd_vel_ignored": self.command_input.unstamped_ignored,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
