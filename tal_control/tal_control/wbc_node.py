@@ -389,7 +389,8 @@ class WbcNode(Node):
     # -- the tick -----------------------------------------------------------------------------------------
     def _maybe_tick(self) -> bool:
         """Compute the tick once its joint state and the base state expected for it have arrived (ground
-        truth: the same stamp; estimate: the estimator's latest tick at or before it).
+        truth: the same stamp; estimate: the estimator's latest tick at or before it), and with a
+        contact_source the contacts of its stamp.
 
         That base state is on its way (the bridge publishes both each step, the estimator answers the
         bridge's samples), so a tick whose base state has not arrived yet is deferred; it is decided, with whatever base

@@ -5,9 +5,9 @@ reaction force on every stance foot. A foot that is planned in stance but hovers
 target a few millimetres above the ground, or bounced off it) is then driven by torques computed for a
 force the ground never gives: on the ViTAL stairs such a foot flew 0.4 m forward within 0.15 s and the
 trunk dropped 10 cm (measured, rigid ground, hind and front legs on the landing). ``TouchdownSearch``
-keeps such a leg out of the support set and lowers its foot along the surface normal (world z) at
-``search_speed_mps`` below the point where it should have touched down, by at most ``max_depth_m``, until
-a contact is reported; then the leg becomes a support, anchored where it touched.
+keeps such a leg out of the support set and lowers its foot straight down (world z) at ``search_speed_mps``
+from where it was when the search began, by at most ``max_depth_m``, until a contact is reported; then
+the leg becomes a support, anchored where it touched.
 
 The converse, an early touchdown: a swinging foot that touches the ground after ``early_touchdown_progress``
 of its swing (it is coming down onto a step that is higher, or a surface that is nearer, than planned) is a
@@ -15,8 +15,9 @@ support from then on, held where it touched, instead of being pushed on through 
 task while the WBC plans no force for it. Contacts earlier in the swing (lift-off, tripping on an edge)
 stay swing contacts.
 
-Contact flags come from outside: the simulator's contacts in the offline closed loop, the state
-estimator's ``contact_estimate`` in the graph. World frame, [m], [s]; legs LF, RF, LH, RH.
+Contact flags come from outside: the simulator's contacts, in the offline closed loop and, through the
+bridge's ``ground_truth/contacts`` (the ``wbc`` node's ``contact_source``), in the graph; they stand in
+for foot contact sensors. World frame, [m], [s]; legs LF, RF, LH, RH.
 """
 
 from __future__ import annotations
