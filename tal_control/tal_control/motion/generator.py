@@ -72,6 +72,17 @@ class MotionParameters:
                 raise MotionConfigError(f"motion parameter {name} is out of range: {getattr(self, name)!r}")
 
 
+def _leg_and_point(caller: str, leg: Leg | int, xyz: Sequence[float]) -> tuple[Leg, np.ndarray]:
+    """A leg and a finite world point (3,) [m] given to ``caller``, or InputError naming the bad one."""
+    point = np.asarray(xyz, dtype=float).reshape(-1)
+    if point.shape != (3,) or not np.all(np.isfinite(point)):
+        raise InputError(f"{caller}: xyz must be 3 finite values [m], got {xyz!r}")
+    try:
+        return Leg(int(leg)), point
+    except ValueError:
+        raise InputError(f"{caller}: unknown leg {leg!r}") from None
+
+
 def _array(value: object, shape: tuple[int, ...], name: str) -> np.ndarray:
     try:
         array = np.array(value, dtype=float)
@@ -223,13 +234,7 @@ class MotionGenerator:
         """Replace the target of ``leg``'s current swing by the terrain point ``xyz`` [m] (world); used
         from the next update on. Ignored (returns False) unless the leg is swinging its step
         ``step_count`` with at least ``min_external_time_left_s`` left."""
-        point = np.asarray(xyz, dtype=float).reshape(-1)
-        if point.shape != (3,) or not np.all(np.isfinite(point)):
-            raise InputError(f"set_foothold: xyz must be 3 finite values [m], got {xyz!r}")
-        try:
-            leg = Leg(int(leg))
-        except ValueError:
-            raise InputError(f"set_foothold: unknown leg {leg!r}") from None
+        leg, point = _leg_and_point("set_foothold", leg, xyz)
         phase = None if self._last is None else self._last.gait
         if (phase is None or not phase.swing[leg] or int(step_count) != int(phase.step_count[leg])
                 or phase.time_to_touchdown_s[leg] < self.params.min_external_time_left_s):
@@ -240,13 +245,7 @@ class MotionGenerator:
     def anchor_stance_foot(self, leg: Leg | int, xyz: Sequence[float]) -> None:
         """Move ``leg``'s stance anchor (touchdown sample) to ``xyz`` [m] (world): where the foot touched
         after a late touchdown (``TouchdownSearch``), instead of where it hovered at the planned one."""
-        point = np.asarray(xyz, dtype=float).reshape(-1)
-        if point.shape != (3,) or not np.all(np.isfinite(point)):
-            raise InputError(f"anchor_stance_foot: xyz must be 3 finite values [m], got {xyz!r}")
-        try:
-            leg = Leg(int(leg))
-        except ValueError:
-            raise InputError(f"anchor_stance_foot: unknown leg {leg!r}") from None
+        leg, point = _leg_and_point("anchor_stance_foot", leg, xyz)
         self._touchdown[leg] = point
 
     # --- the tick ---
