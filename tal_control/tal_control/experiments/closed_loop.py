@@ -354,6 +354,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
             if k % decimation == 0:
                 t = k * config.physics_dt_s
                 state = sim.robot_state()
+                contacts = sim.foot_contacts()  # the same physics state for the controller, hook and log
                 base = BaseState(
                     state.base_position_m, state.base_quat_xyzw, state.base_lin_vel_m_s, state.base_ang_vel_rad_s
                 ) if estimated is None else estimated.base
@@ -375,8 +376,8 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                 if estimated is not None and tce is not None:
                     estimated.impedance = legs_from_impedance_arrays(
                         tce_k, tce_d, np.array([e.valid for e in estimates]),
-                        np.array([normal_fn(*c.position_m[:2]) for c in sim.foot_contacts()]))
-                touching = (np.array([c.in_contact for c in sim.foot_contacts()], dtype=bool)
+                        np.array([normal_fn(*c.position_m[:2]) for c in contacts]))
+                touching = (np.array([c.in_contact for c in contacts], dtype=bool)
                             if config.contact_feedback else None)
                 out = controller.tick(
                     t, base, state.joint_position_rad, state.joint_velocity_rad_s, cmd, control_height_fn,
@@ -385,7 +386,6 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                 if aligner is not None:
                     aligner.update(t, out.measured.foot_positions, out.targets.load_factor, radius, height_fn)
                 tau = out.tau
-                contacts = sim.foot_contacts()
                 if hook is not None:
                     replaced = hook(TickContext(t, k // decimation, core, controller, out, state, contacts))
                     if replaced is not None:
