@@ -64,6 +64,7 @@ from tal_msgs.msg import (
 from .locomotion import BaseState, ImpedanceGate, LocomotionController, TickOutput
 from .locomotion import TerrainImpedance as LegImpedance
 from .map_alignment import HeightmapAligner
+from .motion.footholds import DEFAULT_K_FEEDBACK
 from .motion.gait import PRESETS as GAITS
 from .motion.generator import MotionParameters
 from .msg_conversions import gait_state_message
@@ -96,7 +97,8 @@ class WbcNode(Node):
                                min_normal_force_n=p["min_normal_force_n"],
                                max_normal_force_n=p["max_normal_force_n"], control_period_s=p["control_period_s"])
         self.controller = LocomotionController(self.model, gait, gains, settings,
-                                               motion=MotionParameters(touchdown_depth_m=p["touchdown_depth_m"]))
+                                               motion=MotionParameters(touchdown_depth_m=p["touchdown_depth_m"],
+                                                                       k_feedback=p["foothold_feedback_s"]))
         self.joint_names = list(self.model.description.joint_names)
         self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
         self.period_ns = round(p["control_period_s"] * 1e9)
@@ -212,6 +214,10 @@ class WbcNode(Node):
             "touchdown_depth_m": declare(self, "touchdown_depth_m", 0.0,
                                          "[m] swings end this far below the foothold (a target a little too "
                                          "high still meets the ground)", low=0.0, high=0.1, read_only=True),
+            "foothold_feedback_s": declare(self, "foothold_feedback_s", DEFAULT_K_FEEDBACK,
+                                           "[s] Raibert velocity feedback of the nominal footholds, k in "
+                                           "k (v - v_cmd) (0.12 s in ViTAL's stairs runs)", low=0.0, high=0.5,
+                                           read_only=True),
             "contact_model": declare(self, "contact_model", "rigid",
                                      "rigid (sWBC) or compliant (c3WBC; with impedance_source tce: STANCE)",
                                      choices=("rigid", "compliant"), read_only=True),

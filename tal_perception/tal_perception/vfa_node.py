@@ -98,7 +98,13 @@ class VfaNode(Node):
                                               "nominal foothold moved this far since the last decision", low=0.0,
                                               high=1.0, read_only=True),
             reevaluate_on_new_map=declare(self, "reevaluate_on_new_map", True, "re-decide when a newer heightmap "
-                                          "arrives during a swing", read_only=True))
+                                          "arrives during a swing", read_only=True),
+            level_lock_swing_fraction=declare(self, "level_lock_swing_fraction", 0.35, "[-] after this fraction "
+                                              "of the swing a re-decision may not change the foothold's level "
+                                              "(the swing can no longer re-plan its apex)", low=0.0, high=1.0,
+                                              read_only=True),
+            level_lock_dz_m=declare(self, "level_lock_dz_m", 0.02, "[m] a late re-decision moving the foothold "
+                                    "height by more than this is not taken", low=0.0, high=1.0, read_only=True))
         self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
                                             "clock: sim time with use_sim_time)", low=0.05, high=60.0,
                                             read_only=True)
@@ -183,7 +189,8 @@ class VfaNode(Node):
             "published_messages": self.published_messages, "published_footholds": self.published_footholds,
             **{f"decisions_{k}": v for k, v in c.by_status.items()},
             **{f"trigger_{k}": v for k, v in c.by_trigger.items()},
-            "adapted": c.adapted, "late_swings": c.late_swings, "restarts": c.restarts,
+            "adapted": c.adapted, "late_swings": c.late_swings, "restarts": c.restarts, "kept": c.kept,
+            "level_locked": c.level_locked,
             **{f"rejected_{k}": v for k, v in sorted(self.rejections.items())},
             "selection_time_median_ms": round(float(np.median(timing)), 3) if timing.size else 0.0,
             "selection_time_max_ms": round(float(timing.max()), 3) if timing.size else 0.0,

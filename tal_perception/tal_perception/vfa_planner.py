@@ -10,6 +10,15 @@ decides once per swing (the swing's ``step_count``) and re-decides during the sw
   decision (the motion generator keeps re-planning its Raibert foothold as the velocity changes; once it
   was given an external foothold it stops following the nominal itself, so the VFA must).
 
+Late re-decisions stay on the same level: the swing re-plans its rise to the apex only until shortly
+before mid-swing (``tal_control.motion.swing``); a later retarget goes from wherever the foot is
+straight to the new point, which is not the lift-off -> apex -> candidate motion the FEC checked. Past
+``level_lock_swing_fraction`` of the swing a re-decision whose foothold height differs by more than
+``level_lock_dz_m`` from the current one is not taken (counted in ``level_locked``): on the stairs at
+0.4 m/s a selection that moved down a tread and back up after the apex drove the foot into the riser.
+Same-level moves stay allowed: they carry the nominal's velocity feedback (locking every late
+re-decision made the 0.2 m/s stairs runs fall sideways).
+
 A re-decision keeps the swing's current selection, instead of jumping more than ``switch_hysteresis_m``
 from it, while that point is still safe and no more than ``switch_hysteresis_m`` further from the new
 nominal than the new best candidate: near a step edge two
@@ -94,6 +103,8 @@ class PlannerSettings:
     reevaluate_on_new_map: bool = True  # re-decide when a newer map arrives during the swing
     selection_tolerance_m: float = 1e-3  # [m] a re-decision closer than this to the last is not news
     switch_hysteresis_m: float = 0.05  # [m] keep a still-safe selection unless the new one is this much closer
+    level_lock_swing_fraction: float = 0.35  # [-] after this fraction of the swing, no change of level...
+    level_lock_dz_m: float = 0.02  # [m] ...by more than this (foothold height)
 
     def __post_init__(self) -> None:
         for name in ("max_map_age_s", "min_swing_time_left_s", "nominal_shift_threshold_m", "selection_tolerance_m",
@@ -104,6 +115,12 @@ class PlannerSettings:
             if value < 0.0 or (name == "max_map_age_s" and value == 0.0):
                 raise FecConfigError(f"PlannerSettings.{name} must be {'> 0' if name == 'max_map_age_s' else '>= 0'}"
                                      f", got {value!r}")
+        fraction = self.level_lock_swing_fraction
+        if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0.0 <= fraction <= 1.0:
+            raise FecConfigError(f"PlannerSettings.level_lock_swing_fraction must be in [0, 1], got {fraction!r}")
+        lock = self.level_lock_dz_m
+        if isinstance(lock, bool) or not isinstance(lock, (int, float)) or not (math.isfinite(lock) and lock >= 0.0):
+            raise FecConfigError(f"PlannerSettings.level_lock_dz_m must be a finite number >= 0, got {lock!r}")
         if not isinstance(self.reevaluate_on_new_map, bool):
             raise FecConfigError(f"PlannerSettings.reevaluate_on_new_map must be a bool, got "
                                  f"{self.reevaluate_on_new_map!r}")
@@ -201,6 +218,7 @@ class PlannerCounters:
     late_swings: int = 0
     restarts: int = 0
     kept: int = 0  # re-decisions that kept the swing's still-safe selection (switch hysteresis)
+    level_locked: int = 0  # late re-decisions not taken because they changed the foothold's level
 
 
 class HipFrame:
@@ -351,6 +369,11 @@ class VfaPlanner:
                 continue
             previous = self._decisions.get(leg)
             decision = self._decide(leg, gait, trigger)
+            if previous is not None and self._changes_level_late(leg, gait, previous, decision):
+                # Keep the selection, but as seen with this map and nominal (no re-trigger next tick).
+                self.counters.level_locked += 1
+                self._decisions[leg] = replace(previous, nominal=decision.nominal, map_stamp_s=decision.map_stamp_s)
+                continue
             self._decisions[leg] = decision
             self._count(decision)
             if previous is None or self._differs(previous, decision):
@@ -432,6 +455,17 @@ class VfaPlanner:
         self.counters.kept += 1
         return replace(result, selected=previous.selected.copy(), nominal=np.asarray(nominal, dtype=float).copy(),
                        offset_cells=None)
+
+    def _changes_level_late(self, leg: Leg, gait: GaitSnapshot, previous: FootholdDecision,
+                            decision: FootholdDecision) -> bool:
+        """True if ``decision`` comes past the level-lock point of the swing and moves the foothold's
+        height by more than ``level_lock_dz_m`` from ``previous`` (same swing)."""
+        s = self.settings
+        if previous.step_count != decision.step_count:
+            return False
+        swing_s = (1.0 - gait.duty_factor) / gait.step_frequency_hz
+        late = gait.time_to_touchdown_s[leg] < (1.0 - s.level_lock_swing_fraction) * swing_s
+        return bool(late and abs(decision.selected[2] - previous.selected[2]) > s.level_lock_dz_m)
 
     def _hip_at_touchdown(self, leg: Leg, gait: GaitSnapshot, yaw: float, time_left_s: float) -> FloatArray:
         """(2,) [m] world x, y of ``leg``'s HAA joint at touchdown: moved by the commanded hip velocity

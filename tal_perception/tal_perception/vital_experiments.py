@@ -1,19 +1,20 @@
 """ViTAL's closed-loop experiments: HyQ trots over stairs, gapped stairs and rough terrain in PyBullet.
 
-    python -m tal_perception.vital_experiments --out results/vital [--only speeds,tbr,gaps,rough,horizon,cost]
+    python -m tal_perception.vital_experiments --out results/vital [--only speeds,tbr,...] [--jobs 2]
 
 Every run is ``tal_control``'s lockstep closed loop (sWBC on the ground-truth base state, 250 Hz; physics
 1 kHz) with ``VitalLoop`` as its tick hook (VFA + VPA or TBR, the nodes' planners, a perfect 121 x 121
 heightmap at 20 Hz; VFA and VPA both exact, the VPA at 20 Hz). The controller gets the simulator's foot
 contacts (a planned stance foot that does not touch searches for the ground instead of being loaded,
-``TouchdownSearch``) and ends each swing ``touchdown_depth_m`` below the foothold. Experiments (thesis,
-ViTAL results):
+``TouchdownSearch``), ends each swing ``touchdown_depth_m`` below the foothold and places its nominal
+footholds with the Raibert velocity feedback ``k_feedback_s`` = 0.12 s (the generator's default 0.05 s
+let the trot's roll and lateral sway grow into falls on the stairs). Experiments (thesis, ViTAL results):
 
 * ``speeds``: the stairs (rise 0.1 m, go 0.25 m, up and down; course ``vital_stairs``) at 0.2, 0.3, 0.4
-  and 0.5 m/s with VFA + VPA: success, leg and foot collisions, mean absolute pitch and height tracking
-  errors (thesis table: 0.7-2.3 deg, 0.3-3.8 cm);
-* ``tbr``: VPA vs TBR on the same stairs at 0.2 m/s, 3 runs each (start 0.1 m apart): success and the
-  safe footholds at the actual pose (exact evaluation at the actual hips, the same for both);
+  and 0.5 m/s with VFA + VPA, 3 runs each (starts x = -0.1, 0, +0.1 m): success, leg and foot
+  collisions, mean absolute pitch and height tracking errors (thesis table: 0.7-2.3 deg, 0.3-3.8 cm);
+* ``tbr``: VPA vs TBR on the same stairs at 0.2 m/s, 3 runs each (the same starts; the VPA runs are the
+  speeds runs): success and the safe footholds at the actual pose (exact evaluation at the actual hips);
 * ``gaps``: gapped stairs (``vital_gap_stairs``) at 0.4 m/s with VPA and with TBR;
 * ``rough``: cobblestones (``vital_rough``) at 0.2 m/s with ViTAL and blind (nominal footholds, default
   pose): collisions;
@@ -22,14 +23,18 @@ ViTAL results):
 
 A run succeeds when the robot reaches the course's goal x without falling (trunk too low or a trunk,
 hip or thigh touching the ground). Tracking errors are taken over the samples after the start (1.5 s).
-Writes ``closed_loop.md``, ``closed_loop.json`` and plots into ``--out``; progress on stderr.
+Writes ``closed_loop.md``, ``closed_loop.json`` and plots into ``--out``; progress on stderr. ``--jobs N``
+runs N closed loops at once (separate processes; each run is deterministic, so the results do not depend
+on it).
 """
 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import json
 import math
+import multiprocessing
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -58,6 +63,7 @@ class VitalRun:
     slack_s: float = 8.0  # [s] beyond the time the goal takes at the commanded speed
     contact_feedback: bool = True  # the controller gets the simulator's foot contacts (TouchdownSearch)
     touchdown_depth_m: float = 0.02  # [m] swings end this far below the foothold (MotionParameters)
+    k_feedback_s: float = 0.12  # [s] Raibert velocity feedback of the nominal footholds (MotionParameters)
 
     @property
     def duration_s(self) -> float:
@@ -92,8 +98,16 @@ class VitalRunResult:
     series: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
 
+STARTS_M = (-0.1, 0.0, 0.1)  # [m] start positions of the repeated stairs runs
+
+
 def _stairs(name: str, speed: float, loop: VitalLoopSettings | None, x0: float = 0.0) -> VitalRun:
     return VitalRun(name, "vital_stairs", speed, loop, goal_x_m=4.8, initial_x_m=x0)
+
+
+def stairs_name(speed: float, x0: float, source: str = "") -> str:
+    """Run name of the stairs at ``speed`` [m/s] from ``x0`` [m] (``source`` "tbr" for the TBR runs)."""
+    return f"stairs_{speed:.1f}{'_' + source if source else ''}_x{x0:+.1f}"
 
 
 def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[VitalRun]]:
@@ -102,11 +116,10 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
     tbr = replace(vital, pose_source="tbr")
     runs: dict[str, list[VitalRun]] = {}
     if "speeds" in only:
-        runs["speeds"] = [_stairs(f"stairs_{v:.1f}", v, vital) for v in (0.2, 0.3, 0.4, 0.5)]
+        runs["speeds"] = [_stairs(stairs_name(v, x0), v, vital, x0) for v in (0.2, 0.3, 0.4, 0.5) for x0 in STARTS_M]
     if "tbr" in only:
-        runs["tbr"] = [_stairs(f"stairs_0.2_{source}_x{x0:+.1f}", 0.2, settings, x0)
-                       for source, settings in (("vpa", vital), ("tbr", tbr)) for x0 in (-0.1, 0.0, 0.1)]
-        runs["tbr"][1] = replace(runs["tbr"][1], name="stairs_0.2")  # the speeds run at x0 = 0
+        runs["tbr"] = [_stairs(stairs_name(0.2, x0, "" if source == "vpa" else "tbr"), 0.2, settings, x0)
+                       for source, settings in (("vpa", vital), ("tbr", tbr)) for x0 in STARTS_M]
     if "gaps" in only:
         runs["gaps"] = [VitalRun(f"gap_stairs_0.4_{source}", "vital_gap_stairs", 0.4, settings, goal_x_m=3.2)
                         for source, settings in (("vpa", vital), ("tbr", tbr))]
@@ -115,10 +128,11 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
                          VitalRun("rough_0.2_blind", "vital_rough", 0.2, None, goal_x_m=4.5)]
     if "horizon" in only:
         single = replace(vital, vpa=replace(vital.vpa, horizon=1))
-        runs["horizon"] = [_stairs("stairs_0.4", 0.4, vital), _stairs("stairs_0.4_single_horizon", 0.4, single)]
+        runs["horizon"] = [_stairs(stairs_name(0.4, 0.0), 0.4, vital),
+                           _stairs("stairs_0.4_single_horizon", 0.4, single)]
     if "cost" in only:
         c_sum = replace(vital, vpa=replace(vital.vpa, cost=CostKind.SUM))
-        runs["cost"] = [_stairs("stairs_0.4", 0.4, vital), _stairs("stairs_0.4_c_sum", 0.4, c_sum)]
+        runs["cost"] = [_stairs(stairs_name(0.4, 0.0), 0.4, vital), _stairs("stairs_0.4_c_sum", 0.4, c_sum)]
     return runs
 
 
@@ -142,7 +156,8 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
                               duration_s=run.duration_s if max_sim_s is None else min(run.duration_s, max_sim_s),
                               initial_xy=(run.initial_x_m, 0.0), progress=progress,
                               contact_feedback=run.contact_feedback,
-                              motion=MotionParameters(touchdown_depth_m=run.touchdown_depth_m))
+                              motion=MotionParameters(touchdown_depth_m=run.touchdown_depth_m,
+                                                      k_feedback=run.k_feedback_s))
     started = time.perf_counter()
     log = run_closed_loop(config, hook=loop)
     wall = time.perf_counter() - started
@@ -211,7 +226,8 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
     lines = ["# ViTAL in the closed loop", "",
              "`python -m tal_perception.vital_experiments --out results/vital` (part of `make experiments`). "
              "HyQ, trot, sWBC on the ground-truth base with the simulator's foot contacts (late touchdowns search "
-             "for the ground), swings ending 2 cm below the foothold; lockstep PyBullet; VFA exact, VPA exact at "
+             "for the ground), swings ending 2 cm below the foothold, Raibert velocity feedback 0.12 s on the nominal "
+             "footholds; lockstep PyBullet; VFA exact, VPA exact at "
              "20 Hz, N_h = 2, C_int unless the run says otherwise. Collisions are events (a collision starting): leg = "
              "shin/knee cylinder in the terrain by more than 5 mm; foot = swing foot hitting the terrain.", ""]
     titles = {"speeds": "Stairs (rise 0.1 m, go 0.25 m) at four speeds, VFA + VPA",
@@ -221,24 +237,71 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
     for key, group in runs.items():
         lines += [f"## {titles[key]}", "", HEADER] + [_row(results[r.name]) for r in group] + [""]
         if key == "speeds":
+            lines += speed_summary(group, results)
             lines += ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to "
                       "0.5 m/s, all successful.", "", "![stairs](vital_stairs_speeds.png)", ""]
         if key == "tbr":
             lines += ["Thesis: TBR fails, VPA succeeds; TBR has fewer safe footholds.", "",
                       "![VPA vs TBR](vital_vpa_vs_tbr.png)", ""]
+        common = _common_path_m([results[r.name] for r in group])
         if key == "horizon":
-            lines += ["| run | height variation [m/m] | pitch variation [deg/m] |", "|---|---|---|"]
-            lines += [f"| {results[r.name].name} | {results[r.name].height_variation_per_m:.3f} | "
-                      f"{results[r.name].pitch_variation_deg_per_m:.1f} |" for r in group]
+            lines += [f"| run | height variation [m/m] | pitch variation [deg/m] | same, over x <= {common:.2f} m "
+                      "(the path both runs walked) |", "|---|---|---|---|"]
+            for r in group:
+                res = results[r.name]
+                dz, dp = _variation_over(res, common)
+                lines.append(f"| {res.name} | {res.height_variation_per_m:.3f} | {res.pitch_variation_deg_per_m:.1f} | "
+                             f"{dz:.3f} m/m, {dp:.1f} deg/m |")
             lines += ["", "Thesis: the receding horizon varies the pose less.", ""]
         if key == "cost":
-            lines += ["| run | envelope thickness (mean over legs and updates) [footholds] |", "|---|---|"]
-            lines += [f"| {results[r.name].name} | {results[r.name].envelope_thickness_mean:.1f} |" for r in group]
+            lines += [f"| run | envelope thickness (mean over legs and updates) [footholds] | same, over x <= "
+                      f"{common:.2f} m |", "|---|---|---|"]
+            lines += [f"| {results[r.name].name} | {results[r.name].envelope_thickness_mean:.1f} | "
+                      f"{_thickness_over(results[r.name], common):.1f} |" for r in group]
             lines += ["", "Thesis: C_int gives the thinner envelope (more robust to pose tracking errors).", "",
                       "![envelope](vital_cost_envelope.png)", ""]
     (out / "closed_loop.md").write_text("\n".join(lines) + "\n")
     payload = {name: {k: v for k, v in vars(r).items() if k != "series"} for name, r in results.items()}
     (out / "closed_loop.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
+
+
+def _common_path_m(group: list[VitalRunResult]) -> float:
+    """[m] the largest base x every run of ``group`` reached (the path they can be compared on)."""
+    return min(float(np.max(r.series["x"])) if "x" in r.series and len(r.series["x"]) else math.nan for r in group)
+
+
+def _variation_over(r: VitalRunResult, x_max: float) -> tuple[float, float]:
+    """``_variation_per_metre`` of ``r``'s pose reference over the samples with base x <= ``x_max`` [m]."""
+    s = r.series
+    if "x" not in s or not np.isfinite(x_max):
+        return math.nan, math.nan
+    keep = s["x"] <= x_max
+    pose = s["pose_reference"][keep]
+    return _variation_per_metre(s["x"][keep], pose[:, 0], np.degrees(pose[:, 2]))
+
+
+def _thickness_over(r: VitalRunResult, x_max: float) -> float:
+    """Mean envelope thickness of ``r`` over the samples with base x <= ``x_max`` [m]."""
+    s = r.series
+    if "x" not in s or not np.isfinite(x_max):
+        return math.nan
+    values = s["thickness"][s["x"] <= x_max]
+    return _mean(values[np.isfinite(values)])
+
+
+def speed_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
+    """Markdown lines: per speed, successes of the repeated runs, collisions summed over them and the
+    tracking errors averaged over the successful ones."""
+    lines = ["| speed [m/s] | success | leg collisions (all runs) | foot collisions (all runs) | "
+             "pitch MAE [deg] (successful runs) | height MAE [cm] (successful runs) |", "|---|---|---|---|---|---|"]
+    for speed in sorted({run.speed_mps for run in group}):
+        rs = [results[run.name] for run in group if run.speed_mps == speed]
+        ok = [r for r in rs if r.success]
+        pitch = f"{np.mean([r.pitch_mae_deg for r in ok]):.2f}" if ok else "-"
+        height = f"{np.mean([r.height_mae_cm for r in ok]):.2f}" if ok else "-"
+        lines.append(f"| {speed:.1f} | {len(ok)} of {len(rs)} | {sum(sum(r.leg_collisions) for r in rs)} | "
+                     f"{sum(sum(r.foot_collisions) for r in rs)} | {pitch} | {height} |")
+    return [*lines, ""]
 
 
 def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRunResult]) -> None:
@@ -249,7 +312,8 @@ def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRun
 
     if "speeds" in runs:
         fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
-        for run in runs["speeds"]:
+        centred = [run for run in runs["speeds"] if run.initial_x_m == 0.0]  # one run per speed
+        for run in centred:
             s = results[run.name].series
             axes[0].plot(s["x"], s["z"], label=f"{run.speed_mps:.1f} m/s")
             axes[0].plot(s["x"], s["z_des"], "k:", lw=0.6)
@@ -257,7 +321,7 @@ def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRun
             axes[1].plot(s["x"], s["pitch_des_deg"], "k:", lw=0.6)
             axes[2].plot(s["x"], 100 * np.abs(s["z_des"] - s["z"]))
             axes[3].plot(s["x"], np.abs(s["pitch_des_deg"] - s["pitch_deg"]))
-        first = results[runs["speeds"][0].name].series
+        first = results[centred[0].name].series
         axes[0].plot(first["x"], first["foot_z"][:, 0], color="grey", lw=0.5, label="LF foot z (0.2 m/s)")
         for ax, label in zip(axes, ("base z [m] (dotted: VPA)", "pitch [deg] (dotted: VPA)", "|height error| [cm]",
                                     "|pitch error| [deg]")):
@@ -300,25 +364,47 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("results/vital"))
     parser.add_argument("--only", default=",".join(EXPERIMENTS), help=f"comma-separated subset of {EXPERIMENTS}")
+    parser.add_argument("--jobs", type=int, default=1, help="closed loops run at once (processes)")
     args = parser.parse_args(argv)
     only = tuple(name.strip() for name in args.only.split(",") if name.strip())
     unknown = sorted(set(only) - set(EXPERIMENTS))
     if unknown:
         parser.error(f"unknown experiment(s) {unknown}; known: {', '.join(EXPERIMENTS)}")
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1, got {args.jobs}")
     args.out.mkdir(parents=True, exist_ok=True)
     runs = experiment_runs(only)
     unique = {run.name: run for group in runs.values() for run in group}
     results: dict[str, VitalRunResult] = {}
-    for i, run in enumerate(unique.values(), start=1):
-        sys.stderr.write(f"[vital] run {i}/{len(unique)}: {run.name} ({run.duration_s:.0f} s of sim time)\n")
-        results[run.name] = run_vital(run)
-        r = results[run.name]
-        sys.stderr.write(f"[vital]   {'success' if r.success else 'FAILED'}: x_end {r.x_end_m:.2f} m, leg collisions "
-                         f"{sum(r.leg_collisions)}, foot collisions {sum(r.foot_collisions)}, {r.wall_s:.0f} s\n")
+    for i, r in enumerate(_run_all(list(unique.values()), args.jobs), start=1):
+        results[r.name] = r
+        sys.stderr.write(f"[vital] {i}/{len(unique)} {r.name}: {'success' if r.success else 'FAILED'}, x_end "
+                         f"{r.x_end_m:.2f} m, leg collisions {sum(r.leg_collisions)}, foot collisions "
+                         f"{sum(r.foot_collisions)}, {r.wall_s:.0f} s\n")
     write_report(args.out, runs, results)
     plot(args.out, runs, results)
     print((args.out / "closed_loop.md").read_text())
     return 0
+
+
+def _run_quietly(run: VitalRun) -> VitalRunResult:
+    return run_vital(run, progress=False)
+
+
+def _run_all(runs: list[VitalRun], jobs: int):
+    """Results of ``runs`` as they finish: in this process (jobs 1, with progress bars) or in ``jobs``
+    spawned processes (PyBullet and torch state are per process)."""
+    if jobs == 1:
+        for run in runs:
+            sys.stderr.write(f"[vital] {run.name} ({run.duration_s:.0f} s of sim time)\n")
+            yield run_vital(run)
+        return
+    sys.stderr.write(f"[vital] {len(runs)} runs, {jobs} at a time\n")
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+        futures = [pool.submit(_run_quietly, run) for run in runs]
+        for future in concurrent.futures.as_completed(futures):
+            yield future.result()
 
 
 if __name__ == "__main__":

@@ -156,25 +156,56 @@ def test_unknown_cells_are_never_selected(planner, hips_base, hip_height) -> Non
 
 
 def test_new_map_or_moved_nominal_re_decides_during_the_swing(planner, hips_base, hip_height) -> None:
-    gait = snapshot(hips_base, hip_height)
+    gait = snapshot(hips_base, hip_height, time_left_s=0.26)
     planner.set_map(course_map(), 1.0)
     planner.update(gait)
     # A newer, identical map: re-evaluated, nothing changed, nothing to report.
-    planner.set_map(course_map(), 1.05)
-    assert planner.update(snapshot(hips_base, hip_height, stamp_s=1.05, time_left_s=0.15)) == []
+    planner.set_map(course_map(), 1.02)
+    assert planner.update(snapshot(hips_base, hip_height, stamp_s=1.02, time_left_s=0.24)) == []
     assert planner.counters.by_trigger["new_map"] == 2
     # A map showing a gap under LF's nominal: re-decided and reported (adapted) for LF only.
-    planner.set_map(course_map(gap_across_x(gait.nominal_foothold[Leg.LF, 0])), 1.1)
-    news = planner.update(snapshot(hips_base, hip_height, stamp_s=1.1, time_left_s=0.1))
+    planner.set_map(course_map(gap_across_x(gait.nominal_foothold[Leg.LF, 0])), 1.04)
+    news = planner.update(snapshot(hips_base, hip_height, stamp_s=1.04, time_left_s=0.22))
     assert [(d.leg, d.trigger, d.adapted) for d in news] == [(Leg.LF, "new_map", True)]
     # The nominal moves 3 cm sideways (> 2 cm threshold) on flat ground: re-decided, follows it.
-    planner.set_map(course_map(), 1.104)
-    planner.update(snapshot(hips_base, hip_height, stamp_s=1.104, time_left_s=0.096))
-    moved = snapshot(hips_base, hip_height, stamp_s=1.108, time_left_s=0.092, nominal_shift_m=(0.0, 0.03))
+    planner.set_map(course_map(), 1.044)
+    planner.update(snapshot(hips_base, hip_height, stamp_s=1.044, time_left_s=0.216))
+    moved = snapshot(hips_base, hip_height, stamp_s=1.048, time_left_s=0.212, nominal_shift_m=(0.0, 0.03))
     news = planner.update(moved)
     assert {d.trigger for d in news} == {"nominal_moved"}
     for d in news:
         np.testing.assert_allclose(d.selected, moved.nominal_foothold[d.leg], atol=1e-9)
+
+
+def test_late_in_the_swing_a_re_decision_may_not_change_the_foothold_level(planner, hips_base, hip_height) -> None:
+    """Past 35 % of the swing (0.267 s: less than 0.173 s left) the swing can no longer re-plan its rise
+    to the apex: a new map that puts LF's nominal in a pit (10 cm deep, 0.2 m wide) would move the foothold
+    down into it, which is not taken; a move on the same level (a gap, the foot steps beside it) is."""
+    gait = snapshot(hips_base, hip_height, time_left_s=0.2)
+    nominal = gait.nominal_foothold[Leg.LF]
+    planner.set_map(course_map(), 1.0)
+    first = {d.leg: d for d in planner.update(gait)}
+    pit = GapPatch(name="pit", region=Region(-3, 3, -3, 3), depth_m=0.1, start_height_m=0.0, **RIGID)
+    planner.set_map(course_map(pit), 1.04)  # everything 10 cm lower: the same foothold, 10 cm down
+    assert planner.update(snapshot(hips_base, hip_height, stamp_s=1.04, time_left_s=0.16)) == []
+    assert planner.counters.level_locked == 2  # LF and RH
+    assert planner.decision(Leg.LF).selected[2] == first[Leg.LF].selected[2] == 0.0
+    # No re-trigger on the next tick (the locked decision has seen this map).
+    assert planner.update(snapshot(hips_base, hip_height, stamp_s=1.044, time_left_s=0.156)) == []
+    assert planner.counters.level_locked == 2
+    # Same level, late: a gap under LF's nominal moves the foothold beside it.
+    planner.set_map(course_map(gap_across_x(nominal[0])), 1.08)
+    news = planner.update(snapshot(hips_base, hip_height, stamp_s=1.08, time_left_s=0.12))
+    assert [(d.leg, d.trigger, d.adapted) for d in news] == [(Leg.LF, "new_map", True)]
+    assert news[0].selected[2] == 0.0
+    # Early in the swing a change of level is taken (a fresh planner, a new swing).
+    fresh = VfaPlanner(planner.selector, hips_base, planner.foot_radius_m)
+    fresh.set_map(course_map(), 1.0)
+    fresh.update(snapshot(hips_base, hip_height, time_left_s=0.26))
+    fresh.set_map(course_map(pit), 1.02)
+    news = fresh.update(snapshot(hips_base, hip_height, stamp_s=1.02, time_left_s=0.24))
+    assert {d.leg for d in news} == {Leg.LF, Leg.RH} and all(d.selected[2] == pytest.approx(-0.1) for d in news)
+    assert fresh.counters.level_locked == 0
 
 
 def test_swings_with_too_little_time_left_are_not_decided(planner, hips_base, hip_height) -> None:
@@ -237,6 +268,10 @@ def test_selector_and_settings_are_validated(hyq: RobotModel) -> None:
         PlannerSettings(max_map_age_s=0.0)
     with pytest.raises(FecConfigError, match=r"PlannerSettings.nominal_shift_threshold_m must be a finite number"):
         PlannerSettings(nominal_shift_threshold_m=math.nan)
+    with pytest.raises(FecConfigError, match="level_lock_swing_fraction"):
+        PlannerSettings(level_lock_swing_fraction=1.5)
+    with pytest.raises(FecConfigError, match="level_lock_dz_m"):
+        PlannerSettings(level_lock_dz_m=-0.01)
     planner = VfaPlanner.for_robot(hyq, "exact", PlannerSettings(max_map_age_s=0.2))
     assert isinstance(planner.selector, FootholdSelector) and planner.selector.max_map_age_s == 0.2
 

@@ -86,9 +86,11 @@ def test_settings_and_experiment_list_are_checked() -> None:
     runs = experiment_runs()
     assert set(runs) == {"speeds", "tbr", "gaps", "rough", "horizon", "cost"}
     names = [r.name for group in runs.values() for r in group]
-    shared = {"stairs_0.2", "stairs_0.4"}
+    shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)} | {"stairs_0.4_x+0.0"}
     assert len(set(names)) == len(names) - sum(names.count(n) - 1 for n in shared)
-    assert [r.speed_mps for r in runs["speeds"]] == [0.2, 0.3, 0.4, 0.5]
+    assert [r.speed_mps for r in runs["speeds"]] == [v for v in (0.2, 0.3, 0.4, 0.5) for _ in range(3)]
+    assert [r.initial_x_m for r in runs["speeds"][:3]] == [-0.1, 0.0, 0.1]
+    assert all(r.k_feedback_s == 0.12 and r.contact_feedback for r in runs["speeds"])
     assert sum(r.loop is not None and r.loop.pose_source == "tbr" for r in runs["tbr"]) == 3
 
 

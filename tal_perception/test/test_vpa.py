@@ -8,12 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from tal_core.heightmap import HeightMapGrid
+from tal_core.heightmap import HeightMapGrid, extract_heightmap
 from tal_core.legs import LEGS, Leg
 from tal_core.robot_model import RobotModel
 from tal_core.rotations import quat_xyzw_from_rotation
+from tal_core.terrain import load_course
 from tal_perception.errors import PerceptionInputError, VpaConfigError, VpaModelError
 from tal_perception.fec import FootholdEvaluator
+from tal_perception.fec_settings import GaitTiming
 from tal_perception.rbf import RbfBasis
 from tal_perception.tbr import TerrainBasedReference
 from tal_perception.terrain_samples import random_terrain
@@ -187,6 +189,31 @@ def test_optimiser_respects_bounds_and_agrees_with_trust_constr(
 
 
 # -- PoseAdapter -----------------------------------------------------------------------------------------
+def test_a_second_start_finds_the_nose_up_pose_a_flat_objective_hides(hyq: RobotModel, evaluator: FootholdEvaluator
+                                                                       ) -> None:
+    """The stairs course at 0.4 m/s, base at x = 0.78 m, the front hips over the first tread: the front
+    legs have safe footholds only 0.56-0.64 m above their tread (a narrow curve), none at the level
+    start poses. From those the front legs give (almost) no gradient and a single start settles for
+    the hind legs; the second start (``peak_pose``) pitches nose up and serves all four legs."""
+    course = load_course("vital_stairs")
+    adapter = PoseAdapter(RobotModel(hyq.description), SETTINGS)
+    grid = extract_heightmap(course, (0.78, 0.0), 0.0, rows=81, cols=81, resolution_m=0.02)
+    result = adapter.update(grid, np.array([0.78, 0.0, 0.66]), 0.0, np.array([0.4, 0, 0, 0, 0, 0]),
+                            GaitTiming(1.5, 0.6, 0.0, 0.1))
+    assert result.status is VpaStatus.OK
+    assert result.safe_footholds[0] > 50 and result.safe_footholds[1] > 50  # front legs served
+    assert math.degrees(result.pitch_rad) < -3.0  # nose up
+    d = result.diagnostics
+    problem = PoseProblem(d.weights, d.body_reference_m - d.map_references, adapter.default_relative)
+    optimizer = adapter.optimizer
+    single = optimizer.solve(problem, Solver.LBFGSB, x0=optimizer.initial_guess(problem))
+    both = optimizer.solve(problem, Solver.LBFGSB)
+    front = [adapter.basis.evaluate(d.weights[0, :2], (optimizer.hips.heights(s.poses) + problem.offsets)[0, :2])
+             for s in (single, both)]
+    assert np.all(front[0] < 0.25 * front[1])  # the single start all but leaves the front legs out
+    assert both.objective > single.objective
+
+
 @pytest.fixture(scope="module")
 def adapter(hyq: RobotModel, evaluator: FootholdEvaluator) -> PoseAdapter:
     return PoseAdapter(RobotModel(hyq.description), evaluator=evaluator)
