@@ -13,6 +13,8 @@ let the trot's roll and lateral sway grow into falls on the stairs). Experiments
 * ``speeds``: the stairs (rise 0.1 m, go 0.25 m, up and down; course ``vital_stairs``) at 0.2, 0.3, 0.4
   and 0.5 m/s with VFA + VPA, 3 runs each (starts x = -0.1, 0, +0.1 m): success, leg and foot
   collisions, mean absolute pitch and height tracking errors (thesis table: 0.7-2.3 deg, 0.3-3.8 cm);
+* ``cnn``: the same stairs at 0.2, 0.3 and 0.4 m/s (3 starts each) with the VPA's CNN (committed weights)
+  instead of the exact pose evaluation;
 * ``tbr``: VPA vs TBR on the same stairs at 0.2 m/s, 3 runs each (the same starts; the VPA runs are the
   speeds runs): success and the safe footholds at the actual pose (exact evaluation at the actual hips);
 * ``gaps``: gapped stairs (``vital_gap_stairs``) at 0.4 m/s with VPA and with TBR;
@@ -47,7 +49,7 @@ from tal_perception.vpa_settings import CostKind
 
 START_S = 1.0  # [s] standing before the command starts
 SETTLE_S = 1.5  # [s] samples before this are left out of the tracking errors
-EXPERIMENTS = ("speeds", "tbr", "gaps", "rough", "horizon", "cost")
+EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost")
 
 
 @dataclass(frozen=True)
@@ -106,7 +108,7 @@ def _stairs(name: str, speed: float, loop: VitalLoopSettings | None, x0: float =
 
 
 def stairs_name(speed: float, x0: float, source: str = "") -> str:
-    """Run name of the stairs at ``speed`` [m/s] from ``x0`` [m] (``source`` "tbr" for the TBR runs)."""
+    """Run name of the stairs at ``speed`` [m/s] from ``x0`` [m] (``source``: "tbr", "cnn" or "" for the exact VPA)."""
     return f"stairs_{speed:.1f}{'_' + source if source else ''}_x{x0:+.1f}"
 
 
@@ -117,6 +119,9 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
     runs: dict[str, list[VitalRun]] = {}
     if "speeds" in only:
         runs["speeds"] = [_stairs(stairs_name(v, x0), v, vital, x0) for v in (0.2, 0.3, 0.4, 0.5) for x0 in STARTS_M]
+    if "cnn" in only:
+        cnn = replace(vital, vpa_use_cnn=True)
+        runs["cnn"] = [_stairs(stairs_name(v, x0, "cnn"), v, cnn, x0) for v in (0.2, 0.3, 0.4) for x0 in STARTS_M]
     if "tbr" in only:
         runs["tbr"] = [_stairs(stairs_name(0.2, x0, "" if source == "vpa" else "tbr"), 0.2, settings, x0)
                        for source, settings in (("vpa", vital), ("tbr", tbr)) for x0 in STARTS_M]
@@ -231,11 +236,14 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
              "20 Hz, N_h = 2, C_int unless the run says otherwise. Collisions are events (a collision starting): leg = "
              "shin/knee cylinder in the terrain by more than 5 mm; foot = swing foot hitting the terrain.", ""]
     titles = {"speeds": "Stairs (rise 0.1 m, go 0.25 m) at four speeds, VFA + VPA",
+              "cnn": "Stairs with the VPA's CNN instead of the exact VPA, VFA + VPA (CNN)",
               "tbr": "VPA vs TBR on the stairs at 0.2 m/s (3 runs each)",
               "gaps": "Gapped stairs at 0.4 m/s", "rough": "Rough terrain at 0.2 m/s, with and without ViTAL",
               "horizon": "Single vs receding horizon (stairs, 0.4 m/s)", "cost": "C_sum vs C_int (stairs, 0.4 m/s)"}
     for key, group in runs.items():
         lines += [f"## {titles[key]}", "", HEADER] + [_row(results[r.name]) for r in group] + [""]
+        if key == "cnn":
+            lines += speed_summary(group, results)
         if key == "speeds":
             lines += speed_summary(group, results)
             lines += ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to "

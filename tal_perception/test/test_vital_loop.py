@@ -84,7 +84,8 @@ def test_settings_and_experiment_list_are_checked() -> None:
     with pytest.raises(VpaConfigError, match="heightmap_period_s"):
         VitalLoopSettings(heightmap_period_s=0.0)
     runs = experiment_runs()
-    assert set(runs) == {"speeds", "tbr", "gaps", "rough", "horizon", "cost"}
+    assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost"}
+    assert all(r.loop.vpa_use_cnn for r in runs["cnn"]) and not any(r.loop.vpa_use_cnn for r in runs["speeds"])
     names = [r.name for group in runs.values() for r in group]
     shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)} | {"stairs_0.4_x+0.0"}
     assert len(set(names)) == len(names) - sum(names.count(n) - 1 for n in shared)
