@@ -118,13 +118,19 @@ class FakeRobot:
         self.odom.publish(msg)
 
 
-def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context, spin_until) -> None:
+def standing_wbc_with_robot(context, *overrides: Parameter) -> tuple[WbcNode, FakeRobot, SingleThreadedExecutor]:
+    """A standing wbc on ground-truth odometry (plus ``overrides``), a FakeRobot and an executor spinning both."""
     wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand"),
-                                                        Parameter("state_source", value="ground_truth")])
+                                                        Parameter("state_source", value="ground_truth"), *overrides])
     robot = FakeRobot(context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(wbc)
     executor.add_node(robot.node)
+    return wbc, robot, executor
+
+
+def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context, spin_until) -> None:
+    wbc, robot, executor = standing_wbc_with_robot(context)
     try:
         assert spin_until(executor, robot.matched, 20.0)  # DDS discovery in both directions
         # Tick 0: fresh state -> normal torque command (no damping term).
@@ -154,12 +160,7 @@ def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context, spin_un
 
 
 def test_nan_and_unknown_joints_are_rejected_and_counted(context, spin_until) -> None:
-    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand"),
-                                                        Parameter("state_source", value="ground_truth")])
-    robot = FakeRobot(context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(wbc)
-    executor.add_node(robot.node)
+    wbc, robot, executor = standing_wbc_with_robot(context)
     try:
         assert spin_until(executor, robot.matched, 20.0)
         bad_q = robot.q.copy()
@@ -184,13 +185,8 @@ def test_nan_and_unknown_joints_are_rejected_and_counted(context, spin_until) ->
 def test_stamped_commands_apply_from_their_tick_and_late_ones_are_counted(context, spin_until) -> None:
     """cmd_vel_stamped: a command applies from the first tick at or after its stamp, whatever the arrival
     order; one that arrives after its tick applies at once and is counted as late."""
-    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand"),
-                                                        Parameter("state_source", value="ground_truth")])
-    robot = FakeRobot(context)
+    wbc, robot, executor = standing_wbc_with_robot(context)
     commands = robot.node.create_publisher(TwistStamped, "cmd_vel_stamped", 100)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(wbc)
-    executor.add_node(robot.node)
 
     def command(stamp_ns: int, vx: float) -> None:
         msg = TwistStamped()
@@ -260,14 +256,8 @@ def test_first_tick_waits_for_the_command_source(context, spin_until) -> None:
 def test_contact_feedback_waits_for_the_ticks_contacts_and_searches_with_a_hovering_foot(context, spin_until) -> None:
     """contact_source ground_truth: a tick waits for the contacts of its stamp (the bridge sends them right
     after the joint state); a planned stance foot reported without contact searches for the ground."""
-    wbc = WbcNode(context=context, parameter_overrides=[Parameter("gait", value="stand"),
-                                                        Parameter("state_source", value="ground_truth"),
-                                                        Parameter("contact_source", value="ground_truth")])
-    robot = FakeRobot(context)
+    wbc, robot, executor = standing_wbc_with_robot(context, Parameter("contact_source", value="ground_truth"))
     contacts = robot.node.create_publisher(ContactState, "ground_truth/contacts", 10)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(wbc)
-    executor.add_node(robot.node)
     try:
         assert spin_until(executor, lambda: robot.matched() and contacts.get_subscription_count() >= 1, 20.0)
         robot.publish_odom(0)

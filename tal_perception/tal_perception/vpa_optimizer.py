@@ -206,7 +206,7 @@ class PoseOptimizer:
         by its curve's peak) to the middle of each leg's best hip heights (where F >= 0.9 of its peak).
 
         Why: the objective is flat where a leg's curve is zero. On stairs at 0.4 m/s the front legs
-        have safe footholds only 0.58-0.64 m above their tread and none at the previous pose, so a
+        have safe footholds only 0.56-0.64 m above their tread and none at the previous pose, so a
         local solver started there (or from a level pose at any height) never finds the nose-up pose
         that serves both pairs of legs; a second start here does."""
         z = np.asarray(self.settings.hip_heights, dtype=float)  # (N,) above the map references
