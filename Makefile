@@ -29,6 +29,7 @@ experiments: bootstrap
 		&& python -m tal_control.experiments.estimation_experiments --out results/estimation \
 		&& python -m tal_sim2real benchmark --out results/sim2real --data data/sim2real --count 30 --jobs 2 \
 		&& python -m tal_perception.eval_vfa --out results/vital && python -m tal_perception.eval_vpa --out results/vital \
+		&& python -m tal_perception.vpa_open_loop --out results/vital \
 		&& python -m tal_perception.vital_experiments --out results/vital --jobs 2
 
 lint: bootstrap

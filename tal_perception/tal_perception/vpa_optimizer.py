@@ -199,6 +199,7 @@ class PoseOptimizer:
             guess[:, 0] = height
             candidates.append(np.clip(guess, lower, upper))
         scores = [self.objective(problem, c.reshape(-1))[0] for c in candidates]
+        scores[0] += self.settings.switch_margin * abs(scores[0])  # stay near the previous pose unless clearly worse
         return candidates[int(np.argmax(scores))].reshape(-1)
 
     def peak_pose(self, problem: PoseProblem) -> FloatArray:
@@ -238,7 +239,14 @@ class PoseOptimizer:
         if np.abs(peak - first.poses.reshape(-1)).max() < 1e-3:
             return first
         second = self._solve_from(problem, solver, peak)
-        return second if second.objective > first.objective else first
+        return self._keep_or_switch(problem, first, second)
+
+    def _keep_or_switch(self, problem: PoseProblem, first: PoseSolution, second: PoseSolution) -> PoseSolution:
+        """The better of two optima, where the one whose first stage lies farther from the previous pose must
+        beat the other by ``switch_margin`` (relative)."""
+        previous = problem.previous[0] if problem.previous.ndim == 2 else problem.previous
+        near, far = sorted((first, second), key=lambda sol: float(np.abs(sol.poses[0] - previous).sum()))
+        return far if far.objective > near.objective + self.settings.switch_margin * abs(near.objective) else near
 
     def _solve_from(self, problem: PoseProblem, solver: Solver, start: FloatArray) -> PoseSolution:
         lower, upper = self.bounds(problem)

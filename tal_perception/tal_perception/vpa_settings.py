@@ -51,6 +51,10 @@ class VpaSettings:
     horizon: int = 2  # [-] N_h (thesis)
     horizon_shift_m: float | None = None  # [m] map overlap step; None: half the map diagonal (issue)
     smoothness_weight: float = 1.0  # [-] weight of |u_j - u_j+1|^2 between horizon stages (ours)
+    # [-] an optimum away from the previous pose replaces the one reached from it only when its objective is
+    # higher by this fraction (ours): with several starts, two optima of nearly equal value made the pose jump
+    # back and forth between updates (open loop on the stairs, ``vpa_open_loop``).
+    switch_margin: float = 0.0
     max_map_age_s: float = 0.5  # [s] older heightmaps are stale: the default pose is held (ours)
     min_speed_for_shift_mps: float = 0.02  # [m/s] below this the future map equals the current one (ours)
 
@@ -84,7 +88,7 @@ class VpaSettings:
             raise VpaConfigError(f"VpaSettings: pose_lower {self.pose_lower} must be < pose_upper {self.pose_upper}")
         if not (np.array(self.max_change) > 0.0).all():
             raise VpaConfigError(f"VpaSettings.max_change must be > 0, got {self.max_change}")
-        for name in ("cost_margin_m", "smoothness_weight", "min_speed_for_shift_mps"):
+        for name in ("cost_margin_m", "smoothness_weight", "min_speed_for_shift_mps", "switch_margin"):
             if getattr(self, name) < 0.0:
                 raise VpaConfigError(f"VpaSettings.{name} must be >= 0, got {getattr(self, name)}")
         if self.max_map_age_s <= 0.0:
