@@ -97,6 +97,7 @@ class VitalRunResult:
     no_safe: int
     vpa_compute_median_ms: float
     wall_s: float
+    first_wrench_miss: str = ""  # the first tick where the QP missed the trunk's wrench, and why (fall_analysis)
     series: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
 
@@ -146,6 +147,8 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
     import torch
 
     from tal_control.experiments.closed_loop import ClosedLoopConfig, run_closed_loop
+    from tal_control.experiments.fall_analysis import first_wrench_miss_of_log
+    from tal_control.wbc import WbcSettings
     from tal_control.motion.generator import MotionParameters
     from tal_core.robot_description import load_robot_description
     from tal_core.robot_model import RobotModel
@@ -173,6 +176,9 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
     height_error = 100.0 * np.abs(log.base_position_des[:n, 2] - log.base_position[:n, 2])[mask]
     x = log.base_position[:n, 0]
     reached = bool(np.any(x >= run.goal_x_m))
+    wbc = WbcSettings()
+    miss = first_wrench_miss_of_log(log, load_robot_description("hyq"),
+                                    wbc.joint_limit_horizon_periods * wbc.control_period_s, after_s=SETTLE_S)
     pose = trace["pose_reference"][:n]
     dz, dpitch = _variation_per_metre(x, pose[:, 0], np.degrees(pose[:, 2]))
     safe = trace["actual_safe_footholds"][:n]
@@ -189,7 +195,7 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
         envelope_thickness_mean=_mean(thickness[np.isfinite(thickness)]),
         decisions=loop.decisions, adapted=loop.adapted, no_safe=loop.no_safe,
         vpa_compute_median_ms=1e3 * float(np.median(loop.pose_compute_s)) if loop.pose_compute_s else math.nan,
-        wall_s=wall,
+        wall_s=wall, first_wrench_miss="" if miss is None else miss.describe(),
         series={"t": log.t[:n], "x": x, "z": log.base_position[:n, 2], "z_des": log.base_position_des[:n, 2],
                 "pitch_deg": np.degrees(log.base_rpy[:n, 1]), "pitch_des_deg": np.degrees(log.rpy_des[:n, 1]),
                 "pose_reference": pose, "safe": safe, "thickness": thickness,
@@ -268,6 +274,17 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
                       f"{_thickness_over(results[r.name], common):.1f} |" for r in group]
             lines += ["", "Thesis: C_int gives the thinner envelope (more robust to pose tracking errors).", "",
                       "![envelope](vital_cost_envelope.png)", ""]
+    failed = [r for r in results.values() if not r.success]
+    if failed:
+        lines += ["## Why the failed runs fell: the first tick the QP missed the trunk's wrench", "",
+                  "`tal_control.experiments.fall_analysis`: the first control tick after 1.5 s where the force part of "
+                  "the WBC's centroidal wrench left the desired one by more than 300 N, the planned stance legs, the "
+                  "joints at their torque limits and those whose joint-limit acceleration bound had closed (< 50 "
+                  "rad/s^2 of room), and the swing leg with the largest swing-task slack.", "",
+                  "| run | x end [m] | first wrench miss |", "|---|---|---|"]
+        lines += [f"| {r.name} | {r.x_end_m:.2f} | {r.first_wrench_miss or 'none before the fall'} |"
+                  for r in sorted(failed, key=lambda r: r.name)]
+        lines.append("")
     (out / "closed_loop.md").write_text("\n".join(lines) + "\n")
     payload = {name: {k: v for k, v in vars(r).items() if k != "series"} for name, r in results.items()}
     (out / "closed_loop.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tal_control.experiments.fall_analysis import centroidal_wrench
 from tal_control.locomotion import (
     BaseState,
     ImpedanceGate,
@@ -185,6 +186,8 @@ class ClosedLoopLog:
     stance: np.ndarray  # (N, 4) bool, planned stance
     normals: np.ndarray  # (N, 4, 3) terrain normals given to the WBC
     wbc_forces: np.ndarray  # (N, 4, 3) [N] WBC ground reaction forces on the feet
+    wrench_des: np.ndarray  # (N, 6) [N, N m] desired centroidal wrench (world, about the CoM) of the trunk task
+    wrench_wbc: np.ndarray  # (N, 6) [N, N m] centroidal wrench of the WBC's forces (what the QP delivered)
     slacks: np.ndarray  # (N, 4, 3) [m/s^2] swing-task slacks
     tau_wbc: np.ndarray  # (N, 12) [N m] WBC torques
     tau_cmd: np.ndarray  # (N, 12) [N m] torques submitted (after the hook)
@@ -416,6 +419,9 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                     stance=out.targets.stance,
                     normals=out.targets.normals,
                     wbc_forces=sol.forces,
+                    wrench_des=sol.desired_wrench,
+                    wrench_wbc=centroidal_wrench(sol.forces, out.measured.foot_positions
+                                                 - radius * out.targets.normals, out.measured.com),
                     slacks=sol.slacks,
                     tau_wbc=sol.tau,
                     tau_cmd=tau,

@@ -33,6 +33,16 @@ from .tasks import WbcGains, WbcReferences, desired_com_wrench, swing_accelerati
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
 
+def joint_acceleration_bounds(q: np.ndarray, qd: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                              horizon_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(qdd_min, qdd_max) [rad/s^2]: the accelerations that reach each end stop (lower, upper [rad]) at zero
+    velocity within ``horizon_s`` [s] from (q [rad], qd [rad/s]) (thesis eq.)."""
+    qdd_max = 2.0 / horizon_s**2 * (upper - q - horizon_s * qd)
+    qdd_min = 2.0 / horizon_s**2 * (lower - q - horizon_s * qd)
+    # Beyond a limit the two bounds cross: keep the one that brings the joint back.
+    return np.minimum(qdd_min, qdd_max), qdd_max
+
+
 @dataclass(frozen=True)
 class WbcSettings:
     """QP weights and limits. Units: forces [N], accelerations [m/s^2, rad/s^2]."""
@@ -463,12 +473,8 @@ class StandardWbc:
 
     def _joint_acceleration_bounds(self, q_joints: np.ndarray, qd_joints: np.ndarray):
         """Accelerations that reach each end stop at zero velocity within the horizon (thesis eq.)."""
-        dt = self.settings.joint_limit_horizon_periods * self.settings.control_period_s
-        qdd_max = 2.0 / dt**2 * (self.position_upper - q_joints - dt * qd_joints)
-        qdd_min = 2.0 / dt**2 * (self.position_lower - q_joints - dt * qd_joints)
-        # Beyond a limit the two bounds cross: keep the one that brings the joint back.
-        qdd_min = np.minimum(qdd_min, qdd_max)
-        return qdd_min, qdd_max
+        horizon_s = self.settings.joint_limit_horizon_periods * self.settings.control_period_s
+        return joint_acceleration_bounds(q_joints, qd_joints, self.position_lower, self.position_upper, horizon_s)
 
     # -- state helpers ---------------------------------------------------------------------------------
     def _canonical_joint_positions(self, q: np.ndarray) -> np.ndarray:
