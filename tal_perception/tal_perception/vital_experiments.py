@@ -148,8 +148,8 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
 
     from tal_control.experiments.closed_loop import ClosedLoopConfig, run_closed_loop
     from tal_control.experiments.fall_analysis import first_wrench_miss_of_log
-    from tal_control.wbc import WbcSettings
     from tal_control.motion.generator import MotionParameters
+    from tal_control.wbc import WbcSettings
     from tal_core.robot_description import load_robot_description
     from tal_core.robot_model import RobotModel
     from tal_core.terrain import load_course
