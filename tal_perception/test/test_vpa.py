@@ -13,6 +13,7 @@ from tal_core.legs import LEGS, Leg
 from tal_core.robot_model import RobotModel
 from tal_core.rotations import quat_xyzw_from_rotation
 from tal_core.terrain import load_course
+from tal_perception import vpa_evaluation
 from tal_perception.errors import PerceptionInputError, VpaConfigError, VpaModelError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import GaitTiming
@@ -134,6 +135,31 @@ def test_shared_evaluation_equals_the_fec_on_whole_robot_scene_maps(
             np.testing.assert_array_equal(fast, pose_evaluator.reference_counts(leg, heights, scene.twist, TROT_GAIT))
             total += int(fast.sum())
     assert total > 0
+
+
+@pytest.mark.parametrize("block", [1, 37, 1089])
+def test_pair_blocks_give_the_same_counts(
+    pose_evaluator: PoseEvaluator, monkeypatch: pytest.MonkeyPatch, block: int
+) -> None:
+    """The IK / LC batches are made of whole layers of at most ``_BLOCK_PAIRS`` pairs (a layer alone if it
+    holds more): any block size gives the counts of one batch per instant, i.e. the FEC's."""
+    cases = [("stairs", Leg.RF, [0.3, 0.0, 0, 0, 0, 0.1]), ("bars", Leg.LH, [0.2, 0.05, 0, 0, 0, -0.2])]
+    maps = [(random_terrain(np.random.default_rng(11), kind).heights.astype(float), leg, np.array(twist, dtype=float))
+            for kind, leg, twist in cases]  # fmt: skip
+    one_batch = [pose_evaluator.evaluate(leg, heights, twist, TROT_GAIT).nsf for heights, leg, twist in maps]
+    monkeypatch.setattr(vpa_evaluation, "_BLOCK_PAIRS", block)
+    for (heights, leg, twist), expected in zip(maps, one_batch):
+        blocked = pose_evaluator.evaluate(leg, heights, twist, TROT_GAIT).nsf
+        np.testing.assert_array_equal(blocked, expected)
+        np.testing.assert_array_equal(blocked, pose_evaluator.reference_counts(leg, heights, twist, TROT_GAIT))
+        assert blocked.max() > 0
+
+
+def test_layer_blocks_cover_the_stack_in_order_within_the_limit() -> None:
+    counts = np.array([2, 2, 5, 1, 0, 3, 1])
+    blocks = vpa_evaluation._layer_blocks(counts, 4)
+    assert blocks == [slice(0, 2), slice(2, 3), slice(3, 6), slice(6, 7)]  # the 5 (> 4) forms a block alone
+    assert vpa_evaluation._layer_blocks(np.array([7]), 4) == [slice(0, 1)]
 
 
 def test_unknown_cells_are_unsafe(pose_evaluator: PoseEvaluator) -> None:
