@@ -210,8 +210,36 @@ class LegKinematics:
         z[k]): the x and y terms of the change to the HAA frame are then summed once per cell (many
         targets share a cell: the VPA's hip heights).
         """
-        solution = _solve(self._constants[leg], *_haa_frame(self._constants[leg], x, y, z, cells))
+        c = self._constants[leg]
+        if cells is not None:
+            return self.within_limits_cells(leg, _cell_terms(c, x, y), z, cells)
+        solution = _solve(c, *_haa_frame(c, x, y, z))
         return solution.within, solution.origins(np.flatnonzero(solution.within))
+
+    def cell_terms(self, leg: Leg, x: FloatArray, y: FloatArray) -> CellTerms:
+        """The per-cell part of ``within_limits_xyz(..., cells=)`` for cells at x, y (C,) [m], base frame:
+        made once, reused by every batch of targets on these cells (``within_limits_cells``)."""
+        return _cell_terms(self._constants[leg], x, y)
+
+    def within_limits_cells(
+        self, leg: Leg, terms: CellTerms, z: FloatArray, cells: NDArray[np.intp]
+    ) -> tuple[BoolArray, JointOrigins]:
+        """``within_limits_xyz(leg, x, y, z, cells=cells)`` with the cells' terms made beforehand by
+        ``cell_terms(leg, x, y)`` (same numbers)."""
+        solution = _solve(self._constants[leg], *_haa_frame_cells(self._constants[leg], terms, z, cells))
+        return solution.within, solution.origins(np.flatnonzero(solution.within))
+
+
+@dataclass(frozen=True, eq=False)
+class CellTerms:
+    """The x and y part [m] of the change to the HAA frame (``_haa_frame``) of foot targets above a few
+    cells, per cell (C,): ``finite`` x and y finite, and the sums u0 x + u1 y, e2_0 x + e2_1 y,
+    w0 x + w1 y of the coordinates relative to the HAA origin (0 where not finite)."""
+
+    finite: BoolArray
+    along_u: FloatArray
+    along_e2: FloatArray
+    along_w: FloatArray
 
 
 @dataclass(frozen=True, eq=False)
@@ -268,30 +296,42 @@ class _IkSolution:
 
 
 def _haa_frame(
-    c: _IkConstants, x: FloatArray, y: FloatArray, z: FloatArray, cells: NDArray[np.intp] | None = None
+    c: _IkConstants, x: FloatArray, y: FloatArray, z: FloatArray
 ) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
     """Foot targets [m] (base frame) relative to the HAA origin, along u, e2 and w: (finite, X, Y, W),
-    each (N,); non-finite targets are moved to the origin (``finite`` False). With ``cells`` see
-    ``LegKinematics.within_limits_xyz`` (X, Y, W of finite targets unchanged: same sums, same order)."""
+    each (N,); non-finite targets are moved to the origin (``finite`` False)."""
     u, e2, wa = c.u, c.e2, c.w
-    if cells is None:
-        finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
-        rx, ry, rz = x - c.h[0], y - c.h[1], z - c.h[2]
-        if not finite.all():
-            rx, ry, rz = (np.where(finite, v, 0.0) for v in (rx, ry, rz))
-        x_t = u[0] * rx + u[1] * ry + u[2] * rz
-        y_t = e2[0] * rx + e2[1] * ry + e2[2] * rz
-        w_t = wa[0] * rx + wa[1] * ry + wa[2] * rz
-        return finite, x_t, y_t, w_t
-    finite_xy = np.isfinite(x) & np.isfinite(y)  # (C,)
-    rx, ry = np.where(finite_xy, x - c.h[0], 0.0), np.where(finite_xy, y - c.h[1], 0.0)
-    finite = finite_xy[cells] & np.isfinite(z)
+    finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    rx, ry, rz = x - c.h[0], y - c.h[1], z - c.h[2]
+    if not finite.all():
+        rx, ry, rz = (np.where(finite, v, 0.0) for v in (rx, ry, rz))
+    x_t = u[0] * rx + u[1] * ry + u[2] * rz
+    y_t = e2[0] * rx + e2[1] * ry + e2[2] * rz
+    w_t = wa[0] * rx + wa[1] * ry + wa[2] * rz
+    return finite, x_t, y_t, w_t
+
+
+def _cell_terms(c: _IkConstants, x: FloatArray, y: FloatArray) -> CellTerms:
+    """``CellTerms`` of cells at x, y (C,) [m], base frame."""
+    u, e2, wa = c.u, c.e2, c.w
+    finite = np.isfinite(x) & np.isfinite(y)
+    rx, ry = np.where(finite, x - c.h[0], 0.0), np.where(finite, y - c.h[1], 0.0)
+    return CellTerms(finite, u[0] * rx + u[1] * ry, e2[0] * rx + e2[1] * ry, wa[0] * rx + wa[1] * ry)
+
+
+def _haa_frame_cells(
+    c: _IkConstants, terms: CellTerms, z: FloatArray, cells: NDArray[np.intp]
+) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
+    """``_haa_frame`` of targets (N,) above ``cells`` (N,) at heights z (N,) [m]: the per-cell x and y
+    terms are gathered and the z term added (X, Y, W of finite targets are the same sums in the same
+    order, so the same numbers)."""
+    finite = terms.finite[cells] & np.isfinite(z)
     rz = z - c.h[2]
     if not finite.all():
         rz = np.where(finite, rz, 0.0)
-    x_t = (u[0] * rx + u[1] * ry)[cells] + u[2] * rz
-    y_t = (e2[0] * rx + e2[1] * ry)[cells] + e2[2] * rz
-    w_t = (wa[0] * rx + wa[1] * ry)[cells] + wa[2] * rz
+    x_t = terms.along_u[cells] + c.u[2] * rz
+    y_t = terms.along_e2[cells] + c.e2[2] * rz
+    w_t = terms.along_w[cells] + c.w[2] * rz
     return finite, x_t, y_t, w_t
 
 

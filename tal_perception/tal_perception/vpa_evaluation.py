@@ -37,7 +37,7 @@ from tal_perception.errors import PerceptionInputError
 from tal_perception.fec import FootholdEvaluator, PreparedPatch
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
-from tal_perception.leg_kinematics import JointOrigins
+from tal_perception.leg_kinematics import CellTerms, JointOrigins
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -79,26 +79,25 @@ class PoseEvaluator:
         settings = evaluator.settings
         n = settings.patch_cells
         offsets = disc_offsets(settings.uncertainty_margin_m, settings.resolution_m, include_centre=False)
-        self._margin_slices = [_overlap(di, dj, n, n) for di, dj in offsets]
+        self._margin_shifts = [_flat_shift(di, dj, n, n) for di, dj in offsets]
         self._shape = (n, n)
 
     # -- stacked morphology over heights --------------------------------------------------------------
     def _erode(self, ok: BoolArray) -> BoolArray:
-        """Erosion of a (H, rows, cols) stack with the margin disc, outside the patch ignored (= safe).
-
-        Each offset ANDs the overlapping slices in place: the frame of cells outside the patch would be
-        True, which leaves a cell unchanged, so it is skipped instead of padded (no padded copy)."""
-        result = ok.copy()
-        for target, source in self._margin_slices:
-            result[target] &= ok[source]
-        return result
+        """Erosion of a (H, rows, cols) stack with the margin disc, outside the patch ignored (= safe)."""
+        flat = ok.reshape(ok.shape[0], ok.shape[1] * ok.shape[2])  # (H, cells), also for H = 0
+        result = flat.copy()
+        for target, source, outside in self._margin_shifts:
+            result[:, target] &= flat[:, source] if outside is None else flat[:, source] | outside
+        return result.reshape(ok.shape)
 
     def _dilate(self, ok: BoolArray) -> BoolArray:
-        """Dilation of a (H, rows, cols) stack with the margin disc (outside the patch = False: skipped)."""
-        result = ok.copy()
-        for target, source in self._margin_slices:
-            result[target] |= ok[source]
-        return result
+        """Dilation of a (H, rows, cols) stack with the margin disc, outside the patch = False."""
+        flat = ok.reshape(ok.shape[0], ok.shape[1] * ok.shape[2])  # (H, cells), also for H = 0
+        result = flat.copy()
+        for target, source, outside in self._margin_shifts:
+            result[:, target] |= flat[:, source] if outside is None else flat[:, source] & ~outside
+        return result.reshape(ok.shape)
 
     # -- evaluation ------------------------------------------------------------------------------------
     def evaluate(self, leg: Leg, heights: FloatArray, twist: FloatArray, gait: GaitTiming) -> PoseEvaluation:
@@ -161,8 +160,15 @@ class PoseEvaluator:
         return float(np.max(prep.leg_terrain.flat[:-1]))
 
     def _instants(self, prep: PreparedPatch) -> list[_Instant]:
-        """The KF/LC instants, patch frame: touchdown and next lift-off first (they reject most), then the
-        swing samples; instants with one foot point for every cell first of all (see ``_Instant``)."""
+        """The KF/LC instants, patch frame: next lift-off and touchdown first (they reject most), then the
+        swing samples from the latest; instants with one foot point for every cell first of all (see
+        ``_Instant``).
+
+        Any order gives the same counts (an instant only removes pairs, and the pruning after each one
+        keeps every pair that can still matter), but the later instants see fewer pairs when the ones
+        that reject most come first. Each alone, on the pairs left after the swing start of the 320
+        bench leg maps: lift-off rejects 41 %, touchdown 38 %, the swing samples 25 / 17 / 9 % (latest
+        first); this order evaluates 1.4 % fewer pairs than touchdown, lift-off, earliest sample first."""
         ev = self.evaluator
         gait = prep.inp.gait
         every = np.arange(prep.cand_x.size)
@@ -176,6 +182,7 @@ class PoseEvaluator:
         points = [(prep.cand_x, prep.cand_y, td_z), (prep.cand_x, prep.cand_y, td_z)]
         points += [(sx[i], sy[i], sz[i]) for i in range(sx.shape[0])]
         instants = [_Instant(x, y, z, hip, _same_point(x, y, z)) for (x, y, z), hip in zip(points, hips)]
+        instants = [instants[1], instants[0], *instants[:1:-1]]  # lift-off, touchdown, latest sample first
         # Instants with one foot point for all cells (the swing start) cost one IK per height and can
         # remove whole heights: they go first (stable sort keeps the order of the others).
         return sorted(instants, key=lambda instant: not instant.uniform)
@@ -198,32 +205,31 @@ class PoseEvaluator:
         # x and y only depend on the cell, z only on the cell and the height: both sums are made on the
         # small per-cell / per-height arrays and gathered (the same sums, element by element).
         shift = (float(g.haa_origin[0] - instant.hip[0]), float(g.haa_origin[1] - instant.hip[1]))
-        cells_xy = (instant.x + shift[0], instant.y + shift[1])  # (C,) [m] base frame
+        terms = self.evaluator.kinematics.cell_terms(prep.inp.leg, instant.x + shift[0], instant.y + shift[1])
         bz_height = float(g.haa_origin[2]) - (prep.inp.hip_height_m + hip_heights)  # (H',)
         if instant.uniform:  # same foot point for every cell (swing start): once per alive height
             alive = np.flatnonzero(flat.any(axis=1))
             cells = np.full(alive.size, int(np.flatnonzero(~np.isnan(instant.z))[0]))
-            good = self._pairs_ok(prep, instant, cells_xy, cells, bz_height[alive], shift, top)
+            good = self._pairs_ok(prep, instant, terms, cells, bz_height[alive], shift, top)
             passed = np.zeros(hip_heights.size, dtype=bool)
             passed[alive[good]] = True
             return (flat & passed[:, None]).reshape(ok.shape)
         result = flat.copy()
         for rows in _layer_blocks(flat.sum(axis=1), _BLOCK_PAIRS):
             pair_h, pair_c = np.nonzero(flat[rows])
-            good = self._pairs_ok(prep, instant, cells_xy, pair_c, bz_height[rows][pair_h], shift, top)
+            good = self._pairs_ok(prep, instant, terms, pair_c, bz_height[rows][pair_h], shift, top)
             result[rows][flat[rows]] = good  # np.nonzero's pairs are in the order of the boolean mask
         return result.reshape(ok.shape)
 
     def _pairs_ok(
-        self, prep: PreparedPatch, instant: _Instant, cells_xy: tuple[FloatArray, FloatArray],
-        cells: NDArray[np.intp], bz: FloatArray, shift: tuple[float, float], top: float,
+        self, prep: PreparedPatch, instant: _Instant, terms: CellTerms, cells: NDArray[np.intp], bz: FloatArray,
+        shift: tuple[float, float], top: float,
     ) -> BoolArray:  # fmt: skip
-        """KF & LC of N (height, cell) pairs: foot cells (N,), cells_xy the cells' foot x and y (C,) and
-        bz (N,) the pairs' z shift, base frame [m]; shift the x and y patch -> base shift [m]."""
+        """KF & LC of N (height, cell) pairs: foot cells (N,), terms the cells' part of the IK's frame
+        change (``LegKinematics.cell_terms``), bz (N,) the pairs' z shift, base frame [m]; shift the x
+        and y patch -> base shift [m]; top [m] the patch top."""
         z = instant.z[cells] + bz
-        within, origins = self.evaluator.kinematics.within_limits_xyz(
-            prep.inp.leg, cells_xy[0], cells_xy[1], z, cells=cells
-        )
+        within, origins = self.evaluator.kinematics.within_limits_cells(prep.inp.leg, terms, z, cells)
         good = within  # becomes within & clear below
         idx = np.flatnonzero(within)
         if idx.size:
@@ -323,12 +329,17 @@ def _segment_sample(start: FloatArray, end: FloatArray, fraction: float) -> Floa
     return start if fraction == 0.0 else start + (end - start) * fraction
 
 
-def _overlap(di: int, dj: int, rows: int, cols: int) -> tuple[tuple[slice, ...], tuple[slice, ...]]:
-    """Index tuples (target, source) of a (H, rows, cols) stack such that stack[target] and
-    stack[source] pair every cell (r, c) with its neighbour (r + di, c + dj) inside the grid."""
-    target = (slice(None), slice(max(0, -di), rows - max(0, di)), slice(max(0, -dj), cols - max(0, dj)))
-    source = (slice(None), slice(max(0, di), rows + min(0, di)), slice(max(0, dj), cols + min(0, dj)))
-    return target, source
+def _flat_shift(di: int, dj: int, rows: int, cols: int) -> tuple[slice, slice, BoolArray | None]:
+    """The neighbour (r + di, c + dj) of every cell as a shift of the row-major flattened grid (one
+    contiguous slice per layer, cheaper than 2-D slices): cell k of ``target`` pairs with cell k of
+    ``source``; ``outside`` (len(target),) marks the cells whose neighbour is across a side edge (the
+    flat shift wraps to the next row there), None if there are none."""
+    shift, size = di * cols + dj, rows * cols
+    target = slice(max(0, -shift), size - max(0, shift))
+    source = slice(target.start + shift, target.stop + shift)
+    col = np.arange(size)[target] % cols + dj
+    outside = (col < 0) | (col >= cols)
+    return target, source, (outside if outside.any() else None)
 
 
 def _drop_empty(ok: BoolArray, rows: NDArray[np.intp]) -> tuple[BoolArray, NDArray[np.intp]]:

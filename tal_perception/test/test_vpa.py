@@ -16,7 +16,8 @@ from tal_core.terrain import load_course
 from tal_perception import vpa_evaluation
 from tal_perception.errors import PerceptionInputError, VpaConfigError, VpaModelError
 from tal_perception.fec import FootholdEvaluator
-from tal_perception.fec_settings import GaitTiming
+from tal_perception.fec_grid import erode
+from tal_perception.fec_settings import FecSettings, GaitTiming
 from tal_perception.rbf import RbfBasis
 from tal_perception.tbr import TerrainBasedReference
 from tal_perception.terrain_samples import random_terrain
@@ -153,6 +154,20 @@ def test_pair_blocks_give_the_same_counts(
         np.testing.assert_array_equal(blocked, expected)
         np.testing.assert_array_equal(blocked, pose_evaluator.reference_counts(leg, heights, twist, TROT_GAIT))
         assert blocked.max() > 0
+
+
+@pytest.mark.parametrize("margin_m", [0.0, 0.02, 0.05])
+def test_stack_erosion_and_dilation_equal_the_fec_erosion_per_layer(hyq: RobotModel, margin_m: float) -> None:
+    """The stack morphology (flattened shifts, side edges masked) equals fec_grid.erode on every layer, and
+    dilation is its dual (outside the patch: safe for the erosion, nothing for the dilation)."""
+    evaluator = FootholdEvaluator(hyq, FecSettings(uncertainty_margin_m=margin_m))
+    stacked = PoseEvaluator(evaluator, HEIGHTS)
+    stack = np.random.default_rng(5).uniform(size=(6, 33, 33)) < 0.85
+    eroded, dilated = stacked._erode(stack), stacked._dilate(stack)
+    for layer in range(stack.shape[0]):
+        np.testing.assert_array_equal(eroded[layer], erode(stack[layer], 0.02, margin_m))
+        np.testing.assert_array_equal(dilated[layer], ~erode(~stack[layer], 0.02, margin_m))
+    assert stacked._erode(stack[:0]).shape == (0, 33, 33)
 
 
 def test_layer_blocks_cover_the_stack_in_order_within_the_limit() -> None:
