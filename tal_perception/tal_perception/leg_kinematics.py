@@ -338,7 +338,80 @@ def _haa_frame_cells(
 def _solve(c: _IkConstants, finite: BoolArray, x_t: FloatArray, y_t: FloatArray, w_t: FloatArray) -> _IkSolution:
     """Closed-form IK (nominal branches) of foot targets (N,) given in the HAA frame (``_haa_frame``):
     joint cosines and sines, reachability (with the reach margin) and the joint-limit check (with the
-    limit margin)."""
+    limit margin).
+
+    The formulas of ``_solve_reference`` (the readable form), evaluated operation by operation in the
+    same order but into fewer, reused arrays (``out=``): the same IEEE operations on the same operands,
+    so the same bits (tested), with half the temporary arrays (this runs on ~300,000 targets per VPA
+    update).
+    """
+    d = c.d
+    tmp = np.empty_like(x_t)
+    # HAA angle: from (d, y_p) (foot in the unrotated HAA body) to (w_t, y_t), both of norm rho.
+    rho_sq = np.multiply(w_t, w_t)
+    rho_sq += np.multiply(y_t, y_t, out=tmp)  # w_t * w_t + y_t * y_t
+    y_p = np.subtract(rho_sq, d * d)
+    np.sqrt(np.maximum(y_p, 0.0, out=y_p), out=y_p)
+    if c.hip_branch < 0.0:
+        np.negative(y_p, out=y_p)
+    inv_rho_sq = np.maximum(rho_sq, 1e-12)
+    np.divide(1.0, inv_rho_sq, out=inv_rho_sq)
+    cos_haa = np.multiply(w_t, d)
+    cos_haa += np.multiply(y_p, y_t, out=tmp)  # d * w_t + y_p * y_t
+    cos_haa *= inv_rho_sq
+    sin_haa = np.multiply(y_p, w_t)
+    sin_haa -= np.multiply(y_t, d, out=tmp)  # y_p * w_t - d * y_t
+    sin_haa *= inv_rho_sq
+    # Planar two-link problem from HFE to the foot.
+    tx, ty = np.subtract(x_t, c.hfe_x), np.subtract(y_p, c.hfe_y)
+    dist_sq = np.multiply(tx, tx)
+    dist_sq += np.multiply(ty, ty, out=tmp)  # tx * tx + ty * ty
+    cos_gamma = np.subtract(dist_sq, c.l_sq_sum)
+    cos_gamma *= c.inv_2l1l2
+    np.clip(cos_gamma, -1.0, 1.0, out=cos_gamma)
+    sin_gamma = np.multiply(cos_gamma, cos_gamma)
+    np.sqrt(np.subtract(1.0, sin_gamma, out=sin_gamma), out=sin_gamma)
+    if c.knee_branch < 0.0:
+        np.negative(sin_gamma, out=sin_gamma)
+    # The shin, rotated by the knee, is the thigh direction rotated by gamma and scaled to l2.
+    sx = np.multiply(cos_gamma, c.l2_ux)
+    sx -= np.multiply(sin_gamma, c.l2_uy, out=tmp)  # l2_ux * cos_gamma - l2_uy * sin_gamma
+    sy = np.multiply(sin_gamma, c.l2_ux)
+    sy += np.multiply(cos_gamma, c.l2_uy, out=tmp)  # l2_ux * sin_gamma + l2_uy * cos_gamma
+    cos_2 = np.multiply(sx, c.shin[0])  # KFE rotation: shin -> rotated shin
+    cos_2 += np.multiply(sy, c.shin[1], out=tmp)
+    cos_2 *= c.inv_l2_sq
+    sin_2 = np.multiply(sy, c.shin[0])
+    sin_2 -= np.multiply(sx, c.shin[1], out=tmp)
+    sin_2 *= c.inv_l2_sq * c.kfe_sign
+    rx2, ry2 = np.add(sx, c.thigh[0], out=sx), np.add(sy, c.thigh[1], out=sy)  # HFE -> foot at theta1 = 0
+    inv_dist_sq = np.maximum(dist_sq, 1e-12)
+    np.divide(1.0, inv_dist_sq, out=inv_dist_sq)
+    cos_1 = np.multiply(rx2, tx)
+    cos_1 += np.multiply(ry2, ty, out=tmp)  # rx2 * tx + ry2 * ty
+    cos_1 *= inv_dist_sq
+    sin_1 = np.multiply(rx2, ty)
+    sin_1 -= np.multiply(ry2, tx, out=tmp)  # rx2 * ty - ry2 * tx
+    sin_1 *= inv_dist_sq
+    cosines, sines = (cos_haa, cos_1, cos_2), (sin_haa, sin_1, sin_2)
+    reachable = np.greater_equal(rho_sq, d * d)
+    reachable &= finite
+    flag = np.less_equal(dist_sq, c.max_dist_sq)
+    reachable &= flag
+    reachable &= np.greater_equal(dist_sq, c.min_dist_sq, out=flag)
+    # q in [lower + m, upper - m]  <=>  cos(q - mid) >= cos(half - m): no atan2 needed.
+    within = reachable.copy() if c.limits_nonempty else np.zeros_like(reachable)
+    for i in range(3):
+        np.multiply(cosines[i], c.cos_mid[i], out=tmp)
+        tmp += np.multiply(sines[i], c.sin_mid[i], out=rx2)  # rx2 is free once sin_1 is made
+        within &= np.greater_equal(tmp, c.cos_half[i], out=flag)
+    return _IkSolution(c, cosines, sines, reachable, within)
+
+
+def _solve_reference(
+    c: _IkConstants, finite: BoolArray, x_t: FloatArray, y_t: FloatArray, w_t: FloatArray
+) -> _IkSolution:
+    """``_solve`` written as plain expressions: the readable form, whose bits ``_solve`` must give."""
     d = c.d
     rho_sq = w_t * w_t + y_t * y_t
     y_p = np.sqrt(np.maximum(rho_sq - d * d, 0.0))
