@@ -16,9 +16,12 @@ safe candidate are kept (dilate(erode(ok))). Instants whose foot position is the
 (the lift-off sample) are evaluated once per height, and a height left without any possible safe cell
 is dropped from the stack. Per instant, KF & LC equal the FEC's (an unreachable foot is never within
 the limits, so ``clear | ~reachable`` reduces to ``clear``); the knee and hip joint positions are only
-built for the legs within the joint limits, and the terrain is only looked up for the legs whose lowest
-segment end reaches below the patch's highest terrain. Every number is computed with the same
-floating-point operations as the FEC's, so the counts are identical, not merely close.
+built for the legs within the joint limits, and the terrain is only looked up for the sample points
+below the patch's highest terrain (of the segments whose lowest end reaches below it). The pairs of an
+instant go to the IK and LC in blocks of a few whole layers (``_BLOCK_PAIRS``: larger arrays made the
+allocator return memory to the kernel and page-fault it back on every instant). Every number is
+computed with the same floating-point operations as the FEC's, so the counts are identical, not merely
+close.
 
 The result equals ``FootholdEvaluator.evaluate(...).safe_count`` at each height (tested);
 ``reference_counts`` is that slow loop.
