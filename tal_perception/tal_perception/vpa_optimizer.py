@@ -253,7 +253,8 @@ class PoseOptimizer:
 
         # The solvers' tolerances are absolute: C_prod of four normalised NSF is ~1e-4, so the objective is
         # divided by its magnitude at the start (same optimum, gradients of order one for every cost).
-        scale = 1.0 / min(max(abs(self.objective(problem, start)[0]), _MIN_SCALE), 1.0)
+        start_value = self.objective(problem, start)[0]  # also the fallback below (evaluated once)
+        scale = 1.0 / min(max(abs(start_value), _MIN_SCALE), 1.0)
 
         def negative(flat: FloatArray) -> tuple[float, FloatArray]:
             value, grad = self.objective(problem, flat)
@@ -276,7 +277,6 @@ class PoseOptimizer:
             iterations = int(result.nit)
         poses = np.clip(result.x, box.lb, box.ub).reshape(problem.stages, 3)
         value = self.objective(problem, poses.reshape(-1))[0]
-        start_value = self.objective(problem, start)[0]
         if not math.isfinite(value) or value < start_value:  # never worse than where it started
             poses, value = start.reshape(problem.stages, 3), start_value
         return PoseSolution(poses, float(value), bool(result.success), iterations, solver)

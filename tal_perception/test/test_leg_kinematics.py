@@ -8,6 +8,7 @@ import pytest
 
 from tal_core.legs import LEGS, Leg
 from tal_core.robot_model import RobotModel
+from tal_perception import leg_kinematics
 from tal_perception.errors import LegKinematicsError, PerceptionInputError
 from tal_perception.leg_kinematics import LegKinematics
 
@@ -120,6 +121,25 @@ def test_within_limits_xyz_gives_the_inverse_numbers_of_the_feasible_targets(
     for axis in range(3):
         np.testing.assert_array_equal(origins.knee(axis), full.knee_xyz[axis][within])
         np.testing.assert_array_equal(origins.hfe(axis), full.hfe_xyz[axis][within])
+
+
+@pytest.mark.parametrize("leg", list(LEGS))
+def test_the_in_place_solver_gives_the_bits_of_the_plain_formulas(kinematics: LegKinematics, leg: Leg) -> None:
+    """``_solve`` (reused output arrays) against ``_solve_reference`` (plain expressions): every cosine, sine
+    and flag bit for bit, on targets in and out of reach, at the HAA origin, NaN and infinite."""
+    rng = np.random.default_rng(8)
+    constants = kinematics._constants[leg]
+    hip = kinematics.geometry[leg].haa_origin
+    targets = hip + rng.uniform([-0.9, -0.9, -1.2], [0.9, 0.9, 0.3], (20000, 3))
+    targets[:10] = hip
+    targets[10:20, 0], targets[20:30, 1], targets[30:40, 2] = np.nan, np.inf, -np.inf
+    frame = leg_kinematics._haa_frame(constants, *targets.T)
+    fast, plain = leg_kinematics._solve(constants, *frame), leg_kinematics._solve_reference(constants, *frame)
+    np.testing.assert_array_equal(fast.reachable, plain.reachable)
+    np.testing.assert_array_equal(fast.within, plain.within)
+    assert 0 < fast.within.sum() < fast.within.size
+    for ours, theirs in zip(fast.cosines + fast.sines, plain.cosines + plain.sines):
+        np.testing.assert_array_equal(ours.view(np.int64), theirs.view(np.int64))
 
 
 def test_bad_input_is_rejected(model: RobotModel, kinematics: LegKinematics) -> None:

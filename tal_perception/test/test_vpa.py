@@ -13,9 +13,11 @@ from tal_core.legs import LEGS, Leg
 from tal_core.robot_model import RobotModel
 from tal_core.rotations import quat_xyzw_from_rotation
 from tal_core.terrain import load_course
+from tal_perception import vpa_evaluation
 from tal_perception.errors import PerceptionInputError, VpaConfigError, VpaModelError
 from tal_perception.fec import FootholdEvaluator
-from tal_perception.fec_settings import GaitTiming
+from tal_perception.fec_grid import erode
+from tal_perception.fec_settings import FecSettings, GaitTiming
 from tal_perception.rbf import RbfBasis
 from tal_perception.tbr import TerrainBasedReference
 from tal_perception.terrain_samples import random_terrain
@@ -134,6 +136,45 @@ def test_shared_evaluation_equals_the_fec_on_whole_robot_scene_maps(
             np.testing.assert_array_equal(fast, pose_evaluator.reference_counts(leg, heights, scene.twist, TROT_GAIT))
             total += int(fast.sum())
     assert total > 0
+
+
+@pytest.mark.parametrize("block", [1, 37, 1089])
+def test_pair_blocks_give_the_same_counts(
+    pose_evaluator: PoseEvaluator, monkeypatch: pytest.MonkeyPatch, block: int
+) -> None:
+    """The IK / LC batches are made of whole layers of at most ``_BLOCK_PAIRS`` pairs (a layer alone if it
+    holds more): any block size gives the counts of one batch per instant, i.e. the FEC's."""
+    cases = [("stairs", Leg.RF, [0.3, 0.0, 0, 0, 0, 0.1]), ("bars", Leg.LH, [0.2, 0.05, 0, 0, 0, -0.2])]
+    maps = [(random_terrain(np.random.default_rng(11), kind).heights.astype(float), leg, np.array(twist, dtype=float))
+            for kind, leg, twist in cases]  # fmt: skip
+    one_batch = [pose_evaluator.evaluate(leg, heights, twist, TROT_GAIT).nsf for heights, leg, twist in maps]
+    monkeypatch.setattr(vpa_evaluation, "_BLOCK_PAIRS", block)
+    for (heights, leg, twist), expected in zip(maps, one_batch):
+        blocked = pose_evaluator.evaluate(leg, heights, twist, TROT_GAIT).nsf
+        np.testing.assert_array_equal(blocked, expected)
+        np.testing.assert_array_equal(blocked, pose_evaluator.reference_counts(leg, heights, twist, TROT_GAIT))
+        assert blocked.max() > 0
+
+
+@pytest.mark.parametrize("margin_m", [0.0, 0.02, 0.05])
+def test_stack_erosion_and_dilation_equal_the_fec_erosion_per_layer(hyq: RobotModel, margin_m: float) -> None:
+    """The stack morphology (flattened shifts, side edges masked) equals fec_grid.erode on every layer, and
+    dilation is its dual (outside the patch: safe for the erosion, nothing for the dilation)."""
+    evaluator = FootholdEvaluator(hyq, FecSettings(uncertainty_margin_m=margin_m))
+    stacked = PoseEvaluator(evaluator, HEIGHTS)
+    stack = np.random.default_rng(5).uniform(size=(6, 33, 33)) < 0.85
+    eroded, dilated = stacked._erode(stack), stacked._dilate(stack)
+    for layer in range(stack.shape[0]):
+        np.testing.assert_array_equal(eroded[layer], erode(stack[layer], 0.02, margin_m))
+        np.testing.assert_array_equal(dilated[layer], ~erode(~stack[layer], 0.02, margin_m))
+    assert stacked._erode(stack[:0]).shape == (0, 33, 33)
+
+
+def test_layer_blocks_cover_the_stack_in_order_within_the_limit() -> None:
+    counts = np.array([2, 2, 5, 1, 0, 3, 1])
+    blocks = vpa_evaluation._layer_blocks(counts, 4)
+    assert blocks == [slice(0, 2), slice(2, 3), slice(3, 6), slice(6, 7)]  # the 5 (> 4) forms a block alone
+    assert vpa_evaluation._layer_blocks(np.array([7]), 4) == [slice(0, 1)]
 
 
 def test_unknown_cells_are_unsafe(pose_evaluator: PoseEvaluator) -> None:
