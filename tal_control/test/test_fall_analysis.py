@@ -48,13 +48,27 @@ def synthetic(n: int = 10, miss_at: int = 6) -> dict[str, np.ndarray]:
     q[miss_at, 1], qd[miss_at, 1] = 0.95, 2.0  # LF HFE running into its stop
     slacks = np.zeros((n, 4, 3))
     slacks[miss_at, 0, 2] = 12.0
-    return {"t": t, "wrench_des": des, "wrench_wbc": wbc, "stance": stance, "tau": tau, "q": q, "qd": qd,
-            "slacks": slacks}
+    return {
+        "t": t,
+        "wrench_des": des,
+        "wrench_wbc": wbc,
+        "stance": stance,
+        "tau": tau,
+        "q": q,
+        "qd": qd,
+        "slacks": slacks,
+    }
 
 
 def analyse(arrays: dict[str, np.ndarray], **kwargs):
-    return first_wrench_miss(**arrays, torque_limits=constant_torque_limits, joint_names=NAMES,
-                             position_limits=LIMITS, horizon_s=HORIZON_S, **kwargs)
+    return first_wrench_miss(
+        **arrays,
+        torque_limits=constant_torque_limits,
+        joint_names=NAMES,
+        position_limits=LIMITS,
+        horizon_s=HORIZON_S,
+        **kwargs,
+    )
 
 
 def test_first_miss_names_the_limits_that_held_the_qp() -> None:
@@ -77,3 +91,13 @@ def test_wrong_shapes_are_rejected() -> None:
     arrays["tau"] = arrays["tau"][:, :11]
     with pytest.raises(InputError, match="tau must have shape"):
         analyse(arrays)
+
+
+def test_last_episode_is_the_onset_of_the_misses_that_last_to_the_end() -> None:
+    arrays = synthetic(n=20, miss_at=12)  # misses from t = 2.2 s to the end
+    arrays["wrench_wbc"][3, 1] = 400.0  # a transient at t = 1.3 s the trot recovered from
+    assert analyse(arrays, after_s=1.0).t_s == pytest.approx(1.1)  # the 2000 N spike at t = 1.1 s
+    onset = analyse(arrays, after_s=1.0, last_episode=True)
+    assert onset is not None and onset.t_s == pytest.approx(2.2)
+    arrays["wrench_wbc"][12:, 1] = 0.0  # nothing at the end: the run did not end in a miss
+    assert analyse(arrays, after_s=1.0, last_episode=True) is None

@@ -177,8 +177,10 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
     x = log.base_position[:n, 0]
     reached = bool(np.any(x >= run.goal_x_m))
     wbc = WbcSettings()
+    # For a fall, the onset of the episode of misses that ended in it (not a transient at the gait start).
     miss = first_wrench_miss_of_log(log, load_robot_description("hyq"),
-                                    wbc.joint_limit_horizon_periods * wbc.control_period_s, after_s=SETTLE_S)
+                                    wbc.joint_limit_horizon_periods * wbc.control_period_s, after_s=SETTLE_S,
+                                    last_episode=bool(log.fell))
     pose = trace["pose_reference"][:n]
     dz, dpitch = _variation_per_metre(x, pose[:, 0], np.degrees(pose[:, 2]))
     safe = trace["actual_safe_footholds"][:n]
@@ -276,8 +278,9 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
                       "![envelope](vital_cost_envelope.png)", ""]
     failed = [r for r in results.values() if not r.success]
     if failed:
-        lines += ["## Why the failed runs fell: the first tick the QP missed the trunk's wrench", "",
-                  "`tal_control.experiments.fall_analysis`: the first control tick after 1.5 s where the force part of "
+        lines += ["## Why the failed runs fell: where the QP stopped delivering the trunk's wrench", "",
+                  "`tal_control.experiments.fall_analysis`: the first control tick of the episode of misses that ended "
+                  "in the fall (misses less than 0.5 s apart) where the force part of "
                   "the WBC's centroidal wrench left the desired one by more than 300 N, the planned stance legs, the "
                   "joints at their torque limits and those whose joint-limit acceleration bound had closed (< 50 "
                   "rad/s^2 of room), and the swing leg with the largest swing-task slack.", "",

@@ -24,6 +24,7 @@ FloatArray = NDArray[np.float64]
 WRENCH_MISS_N = 300.0  # [N] force part of |W_wbc - W_des| that counts as a miss (HyQ weighs ~880 N)
 SATURATION_FRACTION = 0.99  # [-] |tau| at this fraction of its limit counts as saturated
 ACCELERATION_ROOM_RAD_S2 = 50.0  # [rad/s^2] a joint-limit acceleration bound this close to zero has closed
+EPISODE_GAP_S = 0.5  # [s] misses closer than this belong to one episode
 
 
 def centroidal_wrench(forces: FloatArray, contact_points: FloatArray, com: FloatArray) -> FloatArray:
@@ -76,11 +77,15 @@ def first_wrench_miss(
     horizon_s: float,
     after_s: float = 1.5,
     threshold_n: float = WRENCH_MISS_N,
+    last_episode: bool = False,
 ) -> WrenchMiss | None:
     """The first tick at or after ``after_s`` [s] where the force part of the QP's wrench error exceeds
-    ``threshold_n`` [N], or None. Arrays per tick: t (N,); wrenches (N, 6); stance (N, 4); tau, q, qd (N, 12) in
-    the canonical joint order; slacks (N, 4, 3). ``torque_limits(q) -> (tau_min, tau_max)``; position limits
-    (lower, upper) (12,) [rad]; ``horizon_s`` [s] of the joint-limit constraint."""
+    ``threshold_n`` [N], or None. With ``last_episode``, the first tick of the last episode of misses (misses
+    less than ``EPISODE_GAP_S`` apart), and None unless it lasts to the end of the log: for a run that stopped
+    at its fall, the onset of the fall rather than a transient the trot recovered from (a gait start).
+    Arrays per tick: t (N,); wrenches (N, 6); stance (N, 4); tau, q, qd (N, 12) in the canonical joint order;
+    slacks (N, 4, 3). ``torque_limits(q) -> (tau_min, tau_max)``; position limits (lower, upper) (12,) [rad];
+    ``horizon_s`` [s] of the joint-limit constraint."""
     t = np.asarray(t, dtype=float)
     n = len(t)
     arrays = {
@@ -103,6 +108,11 @@ def first_wrench_miss(
     if misses.size == 0:
         return None
     k = int(misses[0])
+    if last_episode:
+        if t[-1] - t[misses[-1]] > EPISODE_GAP_S:
+            return None  # the misses ended before the log did
+        gaps = np.flatnonzero(np.diff(t[misses]) > EPISODE_GAP_S)
+        k = int(misses[gaps[-1] + 1]) if gaps.size else k
     tau_min, tau_max = torque_limits(q[k])
     saturated = (tau[k] >= SATURATION_FRACTION * tau_max) | (tau[k] <= SATURATION_FRACTION * tau_min)
     qdd_min, qdd_max = joint_acceleration_bounds(q[k], qd[k], *position_limits, horizon_s)
@@ -121,7 +131,9 @@ def first_wrench_miss(
     )
 
 
-def first_wrench_miss_of_log(log, description, horizon_s: float, after_s: float = 1.5) -> WrenchMiss | None:
+def first_wrench_miss_of_log(
+    log, description, horizon_s: float, after_s: float = 1.5, last_episode: bool = False
+) -> WrenchMiss | None:
     """``first_wrench_miss`` on a ``ClosedLoopLog`` of a robot ``description`` (RobotDescription)."""
     return first_wrench_miss(
         log.t,
@@ -137,4 +149,5 @@ def first_wrench_miss_of_log(log, description, horizon_s: float, after_s: float 
         (np.asarray(description.position_lower_rad), np.asarray(description.position_upper_rad)),
         horizon_s,
         after_s,
+        last_episode=last_episode,
     )
