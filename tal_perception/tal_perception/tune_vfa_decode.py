@@ -31,6 +31,7 @@ from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate
 from tal_perception.vfa_decode import VfaDecode, decode
 
 LOG = logging.getLogger("tal_perception.tune_vfa_decode")
+MEASURES = ("perfect_match", "safe", "mean_distance_m", "verified_equals_g")
 DEFAULT_TAUS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 DEFAULT_BANDS = (-1.0, 0.0, 1.0, 2.0, 4.0, 8.0)  # -1: the exact tie rule (row-major)
 
@@ -92,11 +93,38 @@ def measures(data: VfaDataset, choices: np.ndarray, resolution_m: float) -> dict
     rows = np.flatnonzero(data.label >= 0)
     label, choice = data.label[rows].astype(np.intp), choices[rows]
     distance = np.hypot(choice // n - label // n, choice % n - label % n) * resolution_m
-    return {
-        "perfect_match": float(np.mean(choice == label)),
-        "safe": float(np.mean(data.safe.reshape(len(data), -1)[rows, choice])),
-        "mean_distance_m": float(distance.mean()),
-    }
+    match = float(np.mean(choice == label))
+    safe = float(np.mean(data.safe.reshape(len(data), -1)[rows, choice]))
+    # With the selector's verification an unsafe choice is replaced by the exact g: result = g on match + unsafe.
+    return {"perfect_match": match, "safe": safe, "mean_distance_m": float(distance.mean()),
+            "verified_equals_g": match + 1.0 - safe}  # fmt: skip
+
+
+def fallback_rate(
+    data: VfaDataset, settings: VfaDecode, logits: np.ndarray, probability: np.ndarray | None, unknown: np.ndarray
+) -> float | None:
+    """Fraction of the scored samples where no known cell reaches tau (the masked decodes fall back to the argmax)."""
+    if not settings.needs_safe_head or probability is None:
+        return None
+    rows = data.label >= 0
+    return float(np.mean(~((probability[rows] >= settings.tau) & ~unknown[rows]).any(axis=1)))
+
+
+def safe_head_quality(data: VfaDataset, probability: np.ndarray, taus: list[float]) -> list[dict[str, float]]:
+    """Per-cell quality of the predicted safe mask on the scored samples, per tau: precision (passing cells
+    that are safe), recall (safe cells that pass) and the fraction of cells classified right."""
+    rows = data.label >= 0
+    truth = data.safe.reshape(len(data), -1)[rows]
+    out = []
+    for tau in taus:
+        passing = probability[rows] >= tau
+        out.append({
+            "tau": tau,
+            "precision": float((passing & truth).sum() / max(passing.sum(), 1)),
+            "recall": float((passing & truth).sum() / max(truth.sum(), 1)),
+            "accuracy": float(np.mean(passing == truth)),
+        })  # fmt: skip
+    return out
 
 
 def grid_of_decodes(taus: list[float], bands: list[float]) -> list[VfaDecode]:
@@ -118,7 +146,14 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     decodes = grid_of_decodes(args.taus, args.bands)
     if outputs[1] is None:
         decodes = decodes[:1]
-    tuning = [{"decode": d.to_dict(), **measures(tune, decode(d, *outputs), res)} for d in decodes]
+    tuning = [
+        {
+            "decode": d.to_dict(),
+            **measures(tune, decode(d, *outputs), res),
+            "fallback": fallback_rate(tune, d, *outputs),
+        }
+        for d in decodes
+    ]
     best = {}
     for mode in ("argmax", "masked_argmax", "closest_safe"):
         rows = [r for r in tuning if r["decode"]["mode"] == mode]
@@ -136,7 +171,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                             args.test_seed, args.test_samples_per_leg, "labelling test set (exact FEC)")  # fmt: skip
     test_outputs = network_outputs(net, test)
     scored = {
-        mode: {"decode": row["decode"], "tuning": {k: row[k] for k in ("perfect_match", "safe", "mean_distance_m")},
+        mode: {"decode": row["decode"], "tuning": {k: row[k] for k in MEASURES},
                "test": measures(test, decode(VfaDecode.from_dict(row["decode"]), *test_outputs), res)}
         for mode, row in best.items()
     }  # fmt: skip
@@ -149,6 +184,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                      "scored": int((test.label >= 0).sum())},
         "best": scored,
         "grid": tuning,
+        "safe_head": None if outputs[1] is None else safe_head_quality(tune, outputs[1], args.taus),
         "seconds": time.perf_counter() - started,
     }  # fmt: skip
     chosen = max(best.values(), key=lambda r: (r["perfect_match"], r["safe"]))["decode"]
@@ -176,13 +212,17 @@ def markdown(summary: dict[str, object]) -> str:
         f"{tuning['scored']} scored); test set seed {test['seed']} ({test['samples_per_leg']} per leg, "
         f"{test['scored']} scored).",
         "",
-        "| decode | tau | tie band [cells^2] | tuning: perfect match / safe / mean distance | "
-        "test: perfect match / safe / mean distance |",
+        '"verified = g": with the selector\'s verification an unsafe choice is replaced by the exact g, so the '
+        "returned foothold is g in perfect match + (1 - safe) of the calls.",
+        "",
+        "| decode | tau | tie band [cells^2] | tuning: perfect match / safe / mean distance / verified = g | "
+        "test: the same |",
         "| --- | --- | --- | --- | --- |",
     ]
 
     def triple(m: dict[str, float]) -> str:
-        return f"{100 * m['perfect_match']:.1f} % / {100 * m['safe']:.1f} % / {m['mean_distance_m']:.4f} m"
+        return (f"{100 * m['perfect_match']:.1f} % / {100 * m['safe']:.1f} % / {m['mean_distance_m']:.4f} m "
+                f"/ {100 * m['verified_equals_g']:.1f} %")  # fmt: skip
 
     for mode, row in summary["best"].items():
         d = row["decode"]
@@ -191,14 +231,26 @@ def markdown(summary: dict[str, object]) -> str:
         band = "-" if d["mode"] != "closest_safe" else ("exact (row-major)" if d["tie_band_cells2"] is None
                                                    else f"{d['tie_band_cells2']:g}")  # fmt: skip
         lines.append(f"| {mode} | {tau} | {band} | {triple(row['tuning'])} | {triple(row['test'])} |")
-    lines += ["", "Tuning grid (perfect match / safe / mean distance on the tuning set):", ""]
-    lines += ["| decode | tau | tie band | tuning |", "| --- | --- | --- | --- |"]
+    if summary.get("safe_head"):
+        lines += ["", "Predicted safe mask per cell on the tuning set (scored samples):", ""]
+        lines += ["| tau | precision | recall | cells right |", "| --- | --- | --- | --- |"]
+        for q in summary["safe_head"]:
+            lines.append(f"| {q['tau']:g} | {100 * q['precision']:.1f} % | {100 * q['recall']:.1f} % | "
+                         f"{100 * q['accuracy']:.1f} % |")  # fmt: skip
+    lines += [
+        "",
+        "Tuning grid (perfect match / safe / mean distance / verified = g on the tuning set; fallback = no cell "
+        "passes):",
+        "",
+    ]
+    lines += ["| decode | tau | tie band | tuning | fallback |", "| --- | --- | --- | --- | --- |"]
     for row in summary["grid"]:
         d = row["decode"]
         band = "-" if d["mode"] != "closest_safe" else ("exact" if d["tie_band_cells2"] is None
                                                          else f"{d['tie_band_cells2']:g}")  # fmt: skip
         tau = "-" if d["mode"] == "argmax" else f"{d['tau']:g}"
-        lines.append(f"| {d['mode']} | {tau} | {band} | {triple(row)} |")
+        fallback = "-" if row["fallback"] is None else f"{100 * row['fallback']:.1f} %"
+        lines.append(f"| {d['mode']} | {tau} | {band} | {triple(row)} | {fallback} |")
     return "\n".join(lines) + "\n"
 
 

@@ -144,3 +144,26 @@ def test_selector_uses_the_stored_decode_unless_given_one(evaluator: FootholdEva
         CnnFootholdSelector(evaluator, load_model(plain), decode=VfaDecode("closest_safe"))
     with pytest.raises(FecConfigError, match="needs a safe head"):
         store_decode(plain, VfaDecode("closest_safe"))
+
+
+def test_tune_vfa_decode_scores_the_grid_and_stores_the_best_decode(tmp_path) -> None:
+    from tal_perception import tune_vfa_decode
+
+    torch.manual_seed(0)
+    weights = tmp_path / "net.pt"
+    save_model(build_net(NetConfig(architecture="unet")), weights)
+    args = tune_vfa_decode.parse_args(
+        ["--out", str(tmp_path / "out"), "--weights", str(weights), "--data", str(tmp_path / "data"),
+         "--samples-per-leg", "3", "--test-samples-per-leg", "2", "--taus", "0.3", "0.7", "--bands", "-1", "2",
+         "--store"]
+    )  # fmt: skip
+    summary = tune_vfa_decode.run(args)
+    assert len(summary["grid"]) == 1 + 2 + 2 * 2 and set(summary["best"]) == {"argmax", "masked_argmax", "closest_safe"}
+    for row in summary["best"].values():
+        m = row["test"]
+        assert 0.0 <= m["perfect_match"] <= m["safe"] <= 1.0
+        assert m["verified_equals_g"] == pytest.approx(m["perfect_match"] + 1.0 - m["safe"])
+    assert load_model(weights).decode == VfaDecode.from_dict(summary["chosen"])
+    assert (tmp_path / "out" / "vfa_cnn_decode.md").read_text().startswith("# VFA CNN decodes")
+    with pytest.raises(SystemExit):
+        tune_vfa_decode.parse_args(["--out", "x", "--seed", "2"])  # the tuning seed must not be the test seed
