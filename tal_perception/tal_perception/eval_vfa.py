@@ -4,8 +4,9 @@
 
 Fresh random tuples (``vfa_dataset``, a seed other than the training seed; 4401 per leg as in the
 thesis) are labelled by the exact evaluation (full FEC + argmin) and given to the committed CNN through
-``CnnFootholdSelector.predict`` without verification. Measures, per leg and overall, on the samples
-that have a safe candidate (those without one are counted apart: the CNN cannot say "none"):
+``CnnFootholdSelector.predict`` without verification (with the decode stored with the weights).
+Measures, per leg and overall, on the samples that have a safe candidate (those without one are
+counted apart: the CNN cannot say "none"):
 
 * perfect match: g_hat = g (same cell);
 * safe: g_hat is in the exact eroded safe set (includes the perfect matches; the thesis' 93.7 % is
@@ -113,6 +114,7 @@ def markdown(summary: dict[str, object]) -> str:
         f"(training seed {summary['training_seed']}); {summary['samples_per_leg']} fresh tuples per leg, "
         "labelled by the full exact FEC + argmin (cached under the --data folder).",
         f"Sampling: {summary['sampling']}.",
+        f"Network: `{summary['architecture']}`; decode (stored with the weights): `{summary['decode']}`.",
         "",
         'Scored on the samples with at least one safe candidate; "safe" = the CNN\'s cell is in the exact '
         "eroded safe set (perfect matches included); distance = |g_hat - g| horizontally.",
@@ -220,6 +222,8 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         "command": "python -m tal_perception.eval_vfa " + " ".join(sys.argv[1:]),
         "weights": str(args.weights.name),
         "weights_kb": args.weights.stat().st_size / 1e3,
+        "architecture": net.config.architecture,
+        "decode": selector.decode.to_dict(),
         "seed": args.seed,
         "training_seed": training_seed,
         "samples_per_leg": args.samples_per_leg,

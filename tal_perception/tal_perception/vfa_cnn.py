@@ -6,8 +6,10 @@ padding 2, Leaky ReLU, 2 x 2 max-pooling); the flattened features are concatenat
 entries of the tuple (hip height, twist, gait parameters; the nominal foothold is the patch centre by
 construction) and pass through two fully connected layers (Leaky ReLU, then softmax over the 33 x 33
 candidates), trained with cross-entropy against the exact optimum g. Ours adds, optionally, a second
-output block of the last layer that predicts the exact safe mask (sigmoid per candidate); it is only a
-training signal (denser than one class per sample) and never used to select.
+output block of the last layer that predicts the exact safe mask (sigmoid per candidate): a denser
+training signal than one class per sample, which the masked decodes of ``vfa_decode`` also use to select.
+``VfaUNet`` (``NetConfig.architecture = "unet"``) keeps the thesis' trunk and adds a full-resolution
+decoder that outputs both maps per cell. The file of the weights records the architecture and the decode.
 
 Input encoding (``encode``), chosen so that it is exactly invariant where the FEC is: the FEC depends
 on heights and hip height only through their difference, so
@@ -45,6 +47,7 @@ from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
 from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, check_map_age, extract_patch
+from tal_perception.vfa_decode import VfaDecode, decode
 
 FloatArray = NDArray[np.float64]
 MODEL_DIR = Path(__file__).resolve().parent / "models"
@@ -72,14 +75,23 @@ class EncodingConfig:
         return 1 + 3 + 5 + len(LEGS)
 
 
+ARCHITECTURES = ("thesis", "unet")
+
+
 @dataclass(frozen=True)
 class NetConfig:
-    """Layer sizes of ``VfaNet``."""
+    """Architecture and layer sizes: ``thesis`` = ``VfaNet``, ``unet`` = ``VfaUNet`` (decoder_channels used)."""
 
     channels: tuple[int, int, int] = (8, 16, 32)
     hidden: int = 256
-    safe_head: bool = True  # the last layer also predicts the safe mask (training signal only)
+    safe_head: bool = True  # the network also predicts the safe mask (a training signal; some decodes use it)
     encoding: EncodingConfig = field(default_factory=EncodingConfig)
+    architecture: str = "thesis"
+    decoder_channels: tuple[int, int, int] = (32, 16, 8)  # unet: at 9 x 9, 17 x 17, 33 x 33
+
+    def __post_init__(self) -> None:
+        if self.architecture not in ARCHITECTURES:
+            raise FecConfigError(f"NetConfig.architecture must be one of {ARCHITECTURES}, got {self.architecture!r}")
 
 
 def encode(
@@ -150,7 +162,7 @@ def _median(values: NDArray[np.float32]) -> float:
 class VfaNet(nn.Module):
     """The thesis' VFA CNN: 3 x (conv 5x5 pad 2, Leaky ReLU, max-pool 2x2) -> concat scalars -> FC, Leaky
     ReLU -> FC -> logits over the n x n candidates (softmax in the loss / at selection), plus optionally
-    logits of the safe mask."""
+    logits of the safe mask (the "thesis" architecture)."""
 
     def __init__(self, config: NetConfig) -> None:
         super().__init__()
@@ -188,12 +200,89 @@ class VfaNet(nn.Module):
         return nn.functional.linear(hidden, last.weight[: self.candidates], last.bias[: self.candidates])
 
 
-def save_model(net: VfaNet, path: Path, metadata: dict[str, object] | None = None) -> None:
-    """Weights in float16 (half the size; the loaded model computes in float32) with the config."""
+class VfaUNet(nn.Module):
+    """A localising variant: the thesis' convolutional trunk (3 x conv 5x5 + Leaky ReLU + max-pool 2x2,
+    33 -> 17 -> 9 -> 5) and its fully connected layer (flattened features + scalars -> ``hidden``), whose
+    output is projected back onto the 5 x 5 grid as global context; a decoder then upsamples (nearest,
+    the inverse of the ceil-mode pooling) to 9, 17 and 33 cells, each level a 3 x 3 convolution over the
+    upsampled features, the trunk's features of that resolution (skip) and, at 33, the input image, plus a
+    per-sample bias computed from the scalars (= the scalars broadcast as channels); a 1 x 1 convolution
+    gives per candidate the optimum logit and (``safe_head``) the safe-mask logit. Receptive field: the
+    whole patch (through the context)."""
+
+    def __init__(self, config: NetConfig) -> None:
+        super().__init__()
+        self.config = config
+        enc = config.encoding
+        c1, c2, c3 = config.channels
+        d3, d2, d1 = config.decoder_channels
+        self.encoders = nn.ModuleList(
+            nn.Conv2d(i, o, kernel_size=5, padding=2) for i, o in ((IMAGE_CHANNELS, c1), (c1, c2), (c2, c3))
+        )
+        self.pool = nn.MaxPool2d(2, ceil_mode=True)
+        self.sizes = [enc.cells]
+        for _ in range(3):
+            self.sizes.append(math.ceil(self.sizes[-1] / 2))  # 33, 17, 9, 5
+        bottleneck = c3 * self.sizes[3] ** 2
+        self.context = nn.Sequential(
+            nn.Linear(bottleneck + enc.scalar_count, config.hidden), nn.LeakyReLU(LEAKY_SLOPE),
+            nn.Linear(config.hidden, bottleneck), nn.LeakyReLU(LEAKY_SLOPE),
+        )  # fmt: skip
+        self.decoders = nn.ModuleList([
+            nn.Conv2d(2 * c3 + c3, d3, kernel_size=3, padding=1),
+            nn.Conv2d(d3 + c2, d2, kernel_size=3, padding=1),
+            nn.Conv2d(d2 + c1 + IMAGE_CHANNELS, d1, kernel_size=3, padding=1),
+        ])  # fmt: skip
+        self.scalar_bias = nn.Linear(enc.scalar_count, d3 + d2 + d1)
+        self.output = nn.Conv2d(d1, 2 if config.safe_head else 1, kernel_size=1)
+        self.act = nn.LeakyReLU(LEAKY_SLOPE)
+
+    @staticmethod
+    def _up(x: torch.Tensor, size: int) -> torch.Tensor:
+        """Nearest 2x upsampling cropped to ``size``: cell j takes the pooled cell j // 2."""
+        return nn.functional.interpolate(x, scale_factor=2.0, mode="nearest")[:, :, :size, :size]
+
+    def forward(self, image: torch.Tensor, scalars: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(optimum logits (B, n*n), safe-mask logits (B, n*n) or None); row-major candidate order."""
+        skips, x = [], image
+        for conv in self.encoders:
+            x = self.act(conv(x))
+            skips.append(x)
+            x = self.pool(x)
+        b = x.shape[0]
+        context = self.context(torch.cat([x.flatten(1), scalars], dim=1)).view_as(x)
+        x = torch.cat([x, context], dim=1)
+        biases = torch.split(self.scalar_bias(scalars), [d.out_channels for d in self.decoders], dim=1)
+        inputs = [[skips[2]], [skips[1]], [skips[0], image]]
+        for level, (conv, bias, extra) in enumerate(zip(self.decoders, biases, inputs)):
+            x = self._up(x, self.sizes[2 - level])
+            x = self.act(conv(torch.cat([x, *extra], dim=1)) + bias[:, :, None, None])
+        out = self.output(x).reshape(b, self.output.out_channels, -1)
+        return out[:, 0], (out[:, 1] if self.config.safe_head else None)
+
+    def optimum_logits(self, image: torch.Tensor, scalars: torch.Tensor) -> torch.Tensor:
+        """Only the optimum logits (B, n*n)."""
+        return self.forward(image, scalars)[0]
+
+
+def build_net(config: NetConfig) -> VfaNet | VfaUNet:
+    """The network of ``config.architecture`` (untrained)."""
+    return VfaUNet(config) if config.architecture == "unet" else VfaNet(config)
+
+
+def save_model(net: VfaNet | VfaUNet, path: Path, metadata: dict[str, object] | None = None) -> None:
+    """Weights in float16 (half the size; the loaded model computes in float32) with the config; the
+    metadata may hold the decode (``"decode"``: ``VfaDecode.to_dict()``) the selector uses by default."""
     cfg = net.config
     document = {
         "format": "tal_perception.vfa_cnn/1",
-        "net": {"channels": list(cfg.channels), "hidden": cfg.hidden, "safe_head": cfg.safe_head},
+        "net": {
+            "channels": list(cfg.channels),
+            "hidden": cfg.hidden,
+            "safe_head": cfg.safe_head,
+            "architecture": cfg.architecture,
+            "decoder_channels": list(cfg.decoder_channels),
+        },  # fmt: skip
         "encoding": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg.encoding).items()},
         "state_dict": {k: v.detach().to(torch.float16).contiguous() for k, v in net.state_dict().items()},
         "metadata": metadata or {},
@@ -202,8 +291,9 @@ def save_model(net: VfaNet, path: Path, metadata: dict[str, object] | None = Non
     torch.save(document, path)
 
 
-def load_model(path: Path = DEFAULT_WEIGHTS) -> VfaNet:
-    """The network saved by ``save_model`` (float32, eval mode)."""
+def load_model(path: Path = DEFAULT_WEIGHTS) -> VfaNet | VfaUNet:
+    """The network saved by ``save_model`` (float32, eval mode); ``net.decode`` is the stored decode
+    (``VfaDecode``; the thesis' argmax when the file has none)."""
     if not path.exists():
         raise FecConfigError(f"VFA CNN weights not found: {path} (train them with python -m tal_perception.train_vfa)")
     document = torch.load(path, map_location="cpu", weights_only=True)
@@ -212,11 +302,34 @@ def load_model(path: Path = DEFAULT_WEIGHTS) -> VfaNet:
     enc = {k: tuple(v) if isinstance(v, list) else v for k, v in document["encoding"].items()}
     net_cfg = document["net"]
     config = NetConfig(tuple(net_cfg["channels"]), int(net_cfg["hidden"]), bool(net_cfg["safe_head"]),
-                       EncodingConfig(**enc))  # fmt: skip
-    net = VfaNet(config)
+                       EncodingConfig(**enc), str(net_cfg.get("architecture", "thesis")),
+                       tuple(net_cfg.get("decoder_channels", NetConfig.decoder_channels)))  # fmt: skip
+    net = build_net(config)
     net.load_state_dict({k: v.to(torch.float32) for k, v in document["state_dict"].items()})
     net.eval()
+    net.decode = stored_decode(document.get("metadata", {}), path)
     return net
+
+
+def stored_decode(metadata: dict[str, object], path: Path) -> VfaDecode:
+    """The decode recorded in a model file's metadata (the thesis' argmax if none)."""
+    values = metadata.get("decode")
+    if values is None:
+        return VfaDecode()
+    if not isinstance(values, dict):
+        raise FecConfigError(f"{path}: metadata 'decode' must be a mapping, got {values!r}")
+    return VfaDecode.from_dict(values)
+
+
+def store_decode(path: Path, settings: VfaDecode) -> None:
+    """Record ``settings`` as the decode of the model file ``path`` (the weights are left as they are)."""
+    document = torch.load(path, map_location="cpu", weights_only=True)
+    if document.get("format") != "tal_perception.vfa_cnn/1":
+        raise FecConfigError(f"{path} is not a tal_perception VFA CNN file (format {document.get('format')!r})")
+    if settings.needs_safe_head and not document["net"]["safe_head"]:
+        raise FecConfigError(f"{path}: the decode {settings.mode!r} needs a safe head, the network has none")
+    document["metadata"] = {**document.get("metadata", {}), "decode": settings.to_dict()}
+    torch.save(document, path)
 
 
 @dataclass
@@ -251,15 +364,25 @@ class CnnFootholdSelector:
     unknown cell is never returned (NO_SAFE_CANDIDATE, nominal passed through).
     The CNN was trained with the default lift-off and hip-at-touchdown; given values reach only the
     exact verification and fallback.
+
+    decode: how the network's outputs become a candidate (``vfa_decode.VfaDecode``); None = the decode
+    stored with the weights (``net.decode``; the thesis' argmax for a network without one).
     """
 
     def __init__(
-        self, evaluator: FootholdEvaluator, net: VfaNet | None = None, max_map_age_s: float = 0.5, verify: bool = True
-    ) -> None:
+        self, evaluator: FootholdEvaluator, net: VfaNet | VfaUNet | None = None, max_map_age_s: float = 0.5,
+        verify: bool = True, decode: VfaDecode | None = None,
+    ) -> None:  # fmt: skip
         self.exact = FootholdSelector(evaluator, max_map_age_s)  # validates max_map_age_s
         self.evaluator = evaluator
         self.net = net if net is not None else load_model()
         self.net.eval()
+        self.net.to(memory_format=torch.channels_last)  # ~30 % faster convolutions on CPU (4-leg batch)
+        if decode is not None and not isinstance(decode, VfaDecode):
+            raise FecConfigError(f"CnnFootholdSelector: decode must be a VfaDecode or None, got {decode!r}")
+        self.decode = decode if decode is not None else getattr(self.net, "decode", VfaDecode())
+        if self.decode.needs_safe_head and not self.net.config.safe_head:
+            raise FecConfigError(f"the decode {self.decode.mode!r} needs the safe-mask head; the network has none")
         self.verify = bool(verify)
         self.counters = CnnVfaCounters()
         s, enc = evaluator.settings, self.net.config.encoding
@@ -276,7 +399,7 @@ class CnnFootholdSelector:
 
     # -- the CNN on FEC tuples ------------------------------------------------------------------------
     def predict(self, inputs: Sequence[FecInput]) -> NDArray[np.intp]:
-        """Flat (row-major) index of the CNN's optimum for each tuple (one batched forward pass)."""
+        """Flat (row-major) index of the CNN's choice for each tuple (one batched forward pass, then ``decode``)."""
         n = self.net.config.encoding.cells
         for inp in inputs:
             if inp.heights.shape != (n, n):
@@ -291,9 +414,14 @@ class CnnFootholdSelector:
             self.net.config.encoding, np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
             np.stack([i.twist for i in inputs]), gait, np.array([int(i.leg) for i in inputs]),
         )  # fmt: skip
+        pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
         with torch.inference_mode():
-            logits = self.net.optimum_logits(torch.from_numpy(image), torch.from_numpy(scalars))
-        return logits.argmax(dim=1).numpy().astype(np.intp)
+            if not self.decode.needs_safe_head:
+                logits = self.net.optimum_logits(pixels, torch.from_numpy(scalars))
+                return logits.argmax(dim=1).numpy().astype(np.intp)
+            logits, safe_logits = self.net(pixels, torch.from_numpy(scalars))
+            probability = torch.sigmoid(safe_logits)
+        return decode(self.decode, logits.numpy(), probability.numpy(), image[:, 1].reshape(len(inputs), -1) > 0.5)
 
     def is_safe(self, inp: FecInput, index: int) -> bool:
         """Exact FEC on one candidate: the candidate and every cell within the uncertainty margin are safe."""
@@ -403,6 +531,7 @@ def _vector(value: object, size: int, name: str) -> FloatArray:
 
 
 __all__ = [
-    "DEFAULT_WEIGHTS", "CnnFootholdSelector", "CnnVfaCounters", "EncodingConfig", "FootholdRequest", "NetConfig",
-    "VfaNet", "encode", "load_model", "save_model",
+    "ARCHITECTURES", "DEFAULT_WEIGHTS", "CnnFootholdSelector", "CnnVfaCounters", "EncodingConfig", "FootholdRequest",
+    "NetConfig", "VfaNet", "VfaUNet", "build_net", "encode", "load_model", "save_model", "store_decode",
+    "stored_decode",
 ]  # fmt: skip

@@ -1,0 +1,264 @@
+"""Choose the VFA CNN's decode (``vfa_decode``) on a tuning set, then score it once on the protocol's test set.
+
+    python -m tal_perception.tune_vfa_decode --out results/vital [--weights ...] [--seed 3] [--samples-per-leg 2000]
+
+The tuning tuples (seed 3 by default: neither the training seed 1 nor the protocol's seed 2) are labelled
+like the protocol's (``vfa_dataset``, cached under ``--data``). Every decode of the grid (``argmax``;
+``masked_argmax`` and ``closest_safe`` over ``--taus``; ``closest_safe`` also over ``--bands``) is scored
+on them; the best of each mode (highest perfect match, then safe rate) is then scored once on the test set
+(seed 2, 4401 per leg). Same measures as ``eval_vfa`` (samples with a safe candidate only). Writes
+``<out>/vfa_cnn_decode.json`` and ``<out>/vfa_cnn_decode.md``; with ``--store`` the best decode of all
+modes on the tuning set is recorded in the weights file (``vfa_cnn.store_decode``; the weights unchanged),
+where ``CnnFootholdSelector`` and ``eval_vfa`` take it from.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tal_core.robot_model import RobotModel
+from tal_perception.fec import FootholdEvaluator
+from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, encode, load_model, store_decode
+from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate
+from tal_perception.vfa_decode import VfaDecode, decode
+
+LOG = logging.getLogger("tal_perception.tune_vfa_decode")
+MEASURES = ("perfect_match", "safe", "mean_distance_m", "verified_equals_g")
+DEFAULT_TAUS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+DEFAULT_BANDS = (-1.0, 0.0, 1.0, 2.0, 4.0, 8.0)  # -1: the exact tie rule (row-major)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python -m tal_perception.tune_vfa_decode", description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )  # fmt: skip
+    parser.add_argument("--out", type=Path, required=True, help="folder of vfa_cnn_decode.{json,md}")
+    parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
+    parser.add_argument("--data", type=Path, default=Path("data/vfa"), help="dataset cache folder")
+    parser.add_argument("--robot", default="hyq")
+    parser.add_argument("--seed", type=int, default=3, help="seed of the tuning tuples")
+    parser.add_argument("--samples-per-leg", type=int, default=2000, help="tuning tuples per leg")
+    parser.add_argument("--test-seed", type=int, default=2, help="seed of the protocol's test tuples")
+    parser.add_argument("--test-samples-per-leg", type=int, default=4401)
+    parser.add_argument("--taus", type=float, nargs="+", default=list(DEFAULT_TAUS), help="safe-probability thresholds")
+    parser.add_argument(
+        "--bands", type=float, nargs="+", default=list(DEFAULT_BANDS),
+        help="closest_safe tie bands [cells^2]; a negative value = the exact tie rule",
+    )  # fmt: skip
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--no-test", action="store_true", help="tune only (pilots): do not score the test set")
+    parser.add_argument(
+        "--store", action="store_true",
+        help="record the best decode on the tuning set (all modes) in the weights' metadata (the selector's default)",
+    )  # fmt: skip
+    args = parser.parse_args(argv)
+    if args.seed == args.test_seed:
+        parser.error("the tuning seed must differ from the test seed")
+    if args.samples_per_leg < 1 or args.test_samples_per_leg < 1:
+        parser.error("--samples-per-leg and --test-samples-per-leg must be >= 1")
+    return args
+
+
+def network_outputs(
+    net: torch.nn.Module, data: VfaDataset, batch_size: int = 512
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Optimum logits (N, n*n), safe probabilities (N, n*n) or None, unknown cells (N, n*n) of every sample."""
+    cfg = net.config.encoding
+    logits, safe = [], []
+    with torch.inference_mode():
+        for start in range(0, len(data), batch_size):
+            index = np.arange(start, min(start + batch_size, len(data)))
+            image, scalars = encode(cfg, data.heights[index], data.hip_height_m[index], data.twist[index],
+                                    data.gait[index], data.leg[index])  # fmt: skip
+            optimum, safe_logits = net(torch.from_numpy(image), torch.from_numpy(scalars))
+            logits.append(optimum.numpy())
+            if safe_logits is not None:
+                safe.append(torch.sigmoid(safe_logits).numpy())
+    unknown = np.isnan(data.heights.reshape(len(data), -1))
+    return np.concatenate(logits), (np.concatenate(safe) if safe else None), unknown
+
+
+def measures(data: VfaDataset, choices: np.ndarray, resolution_m: float) -> dict[str, float]:
+    """Perfect match, safe rate and mean distance [m] on the samples with a safe candidate."""
+    n = data.cells
+    rows = np.flatnonzero(data.label >= 0)
+    label, choice = data.label[rows].astype(np.intp), choices[rows]
+    distance = np.hypot(choice // n - label // n, choice % n - label % n) * resolution_m
+    match = float(np.mean(choice == label))
+    safe = float(np.mean(data.safe.reshape(len(data), -1)[rows, choice]))
+    # With the selector's verification an unsafe choice is replaced by the exact g: result = g on match + unsafe.
+    return {"perfect_match": match, "safe": safe, "mean_distance_m": float(distance.mean()),
+            "verified_equals_g": match + 1.0 - safe}  # fmt: skip
+
+
+def fallback_rate(
+    data: VfaDataset, settings: VfaDecode, logits: np.ndarray, probability: np.ndarray | None, unknown: np.ndarray
+) -> float | None:
+    """Fraction of the scored samples where no known cell reaches tau (the masked decodes fall back to the argmax)."""
+    if not settings.needs_safe_head or probability is None:
+        return None
+    rows = data.label >= 0
+    return float(np.mean(~((probability[rows] >= settings.tau) & ~unknown[rows]).any(axis=1)))
+
+
+def safe_head_quality(data: VfaDataset, probability: np.ndarray, taus: list[float]) -> list[dict[str, float]]:
+    """Per-cell quality of the predicted safe mask on the scored samples, per tau: precision (passing cells
+    that are safe), recall (safe cells that pass) and the fraction of cells classified right."""
+    rows = data.label >= 0
+    truth = data.safe.reshape(len(data), -1)[rows]
+    out = []
+    for tau in taus:
+        passing = probability[rows] >= tau
+        out.append({
+            "tau": tau,
+            "precision": float((passing & truth).sum() / max(passing.sum(), 1)),
+            "recall": float((passing & truth).sum() / max(truth.sum(), 1)),
+            "accuracy": float(np.mean(passing == truth)),
+        })  # fmt: skip
+    return out
+
+
+def grid_of_decodes(taus: list[float], bands: list[float]) -> list[VfaDecode]:
+    decodes = [VfaDecode("argmax")]
+    decodes += [VfaDecode("masked_argmax", tau) for tau in taus]
+    decodes += [VfaDecode("closest_safe", tau, None if band < 0 else band) for tau in taus for band in bands]
+    return decodes
+
+
+def run(args: argparse.Namespace) -> dict[str, object]:
+    torch.set_num_threads(args.threads)
+    evaluator = FootholdEvaluator(RobotModel.from_name(args.robot))
+    res = evaluator.settings.resolution_m
+    net = load_model(args.weights)
+    tune = load_or_generate(evaluator, cache_path(args.data, "tune", args.seed, args.samples_per_leg), args.seed,
+                            args.samples_per_leg, "labelling tuning set (exact FEC)")  # fmt: skip
+    started = time.perf_counter()
+    outputs = network_outputs(net, tune)
+    decodes = grid_of_decodes(args.taus, args.bands)
+    if outputs[1] is None:
+        decodes = decodes[:1]
+    tuning = [
+        {
+            "decode": d.to_dict(),
+            **measures(tune, decode(d, *outputs), res),
+            "fallback": fallback_rate(tune, d, *outputs),
+        }
+        for d in decodes
+    ]
+    best = {}
+    for mode in ("argmax", "masked_argmax", "closest_safe"):
+        rows = [r for r in tuning if r["decode"]["mode"] == mode]
+        if rows:
+            best[mode] = max(rows, key=lambda r: (r["perfect_match"], r["safe"]))
+    if args.no_test:
+        summary = {"weights": args.weights.name, "grid": tuning, "best": best}
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "vfa_cnn_decode_tuning.json").write_text(json.dumps(summary, indent=1))
+        for mode, row in best.items():
+            LOG.info("%s %s: tuning perfect match %.1f %%, safe %.1f %%, mean distance %.4f m", mode, row["decode"],
+                     100 * row["perfect_match"], 100 * row["safe"], row["mean_distance_m"])  # fmt: skip
+        return summary
+    test = load_or_generate(evaluator, cache_path(args.data, "test", args.test_seed, args.test_samples_per_leg),
+                            args.test_seed, args.test_samples_per_leg, "labelling test set (exact FEC)")  # fmt: skip
+    test_outputs = network_outputs(net, test)
+    scored = {
+        mode: {"decode": row["decode"], "tuning": {k: row[k] for k in MEASURES},
+               "test": measures(test, decode(VfaDecode.from_dict(row["decode"]), *test_outputs), res)}
+        for mode, row in best.items()
+    }  # fmt: skip
+    summary = {
+        "command": "python -m tal_perception.tune_vfa_decode " + " ".join(sys.argv[1:]),
+        "weights": args.weights.name,
+        "tuning_set": {"seed": args.seed, "samples_per_leg": args.samples_per_leg,
+                       "scored": int((tune.label >= 0).sum())},
+        "test_set": {"seed": args.test_seed, "samples_per_leg": args.test_samples_per_leg,
+                     "scored": int((test.label >= 0).sum())},
+        "best": scored,
+        "grid": tuning,
+        "safe_head": None if outputs[1] is None else safe_head_quality(tune, outputs[1], args.taus),
+        "seconds": time.perf_counter() - started,
+    }  # fmt: skip
+    chosen = max(best.values(), key=lambda r: (r["perfect_match"], r["safe"]))["decode"]
+    summary["chosen"] = chosen
+    if args.store:
+        store_decode(args.weights, VfaDecode.from_dict(chosen))
+        LOG.info("stored the decode %s in %s", chosen, args.weights)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "vfa_cnn_decode.json").write_text(json.dumps(summary, indent=1))
+    (args.out / "vfa_cnn_decode.md").write_text(markdown(summary))
+    for mode, row in scored.items():
+        t = row["test"]
+        LOG.info("%s %s: test perfect match %.1f %%, safe %.1f %%, mean distance %.4f m", mode, row["decode"],
+                 100 * t["perfect_match"], 100 * t["safe"], t["mean_distance_m"])  # fmt: skip
+    return summary
+
+
+def markdown(summary: dict[str, object]) -> str:
+    tuning, test = summary["tuning_set"], summary["test_set"]
+    lines = [
+        "# VFA CNN decodes (chosen on a tuning set, scored once on the test set)",
+        "",
+        f"Command: `{summary['command']}`  ",
+        f"Weights: `{summary['weights']}`; tuning set seed {tuning['seed']} ({tuning['samples_per_leg']} per leg, "
+        f"{tuning['scored']} scored); test set seed {test['seed']} ({test['samples_per_leg']} per leg, "
+        f"{test['scored']} scored).",
+        "",
+        '"verified = g": with the selector\'s verification an unsafe choice is replaced by the exact g, so the '
+        "returned foothold is g in perfect match + (1 - safe) of the calls.",
+        "",
+        "| decode | tau | tie band [cells^2] | tuning: perfect match / safe / mean distance / verified = g | "
+        "test: the same |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+
+    def triple(m: dict[str, float]) -> str:
+        return (f"{100 * m['perfect_match']:.1f} % / {100 * m['safe']:.1f} % / {m['mean_distance_m']:.4f} m "
+                f"/ {100 * m['verified_equals_g']:.1f} %")  # fmt: skip
+
+    for mode, row in summary["best"].items():
+        d = row["decode"]
+        mode = f"**{mode}** (chosen)" if d == summary["chosen"] else mode
+        tau = "-" if d["mode"] == "argmax" else f"{d['tau']:g}"
+        band = "-" if d["mode"] != "closest_safe" else ("exact (row-major)" if d["tie_band_cells2"] is None
+                                                   else f"{d['tie_band_cells2']:g}")  # fmt: skip
+        lines.append(f"| {mode} | {tau} | {band} | {triple(row['tuning'])} | {triple(row['test'])} |")
+    if summary.get("safe_head"):
+        lines += ["", "Predicted safe mask per cell on the tuning set (scored samples):", ""]
+        lines += ["| tau | precision | recall | cells right |", "| --- | --- | --- | --- |"]
+        for q in summary["safe_head"]:
+            lines.append(f"| {q['tau']:g} | {100 * q['precision']:.1f} % | {100 * q['recall']:.1f} % | "
+                         f"{100 * q['accuracy']:.1f} % |")  # fmt: skip
+    lines += [
+        "",
+        "Tuning grid (perfect match / safe / mean distance / verified = g on the tuning set; fallback = no cell "
+        "passes):",
+        "",
+    ]
+    lines += ["| decode | tau | tie band | tuning | fallback |", "| --- | --- | --- | --- | --- |"]
+    for row in summary["grid"]:
+        d = row["decode"]
+        band = "-" if d["mode"] != "closest_safe" else ("exact" if d["tie_band_cells2"] is None
+                                                         else f"{d['tie_band_cells2']:g}")  # fmt: skip
+        tau = "-" if d["mode"] == "argmax" else f"{d['tau']:g}"
+        fallback = "-" if row["fallback"] is None else f"{100 * row['fallback']:.1f} %"
+        lines.append(f"| {d['mode']} | {tau} | {band} | {triple(row)} | {fallback} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="[tune_vfa_decode] %(message)s")
+    run(parse_args(argv))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

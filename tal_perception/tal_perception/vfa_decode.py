@@ -1,0 +1,139 @@
+"""Decoding the VFA CNN's outputs into one candidate (flat, row-major index into the n x n patch).
+
+The CNN (``vfa_cnn``) gives, per candidate, an optimum logit (the thesis' softmax output) and a
+safe-mask probability (sigmoid of the second head). The exact g is "the safe candidate closest to the
+nominal (the patch centre), ties in row-major order". Decodes (``VfaDecode.mode``):
+
+* ``argmax``: the thesis' rule, argmax of the optimum logits;
+* ``masked_argmax``: argmax of the optimum logits over the candidates with safe probability >= ``tau``;
+* ``closest_safe``: the exact rule applied to the predicted safe mask (probability >= ``tau``): the passing
+  candidate closest to the centre, ties in row-major order; with ``tie_band_cells2`` = b >= 0 the
+  candidate with the highest optimum logit among the passing ones within d^2 <= d_min^2 + b [cells^2].
+
+Unknown (NaN) cells never pass (the exact FEC never selects them). When no candidate passes, the
+masked decodes fall back to ``argmax`` over the known cells (and over all cells if none is known).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tal_perception.errors import FecConfigError, PerceptionInputError
+
+DECODE_MODES = ("argmax", "masked_argmax", "closest_safe")
+
+
+@dataclass(frozen=True)
+class VfaDecode:
+    """How the CNN's outputs become a candidate (see the module docstring).
+
+    mode: one of ``DECODE_MODES``; tau [-]: safe-probability threshold in (0, 1) (masked modes only);
+    tie_band_cells2 [cells^2]: ``closest_safe`` only; None = exact tie rule (row-major), >= 0 = the highest
+    optimum logit among the passing candidates within that band of squared distance of the closest one.
+    """
+
+    mode: str = "argmax"
+    tau: float = 0.5
+    tie_band_cells2: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.mode not in DECODE_MODES:
+            raise FecConfigError(f"VfaDecode.mode must be one of {DECODE_MODES}, got {self.mode!r}")
+        tau = self.tau
+        if isinstance(tau, bool) or not isinstance(tau, (int, float)) or not 0.0 < float(tau) < 1.0:
+            raise FecConfigError(f"VfaDecode.tau must be a probability strictly between 0 and 1, got {tau!r}")
+        band = self.tie_band_cells2
+        if band is not None and (
+            isinstance(band, bool) or not isinstance(band, (int, float)) or not 0.0 <= float(band) < float("inf")
+        ):
+            raise FecConfigError(
+                f"VfaDecode.tie_band_cells2 must be None or a finite value >= 0 [cells^2], got {band!r}"
+            )
+
+    @property
+    def needs_safe_head(self) -> bool:
+        return self.mode != "argmax"
+
+    def to_dict(self) -> dict[str, object]:
+        return {"mode": self.mode, "tau": float(self.tau), "tie_band_cells2": self.tie_band_cells2}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, object]) -> VfaDecode:
+        """The decode stored by ``to_dict`` (unknown keys are an error, missing ones take the defaults)."""
+        unknown = set(values) - {"mode", "tau", "tie_band_cells2"}
+        if unknown:
+            raise FecConfigError(f"VfaDecode: unknown settings {sorted(unknown)}")
+        return cls(**values)  # type: ignore[arg-type]
+
+
+@lru_cache(maxsize=4)
+def _distance_sq(cells: int) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Squared distance from the centre of every flat candidate [cells^2] and the exact search order
+    (by distance, ties row-major: ``vfa_dataset.search_order``)."""
+    centre = cells // 2
+    r, c = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
+    d2 = ((r - centre) ** 2 + (c - centre) ** 2).reshape(-1).astype(np.float64)
+    return d2, np.argsort(d2, kind="stable")
+
+
+def decode(
+    settings: VfaDecode,
+    optimum_logits: NDArray[np.floating],
+    safe_probability: NDArray[np.floating] | None,
+    unknown: NDArray[np.bool_],
+) -> NDArray[np.intp]:
+    """Flat candidate index per sample.
+
+    optimum_logits (B, n*n); safe_probability (B, n*n) in [0, 1] (only read by the masked modes); unknown
+    (B, n*n) True on unknown (NaN) cells; row-major candidate order, n odd (the nominal is the centre).
+    """
+    logits = np.asarray(optimum_logits, dtype=np.float64)
+    unknown = np.asarray(unknown, dtype=bool)
+    if logits.ndim != 2 or unknown.shape != logits.shape:
+        raise PerceptionInputError(
+            f"VFA decode: optimum_logits and unknown must both be (B, n*n), got {logits.shape} and {unknown.shape}"
+        )
+    cells = int(round(np.sqrt(logits.shape[1])))
+    if cells * cells != logits.shape[1] or cells % 2 == 0:
+        raise PerceptionInputError(f"VFA decode: {logits.shape[1]} candidates is not an odd square patch")
+    known = ~unknown
+    fallback = _masked_argmax(logits, known)
+    if settings.mode == "argmax":
+        return np.argmax(logits, axis=1).astype(np.intp)
+    if safe_probability is None:
+        raise PerceptionInputError(f"VFA decode {settings.mode!r} needs the safe-mask probabilities (a safe head)")
+    probability = np.asarray(safe_probability, dtype=np.float64)
+    if probability.shape != logits.shape:
+        raise PerceptionInputError(f"VFA decode: safe_probability must be {logits.shape}, got {probability.shape}")
+    passing = known & (probability >= settings.tau)
+    if settings.mode == "masked_argmax":
+        choice = _masked_argmax(logits, passing)
+    else:
+        choice = _closest(logits, passing, cells, settings.tie_band_cells2)
+    return np.where(passing.any(axis=1), choice, fallback).astype(np.intp)
+
+
+def _masked_argmax(logits: NDArray[np.float64], allowed: NDArray[np.bool_]) -> NDArray[np.intp]:
+    """argmax of the logits over the allowed candidates (over all where none is allowed)."""
+    masked = np.where(allowed, logits, -np.inf)
+    return np.where(allowed.any(axis=1), np.argmax(masked, axis=1), np.argmax(logits, axis=1)).astype(np.intp)
+
+
+def _closest(
+    logits: NDArray[np.float64], passing: NDArray[np.bool_], cells: int, band: float | None
+) -> NDArray[np.intp]:
+    """The passing candidate closest to the centre (exact tie rule, or the best logit within ``band``)."""
+    d2, order = _distance_sq(cells)
+    ranked = passing[:, order]
+    first = order[np.argmax(ranked, axis=1)]  # row-major among equal distances, as the exact selector
+    if band is None:
+        return first
+    near = passing & (d2[None, :] <= d2[first][:, None] + band)
+    return _masked_argmax(logits, near)
+
+
+__all__ = ["DECODE_MODES", "VfaDecode", "decode"]
