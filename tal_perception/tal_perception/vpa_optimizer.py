@@ -242,11 +242,18 @@ class PoseOptimizer:
         return self._keep_or_switch(problem, first, second)
 
     def _keep_or_switch(self, problem: PoseProblem, first: PoseSolution, second: PoseSolution) -> PoseSolution:
-        """The better of two optima, where the one whose first stage lies farther from the previous pose must
-        beat the other by ``switch_margin`` (relative)."""
+        """``second`` if it is the better optimum, else ``first``; the one whose first stage lies farther from the
+        previous pose must beat the other by ``switch_margin`` (relative). A tie keeps ``first`` (margin 0: the
+        plain comparison, bit for bit)."""
         previous = problem.previous[0] if problem.previous.ndim == 2 else problem.previous
-        near, far = sorted((first, second), key=lambda sol: float(np.abs(sol.poses[0] - previous).sum()))
-        return far if far.objective > near.objective + self.settings.switch_margin * abs(near.objective) else near
+        margin = self.settings.switch_margin
+
+        def distance(solution: PoseSolution) -> float:
+            return float(np.abs(solution.poses[0] - previous).sum())
+
+        if distance(second) < distance(first):  # second stays nearer: its bonus
+            return second if second.objective + margin * abs(second.objective) > first.objective else first
+        return second if second.objective > first.objective + margin * abs(first.objective) else first
 
     def _solve_from(self, problem: PoseProblem, solver: Solver, start: FloatArray) -> PoseSolution:
         lower, upper = self.bounds(problem)
