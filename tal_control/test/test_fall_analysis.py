@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tal_control.experiments.fall_analysis import centroidal_wrench, first_wrench_miss
+from tal_control.experiments.fall_analysis import first_wrench_miss
 from tal_control.wbc.swbc import joint_acceleration_bounds
+from tal_control.wbc.tasks import centroidal_wrench_map
 from tal_core.errors import InputError
 
 NAMES = tuple(f"{leg}_{joint}" for leg in ("lf", "rf", "lh", "rh") for joint in ("haa", "hfe", "kfe"))
@@ -18,6 +19,10 @@ def constant_torque_limits(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.full(12, -150.0), np.full(12, 150.0)
 
 
+def centroidal_wrench(forces: np.ndarray, points: np.ndarray, com) -> np.ndarray:
+    return centroidal_wrench_map(points, com) @ np.asarray(forces, dtype=float).ravel()
+
+
 def test_centroidal_wrench_sums_forces_and_their_moments() -> None:
     points = np.array([[0.4, 0.2, 0.0], [0.4, -0.2, 0.0], [-0.4, 0.2, 0.0], [-0.4, -0.2, 0.0]])
     weight = np.tile([0.0, 0.0, 200.0], (4, 1))
@@ -26,7 +31,7 @@ def test_centroidal_wrench_sums_forces_and_their_moments() -> None:
     one[0, 2] = 100.0  # LF alone: it pitches the trunk nose up (-y moment) and rolls it right (+x moment)
     np.testing.assert_allclose(centroidal_wrench(one, points, np.zeros(3)), [0, 0, 100, 20, -40, 0], atol=1e-9)
     with pytest.raises(InputError, match=r"must be \(4, 3\)"):
-        centroidal_wrench(np.zeros((3, 3)), points, np.zeros(3))
+        centroidal_wrench(np.zeros((4, 3)), points[:3], np.zeros(3))
 
 
 def test_joint_acceleration_bounds_close_when_a_joint_runs_at_its_stop() -> None:

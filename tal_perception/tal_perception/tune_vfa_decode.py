@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from tal_core.robot_model import RobotModel
+from tal_perception.eval_vfa import score
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, encode, load_model, store_decode
 from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate
@@ -88,15 +89,11 @@ def network_outputs(
 
 
 def measures(data: VfaDataset, choices: np.ndarray, resolution_m: float) -> dict[str, float]:
-    """Perfect match, safe rate and mean distance [m] on the samples with a safe candidate."""
-    n = data.cells
-    rows = np.flatnonzero(data.label >= 0)
-    label, choice = data.label[rows].astype(np.intp), choices[rows]
-    distance = np.hypot(choice // n - label // n, choice % n - label % n) * resolution_m
-    match = float(np.mean(choice == label))
-    safe = float(np.mean(data.safe.reshape(len(data), -1)[rows, choice]))
-    # With the selector's verification an unsafe choice is replaced by the exact g: result = g on match + unsafe.
-    return {"perfect_match": match, "safe": safe, "mean_distance_m": float(distance.mean()),
+    """The protocol's perfect match, safe rate and mean distance [m] (``eval_vfa.score``), plus the share of
+    samples where the verified selector returns exactly g (an unsafe choice is replaced by the exact g)."""
+    scored = score(data, choices, resolution_m)
+    match, safe = scored["perfect_match"], scored["safe"]
+    return {"perfect_match": match, "safe": safe, "mean_distance_m": scored["mean_distance_m"],
             "verified_equals_g": match + 1.0 - safe}  # fmt: skip
 
 

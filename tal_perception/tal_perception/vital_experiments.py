@@ -157,7 +157,8 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
 
     torch.set_num_threads(1)  # the CNNs are small; a second thread only contends with the physics
     course = load_course(run.course)
-    loop = VitalLoop(course, RobotModel(load_robot_description("hyq")),
+    description = load_robot_description("hyq")
+    loop = VitalLoop(course, RobotModel(description),
                      run.loop if run.loop is not None else VitalLoopSettings(vfa=False, pose_source="none"))
     config = ClosedLoopConfig(name=run.name, course=course, gait="trot",
                               commands=((0.0, 0.0, 0.0, 0.0), (START_S, run.speed_mps, 0.0, 0.0)),
@@ -176,10 +177,8 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
     height_error = 100.0 * np.abs(log.base_position_des[:n, 2] - log.base_position[:n, 2])[mask]
     x = log.base_position[:n, 0]
     reached = bool(np.any(x >= run.goal_x_m))
-    wbc = WbcSettings()
     # For a fall, the onset of the episode of misses that ended in it (not a transient at the gait start).
-    miss = first_wrench_miss_of_log(log, load_robot_description("hyq"),
-                                    wbc.joint_limit_horizon_periods * wbc.control_period_s, after_s=SETTLE_S,
+    miss = first_wrench_miss_of_log(log, description, WbcSettings().joint_limit_horizon_s, after_s=SETTLE_S,
                                     last_episode=bool(log.fell))
     pose = trace["pose_reference"][:n]
     dz, dpitch = _variation_per_metre(x, pose[:, 0], np.degrees(pose[:, 2]))

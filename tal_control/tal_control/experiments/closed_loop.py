@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from tal_control.experiments.fall_analysis import centroidal_wrench
 from tal_control.locomotion import (
     BaseState,
     ImpedanceGate,
@@ -420,8 +419,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                     normals=out.targets.normals,
                     wbc_forces=sol.forces,
                     wrench_des=sol.desired_wrench,
-                    wrench_wbc=centroidal_wrench(sol.forces, out.measured.foot_positions
-                                                 - radius * out.targets.normals, out.measured.com),
+                    wrench_wbc=sol.delivered_wrench,
                     slacks=sol.slacks,
                     tau_wbc=sol.tau,
                     tau_cmd=tau,

@@ -27,17 +27,6 @@ ACCELERATION_ROOM_RAD_S2 = 50.0  # [rad/s^2] a joint-limit acceleration bound th
 EPISODE_GAP_S = 0.5  # [s] misses closer than this belong to one episode
 
 
-def centroidal_wrench(forces: FloatArray, contact_points: FloatArray, com: FloatArray) -> FloatArray:
-    """(6,) [N, N m] sum of the forces (4, 3) [N] and their moment about ``com`` (3,) [m], applied at
-    ``contact_points`` (4, 3) [m], all in the world frame."""
-    forces, points = np.asarray(forces, dtype=float), np.asarray(contact_points, dtype=float)
-    if forces.shape != (NUM_LEGS, 3) or points.shape != (NUM_LEGS, 3):
-        raise InputError(
-            f"centroidal_wrench: forces and contact points must be (4, 3), got {forces.shape}, {points.shape}"
-        )
-    return np.concatenate([forces.sum(axis=0), np.cross(points - np.asarray(com, dtype=float), forces).sum(axis=0)])
-
-
 @dataclass(frozen=True)
 class WrenchMiss:
     """The first miss: time [s], force and moment errors [N, N m], the planned stance legs, the joints at their

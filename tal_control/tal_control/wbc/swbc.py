@@ -28,7 +28,14 @@ from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
 
 from .qp_layout import FRICTION_ROWS_PER_LEG, INF, FixedPatternMatrix, QpLayout
-from .tasks import WbcGains, WbcReferences, desired_com_wrench, swing_accelerations, tangent_basis
+from .tasks import (
+    WbcGains,
+    WbcReferences,
+    centroidal_wrench_map,
+    desired_com_wrench,
+    swing_accelerations,
+    tangent_basis,
+)
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -81,6 +88,11 @@ class WbcSettings:
     # the gait's stance duration (the thesis' crawl on T1: 0.41 s of 1.6 s, under the cap).
     max_load_ramp_stance_fraction: float = 0.25
 
+    @property
+    def joint_limit_horizon_s(self) -> float:
+        """[s] horizon of the joint-limit acceleration bounds."""
+        return self.joint_limit_horizon_periods * self.control_period_s
+
     def __post_init__(self) -> None:
         if self.contact_model not in ("rigid", "compliant"):
             raise InputError(f"contact_model must be 'rigid' or 'compliant', got {self.contact_model!r}")
@@ -100,6 +112,7 @@ class WbcSolution:
     forces: np.ndarray            # (4, 3) [N] ground reaction forces on the feet, world frame
     slacks: np.ndarray            # (4, 3) [m/s^2] swing-task slacks
     desired_wrench: np.ndarray    # (6,) [N, N m] world frame, about the CoM
+    delivered_wrench: np.ndarray  # (6,) [N, N m] the same wrench of ``forces`` (what the QP delivered)
     status: str
     status_val: int
     iterations: int
@@ -189,7 +202,8 @@ class StandardWbc:
                                dt2 * x[lay.penetration].reshape(NUM_LEGS, 3) + self._eps_offset, 0.0)
                 self._eps_prev2, self._eps_prev = self._eps_prev, eps
             result = WbcSolution(tau=tau_v, qdd=qdd, forces=forces, slacks=x[lay.slack].reshape(NUM_LEGS, 3),
-                                 desired_wrench=wrench_d, status=info.status, status_val=int(info.status_val),
+                                 desired_wrench=wrench_d, delivered_wrench=self._wrench_map @ forces.ravel(),
+                                 status=info.status, status_val=int(info.status_val),
                                  iterations=int(info.iter), solve_time_s=float(info.solve_time),
                                  fallback=relaxed)
             if relaxed:
@@ -229,7 +243,8 @@ class StandardWbc:
         else:
             tau, qdd, forces = 0.9 * last.tau, last.qdd, last.forces
         result = WbcSolution(tau=tau, qdd=qdd, forces=forces, slacks=np.zeros((NUM_LEGS, 3)),
-                             desired_wrench=wrench_d, status="fallback", status_val=-1, iterations=0,
+                             desired_wrench=wrench_d, delivered_wrench=self._wrench_map @ forces.ravel(),
+                             status="fallback", status_val=-1, iterations=0,
                              solve_time_s=0.0, fallback=True)
         self._last = result
         return result
@@ -299,12 +314,8 @@ class StandardWbc:
                                       self._base_rotation(q), self._base_angular_velocity_world(q, v),
                                       refs, self.gains)
         # Centroidal wrench of the contact forces: W = A_F F, A_F = [I ...; skew(p_i - c) ...] (6 x 12).
-        r = m.foot_positions() - self.description.foot_radius_m * refs.normals - com
-        A_F = np.zeros((6, lay.n_force))
-        A_F[0:3] = np.tile(np.eye(3), NUM_LEGS)
-        zeros = np.zeros(NUM_LEGS)
-        skews = np.array([[zeros, -r[:, 2], r[:, 1]], [r[:, 2], zeros, -r[:, 0]], [-r[:, 1], r[:, 0], zeros]])
-        A_F[3:6] = skews.transpose(0, 2, 1).reshape(3, lay.n_force)
+        A_F = centroidal_wrench_map(m.foot_positions() - self.description.foot_radius_m * refs.normals, com)
+        self._wrench_map = A_F  # the delivered wrench of this cycle's forces is A_F F
         P = self._P
         P[:] = self._P_static
         P[sl["force"], sl["force"]] += A_F.T @ self._Q @ A_F
@@ -473,8 +484,8 @@ class StandardWbc:
 
     def _joint_acceleration_bounds(self, q_joints: np.ndarray, qd_joints: np.ndarray):
         """Accelerations that reach each end stop at zero velocity within the horizon (thesis eq.)."""
-        horizon_s = self.settings.joint_limit_horizon_periods * self.settings.control_period_s
-        return joint_acceleration_bounds(q_joints, qd_joints, self.position_lower, self.position_upper, horizon_s)
+        return joint_acceleration_bounds(q_joints, qd_joints, self.position_lower, self.position_upper,
+                                         self.settings.joint_limit_horizon_s)
 
     # -- state helpers ---------------------------------------------------------------------------------
     def _canonical_joint_positions(self, q: np.ndarray) -> np.ndarray:

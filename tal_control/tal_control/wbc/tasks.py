@@ -105,6 +105,21 @@ def orientation_error(world_R_desired: np.ndarray, world_R_base: np.ndarray) -> 
     return np.asarray(pin.log3(world_R_desired @ world_R_base.T))
 
 
+def centroidal_wrench_map(contact_points: np.ndarray, com: np.ndarray) -> np.ndarray:
+    """(6, 12) A_F with W = A_F F: the sum of the feet's forces F (4 x 3 stacked, world frame) [N] and their
+    moment [N m] about ``com`` (3,) [m], applied at ``contact_points`` (4, 3) [m] (world)."""
+    points = np.asarray(contact_points, dtype=float)
+    if points.shape != (NUM_LEGS, 3):
+        raise InputError(f"centroidal_wrench_map: contact points must be (4, 3), got {points.shape}")
+    r = points - np.asarray(com, dtype=float)
+    A_F = np.zeros((6, 3 * NUM_LEGS))
+    A_F[0:3] = np.tile(np.eye(3), NUM_LEGS)
+    zeros = np.zeros(NUM_LEGS)
+    skews = np.array([[zeros, -r[:, 2], r[:, 1]], [r[:, 2], zeros, -r[:, 0]], [-r[:, 1], r[:, 0], zeros]])
+    A_F[3:6] = skews.transpose(0, 2, 1).reshape(3, 3 * NUM_LEGS)
+    return A_F
+
+
 def desired_com_wrench(mass_kg: float, inertia_com: np.ndarray, com: np.ndarray, com_velocity: np.ndarray,
                        world_R_base: np.ndarray, angular_velocity: np.ndarray, refs: WbcReferences,
                        gains: WbcGains) -> np.ndarray:
