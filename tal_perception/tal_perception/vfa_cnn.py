@@ -47,6 +47,7 @@ from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
 from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, check_map_age, extract_patch
+from tal_perception.vfa_cnn_fast import compile_fast_unet
 from tal_perception.vfa_decode import VfaDecode, decode
 
 FloatArray = NDArray[np.float64]
@@ -367,11 +368,15 @@ class CnnFootholdSelector:
 
     decode: how the network's outputs become a candidate (``vfa_decode.VfaDecode``); None = the decode
     stored with the weights (``net.decode``; the thesis' argmax for a network without one).
+
+    fast: run a ``VfaUNet`` (with its safe head) through ``vfa_cnn_fast.compile_fast_unet``, the same
+    function rearranged for inference (same selections; the weights are copied once here, so later
+    changes of ``net`` are not seen); False, or another network: the module's own forward.
     """
 
     def __init__(
         self, evaluator: FootholdEvaluator, net: VfaNet | VfaUNet | None = None, max_map_age_s: float = 0.5,
-        verify: bool = True, decode: VfaDecode | None = None,
+        verify: bool = True, decode: VfaDecode | None = None, fast: bool = True,
     ) -> None:  # fmt: skip
         self.exact = FootholdSelector(evaluator, max_map_age_s)  # validates max_map_age_s
         self.evaluator = evaluator
@@ -392,6 +397,13 @@ class CnnFootholdSelector:
                 f"settings have {s.patch_cells} x {s.patch_cells} of {s.resolution_m} m"
             )
         self._margin = np.array(disc_offsets(s.uncertainty_margin_m, s.resolution_m, include_centre=True))
+        use_fast = fast and isinstance(self.net, VfaUNet) and self.net.config.safe_head
+        self._fast_net = compile_fast_unet(self.net, enc.cells) if use_fast else None
+
+    @property
+    def fast(self) -> bool:
+        """True when ``predict`` runs the rearranged network (``vfa_cnn_fast``)."""
+        return self._fast_net is not None
 
     @property
     def max_map_age_s(self) -> float:
@@ -414,8 +426,15 @@ class CnnFootholdSelector:
             self.net.config.encoding, np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
             np.stack([i.twist for i in inputs]), gait, np.array([int(i.leg) for i in inputs]),
         )  # fmt: skip
-        pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
         with torch.inference_mode():
+            if self._fast_net is not None:
+                logits, safe_logits = self._fast_net(torch.from_numpy(image), torch.from_numpy(scalars))
+                if not self.decode.needs_safe_head:
+                    return logits.argmax(dim=1).numpy().astype(np.intp)
+                probability = torch.sigmoid(safe_logits)
+                unknown = image[:, 1].reshape(len(inputs), -1) > 0.5
+                return decode(self.decode, logits.numpy(), probability.numpy(), unknown)
+            pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
             if not self.decode.needs_safe_head:
                 logits = self.net.optimum_logits(pixels, torch.from_numpy(scalars))
                 return logits.argmax(dim=1).numpy().astype(np.intp)
