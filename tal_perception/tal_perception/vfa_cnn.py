@@ -123,10 +123,8 @@ def encode(
     image[:, 1] = unknown
     image[:, 2:] = coordinates
     hip_above = np.zeros(b, np.float32)  # 0 when nothing is known
-    for i in range(b):
-        known = heights[i][~unknown[i]]
-        if known.size:
-            hip_above[i] = (hip[i] - _median(known) - cfg.nominal_hip_height_m) / cfg.hip_scale_m
+    median, has_known = _row_medians(heights.reshape(b, -1), unknown.reshape(b, -1))
+    hip_above[has_known] = (hip[has_known] - median[has_known] - cfg.nominal_hip_height_m) / cfg.hip_scale_m
     twist = np.asarray(twist, dtype=np.float32)
     gait = np.asarray(gait, dtype=np.float32)
     scalars = np.zeros((b, cfg.scalar_count), np.float32)
@@ -151,13 +149,26 @@ def _constants(cfg: EncodingConfig) -> tuple[NDArray[np.float32], ...]:
     return (coordinates, *scales)
 
 
-def _median(values: NDArray[np.float32]) -> float:
-    """Median of a non-empty 1-D array (np.median's result, without its overhead: ~10 us instead of ~50)."""
-    k = values.size // 2
-    if values.size % 2:
-        return float(np.partition(values, k)[k])
-    middle = np.partition(values, (k - 1, k))
-    return float(0.5 * (middle[k - 1] + middle[k]))
+def _row_medians(
+    values: NDArray[np.float32], unknown: NDArray[np.bool_]
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Median of the known (not ``unknown``) entries of each row of ``values`` (B, m) [same unit], and
+    whether the row has any; one partition of all rows (unknown entries as +inf, so they come last) at
+    the middle positions of every row. Each median is ``np.median``'s in float32: the middle value, or
+    0.5 * (sum of the two middle values) for an even count (~25 us for 4 rows of 1089, 4 x ~10 us before)."""
+    rows, m = values.shape
+    count = m - unknown.sum(axis=1)
+    has_known = count > 0
+    upper = np.minimum(count // 2, m - 1)
+    lower = np.maximum(count - 1, 0) // 2
+    if unknown.any():
+        values = np.where(unknown, np.float32(np.inf), values)
+    # two or more positions (repeated if equal): numpy's partition is ~2x faster than with a single one
+    ordered = np.partition(values, np.sort(np.concatenate([lower, upper])), axis=1)
+    index = np.arange(rows)
+    high, low = ordered[index, upper], ordered[index, lower]
+    median = np.where(count % 2 == 1, high, np.float32(0.5) * (low + high))
+    return median.astype(np.float32, copy=False), has_known
 
 
 class VfaNet(nn.Module):

@@ -20,6 +20,7 @@ from tal_perception.vfa_cnn import (
     FootholdRequest,
     NetConfig,
     VfaNet,
+    _row_medians,
     build_net,
     encode,
     load_model,
@@ -133,6 +134,21 @@ def test_network_shapes_and_size(tmp_path) -> None:
     assert (tmp_path / "net.pt").stat().st_size < 2e6
     assert load_model(tmp_path / "net.pt").config == net.config
     assert DEFAULT_WEIGHTS.stat().st_size < 2e6
+
+
+def test_row_medians_equal_numpy_median_of_the_known_cells() -> None:
+    """encode's batched median (hip above the patch): np.median of each row's known cells, bit for bit."""
+    rng = np.random.default_rng(7)
+    values = rng.normal(0.0, 0.1, size=(12, 1089)).astype(np.float32)
+    values[:, :40] = np.round(values[:, :40], 2)  # repeated values
+    unknown = rng.random(values.shape) < rng.choice([0.0, 0.1, 0.6], size=(12, 1))
+    unknown[3, 1:] = True  # one known cell
+    unknown[4] = True  # none known
+    unknown[5, :2] = True  # an even count
+    median, has_known = _row_medians(np.where(unknown, np.nan, values).astype(np.float32), unknown)
+    assert has_known.tolist() == [i != 4 for i in range(12)]
+    expected = [np.median(v[~u]) if (~u).any() else 0.0 for v, u in zip(values, unknown)]
+    np.testing.assert_array_equal(median[has_known], np.array(expected, np.float32)[has_known])
 
 
 def test_encoding_marks_unknown_cells_and_depends_only_on_height_differences() -> None:
