@@ -6,7 +6,9 @@ Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/be
 
 Inputs: the same cases as ``bench_vfa.py`` (``make_cases``: 65 x 65 maps of 0.02 m around the nominal
 foothold at random headings, random hip height, twist and time left in a trot swing). The committed
-weights (``tal_perception/models/vfa_cnn.pt``), torch on one CPU thread, ``torch.inference_mode``.
+weights (``tal_perception/models/vfa_cnn.pt``), torch on one CPU thread, ``torch.inference_mode``; the
+selector's default network path (``fast``: a ``VfaUNet`` runs as ``vfa_cnn_fast``'s traced, frozen
+rearrangement; ``--plain``: the module's own forward, for comparison).
 Per call we time (time.perf_counter, after a warm-up call), in ``--rounds`` alternating rounds pooled:
 
 * ``cnn``: ``CnnFootholdSelector.select`` for one leg, no verification (patch extraction, encoding, one
@@ -101,7 +103,7 @@ def run_batch(selector: CnnFootholdSelector, cases: list[dict]) -> dict[str, dic
     return {"4legs": {"ms": times, "ms_per_leg": [t / len(LEGS) for t in times]}}
 
 
-def report(summary: dict, n: int) -> str:
+def report(summary: dict, n: int, path: str) -> str:
     lines = [
         "| leg | CNN median [ms] | p99 [ms] | CNN + verification median [ms] | p99 [ms] | fallbacks to exact |",
         "| --- | --- | --- | --- | --- | --- |",
@@ -116,7 +118,7 @@ def report(summary: dict, n: int) -> str:
     lines.append(
         f"\n4-leg batch (`select_legs`): median {batch['stats']['median']:.3f} ms per call "
         f"(p99 {batch['stats']['p99']:.3f}), i.e. {batch['per_leg_stats']['median']:.3f} ms per leg "
-        f"(p99 {batch['per_leg_stats']['p99']:.3f}); {n} terrains."
+        f"(p99 {batch['per_leg_stats']['p99']:.3f}); {n} terrains; network path: {path}."
     )
     lines.append(f"Thesis: CNN VFA {THESIS_MEAN_MS} ms +- 1 ms per leg (mean); goal <= {GOAL_MS} ms.")
     return "\n".join(lines)
@@ -129,6 +131,7 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the modes, pooled (default 3)")
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
+    parser.add_argument("--plain", action="store_true", help="the network's own forward instead of the fast path")
     add_wait_quiet_option(parser)
     args = parser.parse_args()
     n = args.samples or (QUICK_SAMPLES if args.quick else DEFAULT_SAMPLES)
@@ -138,8 +141,9 @@ def main() -> int:
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     load_at_start = settle_machine(args.wait_quiet, progress)
     model = RobotModel.from_name("hyq")
-    selector = CnnFootholdSelector(FootholdEvaluator(model), load_model(args.weights))
-    progress(f"{n} terrains (seed {args.seed}), 4 legs, weights {args.weights.name}")
+    selector = CnnFootholdSelector(FootholdEvaluator(model), load_model(args.weights), fast=not args.plain)
+    path = "fast (vfa_cnn_fast, TorchScript)" if selector.fast else "plain (the module's forward)"
+    progress(f"{n} terrains (seed {args.seed}), 4 legs, weights {args.weights.name}, network path: {path}")
     cases = make_cases(model, n, args.seed)
     pooled: dict[str, dict[str, dict]] = {mode: {} for mode in MODES}
     round_medians: dict[str, dict[str, list[float]]] = {mode: {} for mode in MODES}
@@ -164,7 +168,7 @@ def main() -> int:
     batch["per_leg_stats"] = stats(batch["ms_per_leg"])
     busy = [b for b in others_busy if b is not None]
     progress(f"other processes kept {np.mean(busy):.2f} cores busy on average" if busy else "CPU use unknown")
-    print(report(summary, n))
+    print(report(summary, n, path))
     document = {
         "benchmark": "bench_vfa_cnn",
         "machine": machine_info(),
@@ -172,6 +176,7 @@ def main() -> int:
         "torch_threads": torch.get_num_threads(),
         "load_average_at_start": load_at_start,
         "weights": args.weights.name,
+        "network_path": "fast" if selector.fast else "plain",
         "other_processes_cores_busy": others_busy,
         "rounds": args.rounds,
         "inputs": {"samples": n, "seed": args.seed},

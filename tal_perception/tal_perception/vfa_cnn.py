@@ -47,6 +47,7 @@ from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
 from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, check_map_age, extract_patch
+from tal_perception.vfa_cnn_fast import compile_fast_unet
 from tal_perception.vfa_decode import VfaDecode, decode
 
 FloatArray = NDArray[np.float64]
@@ -122,10 +123,8 @@ def encode(
     image[:, 1] = unknown
     image[:, 2:] = coordinates
     hip_above = np.zeros(b, np.float32)  # 0 when nothing is known
-    for i in range(b):
-        known = heights[i][~unknown[i]]
-        if known.size:
-            hip_above[i] = (hip[i] - _median(known) - cfg.nominal_hip_height_m) / cfg.hip_scale_m
+    median, has_known = _row_medians(heights.reshape(b, -1), unknown.reshape(b, -1))
+    hip_above[has_known] = (hip[has_known] - median[has_known] - cfg.nominal_hip_height_m) / cfg.hip_scale_m
     twist = np.asarray(twist, dtype=np.float32)
     gait = np.asarray(gait, dtype=np.float32)
     scalars = np.zeros((b, cfg.scalar_count), np.float32)
@@ -150,13 +149,26 @@ def _constants(cfg: EncodingConfig) -> tuple[NDArray[np.float32], ...]:
     return (coordinates, *scales)
 
 
-def _median(values: NDArray[np.float32]) -> float:
-    """Median of a non-empty 1-D array (np.median's result, without its overhead: ~10 us instead of ~50)."""
-    k = values.size // 2
-    if values.size % 2:
-        return float(np.partition(values, k)[k])
-    middle = np.partition(values, (k - 1, k))
-    return float(0.5 * (middle[k - 1] + middle[k]))
+def _row_medians(
+    values: NDArray[np.float32], unknown: NDArray[np.bool_]
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Median of the known (not ``unknown``) entries of each row of ``values`` (B, m) [same unit], and
+    whether the row has any; one partition of all rows (unknown entries as +inf, so they come last) at
+    the middle positions of every row. Each median is ``np.median``'s in float32: the middle value, or
+    0.5 * (sum of the two middle values) for an even count (~25 us for 4 rows of 1089, 4 x ~10 us before)."""
+    rows, m = values.shape
+    count = m - unknown.sum(axis=1)
+    has_known = count > 0
+    upper = np.minimum(count // 2, m - 1)
+    lower = np.maximum(count - 1, 0) // 2
+    if unknown.any():
+        values = np.where(unknown, np.float32(np.inf), values)
+    # two or more positions (repeated if equal): numpy's partition is ~2x faster than with a single one
+    ordered = np.partition(values, np.sort(np.concatenate([lower, upper])), axis=1)
+    index = np.arange(rows)
+    high, low = ordered[index, upper], ordered[index, lower]
+    median = np.where(count % 2 == 1, high, np.float32(0.5) * (low + high))
+    return median.astype(np.float32, copy=False), has_known
 
 
 class VfaNet(nn.Module):
@@ -367,11 +379,15 @@ class CnnFootholdSelector:
 
     decode: how the network's outputs become a candidate (``vfa_decode.VfaDecode``); None = the decode
     stored with the weights (``net.decode``; the thesis' argmax for a network without one).
+
+    fast: run a ``VfaUNet`` (with its safe head) through ``vfa_cnn_fast.compile_fast_unet``, the same
+    function rearranged for inference (same selections; the weights are copied once here, so later
+    changes of ``net`` are not seen); False, or another network: the module's own forward.
     """
 
     def __init__(
         self, evaluator: FootholdEvaluator, net: VfaNet | VfaUNet | None = None, max_map_age_s: float = 0.5,
-        verify: bool = True, decode: VfaDecode | None = None,
+        verify: bool = True, decode: VfaDecode | None = None, fast: bool = True,
     ) -> None:  # fmt: skip
         self.exact = FootholdSelector(evaluator, max_map_age_s)  # validates max_map_age_s
         self.evaluator = evaluator
@@ -392,6 +408,13 @@ class CnnFootholdSelector:
                 f"settings have {s.patch_cells} x {s.patch_cells} of {s.resolution_m} m"
             )
         self._margin = np.array(disc_offsets(s.uncertainty_margin_m, s.resolution_m, include_centre=True))
+        use_fast = fast and isinstance(self.net, VfaUNet) and self.net.config.safe_head
+        self._fast_net = compile_fast_unet(self.net, enc.cells) if use_fast else None
+
+    @property
+    def fast(self) -> bool:
+        """True when ``predict`` runs the rearranged network (``vfa_cnn_fast``)."""
+        return self._fast_net is not None
 
     @property
     def max_map_age_s(self) -> float:
@@ -414,8 +437,15 @@ class CnnFootholdSelector:
             self.net.config.encoding, np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
             np.stack([i.twist for i in inputs]), gait, np.array([int(i.leg) for i in inputs]),
         )  # fmt: skip
-        pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
         with torch.inference_mode():
+            if self._fast_net is not None:
+                logits, safe_logits = self._fast_net(torch.from_numpy(image), torch.from_numpy(scalars))
+                if not self.decode.needs_safe_head:
+                    return logits.argmax(dim=1).numpy().astype(np.intp)
+                probability = torch.sigmoid(safe_logits)
+                unknown = image[:, 1].reshape(len(inputs), -1) > 0.5
+                return decode(self.decode, logits.numpy(), probability.numpy(), unknown)
+            pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
             if not self.decode.needs_safe_head:
                 logits = self.net.optimum_logits(pixels, torch.from_numpy(scalars))
                 return logits.argmax(dim=1).numpy().astype(np.intp)

@@ -91,7 +91,9 @@ def decode(
     optimum_logits (B, n*n); safe_probability (B, n*n) in [0, 1] (only read by the masked modes); unknown
     (B, n*n) True on unknown (NaN) cells; row-major candidate order, n odd (the nominal is the centre).
     """
-    logits = np.asarray(optimum_logits, dtype=np.float64)
+    logits = np.asarray(optimum_logits)  # float32 or float64 as given: the same argmax either way
+    if not np.issubdtype(logits.dtype, np.floating):
+        logits = logits.astype(np.float64)
     unknown = np.asarray(unknown, dtype=bool)
     if logits.ndim != 2 or unknown.shape != logits.shape:
         raise PerceptionInputError(
@@ -100,31 +102,36 @@ def decode(
     cells = int(round(np.sqrt(logits.shape[1])))
     if cells * cells != logits.shape[1] or cells % 2 == 0:
         raise PerceptionInputError(f"VFA decode: {logits.shape[1]} candidates is not an odd square patch")
-    known = ~unknown
-    fallback = _masked_argmax(logits, known)
     if settings.mode == "argmax":
         return np.argmax(logits, axis=1).astype(np.intp)
     if safe_probability is None:
         raise PerceptionInputError(f"VFA decode {settings.mode!r} needs the safe-mask probabilities (a safe head)")
-    probability = np.asarray(safe_probability, dtype=np.float64)
+    probability = np.asarray(safe_probability)
     if probability.shape != logits.shape:
         raise PerceptionInputError(f"VFA decode: safe_probability must be {logits.shape}, got {probability.shape}")
-    passing = known & (probability >= settings.tau)
+    known = ~unknown
+    passing = known & (probability >= np.float64(settings.tau))  # compared in float64 whatever the dtype
     if settings.mode == "masked_argmax":
         choice = _masked_argmax(logits, passing)
     else:
         choice = _closest(logits, passing, cells, settings.tie_band_cells2)
-    return np.where(passing.any(axis=1), choice, fallback).astype(np.intp)
+    none = ~passing.any(axis=1)
+    if none.any():  # the fallback: argmax over the known cells (over all if none is known)
+        choice[none] = _masked_argmax(logits[none], known[none])
+    return choice.astype(np.intp, copy=False)
 
 
-def _masked_argmax(logits: NDArray[np.float64], allowed: NDArray[np.bool_]) -> NDArray[np.intp]:
+def _masked_argmax(logits: NDArray[np.floating], allowed: NDArray[np.bool_]) -> NDArray[np.intp]:
     """argmax of the logits over the allowed candidates (over all where none is allowed)."""
-    masked = np.where(allowed, logits, -np.inf)
-    return np.where(allowed.any(axis=1), np.argmax(masked, axis=1), np.argmax(logits, axis=1)).astype(np.intp)
+    choice = np.argmax(np.where(allowed, logits, -np.inf), axis=1).astype(np.intp, copy=False)
+    none = ~allowed.any(axis=1)
+    if none.any():
+        choice[none] = np.argmax(logits[none], axis=1)
+    return choice
 
 
 def _closest(
-    logits: NDArray[np.float64], passing: NDArray[np.bool_], cells: int, band: float | None
+    logits: NDArray[np.floating], passing: NDArray[np.bool_], cells: int, band: float | None
 ) -> NDArray[np.intp]:
     """The passing candidate closest to the centre (exact tie rule, or the best logit within ``band``)."""
     d2, order = _distance_sq(cells)

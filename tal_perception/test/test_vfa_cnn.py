@@ -20,10 +20,13 @@ from tal_perception.vfa_cnn import (
     FootholdRequest,
     NetConfig,
     VfaNet,
+    _row_medians,
+    build_net,
     encode,
     load_model,
     save_model,
 )
+from tal_perception.vfa_cnn_fast import compile_fast_unet
 from tal_perception.vfa_dataset import (
     VfaDataset,
     cache_path,
@@ -131,6 +134,21 @@ def test_network_shapes_and_size(tmp_path) -> None:
     assert (tmp_path / "net.pt").stat().st_size < 2e6
     assert load_model(tmp_path / "net.pt").config == net.config
     assert DEFAULT_WEIGHTS.stat().st_size < 2e6
+
+
+def test_row_medians_equal_numpy_median_of_the_known_cells() -> None:
+    """encode's batched median (hip above the patch): np.median of each row's known cells, bit for bit."""
+    rng = np.random.default_rng(7)
+    values = rng.normal(0.0, 0.1, size=(12, 1089)).astype(np.float32)
+    values[:, :40] = np.round(values[:, :40], 2)  # repeated values
+    unknown = rng.random(values.shape) < rng.choice([0.0, 0.1, 0.6], size=(12, 1))
+    unknown[3, 1:] = True  # one known cell
+    unknown[4] = True  # none known
+    unknown[5, :2] = True  # an even count
+    median, has_known = _row_medians(np.where(unknown, np.nan, values).astype(np.float32), unknown)
+    assert has_known.tolist() == [i != 4 for i in range(12)]
+    expected = [np.median(v[~u]) if (~u).any() else 0.0 for v, u in zip(values, unknown)]
+    np.testing.assert_array_equal(median[has_known], np.array(expected, np.float32)[has_known])
 
 
 def test_encoding_marks_unknown_cells_and_depends_only_on_height_differences() -> None:
@@ -261,3 +279,60 @@ def test_committed_weights_approximate_the_exact_vfa(cnn_selector: CnnFootholdSe
 def test_committed_weights_are_the_unet_with_their_tuned_decode(cnn_selector: CnnFootholdSelector) -> None:
     assert cnn_selector.net.config.architecture == "unet"
     assert cnn_selector.decode.to_dict() == {"mode": "masked_argmax", "tau": 0.1, "tie_band_cells2": None}
+
+
+# -- the fast inference path (vfa_cnn_fast) -------------------------------------------------------------
+def _encoded(inputs: list[FecInput], cfg: EncodingConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    gait = np.array([[i.gait.step_frequency_hz, i.gait.duty_factor, i.gait.swing_time_left_s, i.gait.step_height_m]
+                     for i in inputs])  # fmt: skip
+    image, scalars = encode(cfg, np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
+                            np.stack([i.twist for i in inputs]), gait, np.array([int(i.leg) for i in inputs]))  # fmt: skip
+    return torch.from_numpy(image), torch.from_numpy(scalars)
+
+
+def test_fast_path_scores_equal_the_plain_forward_on_random_networks(fresh_set: VfaDataset) -> None:
+    """FastVfaUNet = VfaUNet.forward (float32 rounding only) for untrained networks of other widths, any batch."""
+    torch.manual_seed(4)
+    for channels, decoder in (((8, 16, 32), (32, 16, 8)), ((4, 8, 12), (6, 5, 3))):
+        net = build_net(NetConfig(channels=channels, hidden=64, architecture="unet", decoder_channels=decoder)).eval()
+        fast = compile_fast_unet(net, 33)
+        for start, size in ((0, 1), (1, 4), (5, 9)):
+            image, scalars = _encoded([fresh_set.fec_input(i) for i in range(start, start + size)], net.config.encoding)
+            with torch.inference_mode():
+                plain, plain_safe = net(image, scalars)
+                logits, safe_logits = fast(image, scalars)
+            assert logits.shape == plain.shape == (size, 33 * 33)
+            scale = float(plain.abs().max()) + float(plain_safe.abs().max())
+            torch.testing.assert_close(logits, plain, rtol=0.0, atol=1e-5 * scale)
+            torch.testing.assert_close(safe_logits, plain_safe, rtol=0.0, atol=1e-5 * scale)
+
+
+def test_fast_path_selects_what_the_plain_forward_selects(evaluator: FootholdEvaluator, fresh_set: VfaDataset) -> None:
+    """The committed weights: same scores (to float32 rounding) and the same choice on 400 fresh tuples;
+    a choice may only differ where the plain scores are tied to within the rounding."""
+    net = load_model(DEFAULT_WEIGHTS)
+    fast, plain = CnnFootholdSelector(evaluator, net, verify=False), CnnFootholdSelector(evaluator, net, verify=False,
+                                                                                          fast=False)  # fmt: skip
+    assert fast.fast and not plain.fast
+    inputs = [fresh_set.fec_input(i) for i in range(len(fresh_set))]
+    image, scalars = _encoded(inputs, net.config.encoding)
+    with torch.inference_mode():
+        expected, expected_safe = net(image, scalars)
+        logits, safe_logits = fast._fast_net(image, scalars)
+    scale = float(expected.abs().max())
+    assert float((logits - expected).abs().max()) <= 1e-5 * scale
+    assert float((torch.sigmoid(safe_logits) - torch.sigmoid(expected_safe)).abs().max()) <= 1e-5
+    choices, reference = fast.predict(inputs), plain.predict(inputs)
+    differ = np.flatnonzero(choices != reference)
+    top2 = torch.topk(expected, 2, dim=1).values
+    assert np.all((top2[differ, 0] - top2[differ, 1]).numpy() <= 1e-5 * scale), f"choices differ at {differ}"
+    assert differ.size <= 2 and len(set(reference.tolist())) > 20  # the tuples do not all select the same cell
+
+
+def test_fast_path_is_used_only_for_a_unet_with_a_safe_head(evaluator: FootholdEvaluator) -> None:
+    thesis = build_net(NetConfig(architecture="thesis")).eval()
+    no_safe = build_net(NetConfig(architecture="unet", safe_head=False)).eval()
+    assert not CnnFootholdSelector(evaluator, thesis, verify=False).fast
+    assert not CnnFootholdSelector(evaluator, no_safe, verify=False).fast
+    with pytest.raises(ValueError, match="safe-mask head"):
+        compile_fast_unet(no_safe, 33)
