@@ -98,7 +98,8 @@ class WbcNode(Node):
                                max_normal_force_n=p["max_normal_force_n"], control_period_s=p["control_period_s"])
         self.controller = LocomotionController(self.model, gait, gains, settings,
                                                motion=MotionParameters(touchdown_depth_m=p["touchdown_depth_m"],
-                                                                       k_feedback=p["foothold_feedback_s"]))
+                                                                       k_feedback=p["foothold_feedback_s"],
+                                                                       foothold_centre=p["foothold_centre"]))
         self.joint_names = list(self.model.description.joint_names)
         self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
         self.period_ns = round(p["control_period_s"] * 1e9)
@@ -218,6 +219,10 @@ class WbcNode(Node):
                                            "[s] Raibert velocity feedback of the nominal footholds, k in "
                                            "k (v - v_cmd) (0.12 s in ViTAL's stairs runs)", low=0.0, high=0.5,
                                            read_only=True),
+            "foothold_centre": declare(self, "foothold_centre", "hips",
+                                       "nominal footholds about the hips (Raibert) or about the CoM (the diagonal "
+                                       "support lines of a trot under the CoM; ViTAL's stairs runs)",
+                                       choices=("hips", "com"), read_only=True),
             "contact_model": declare(self, "contact_model", "rigid",
                                      "rigid (sWBC) or compliant (c3WBC; with impedance_source tce: STANCE)",
                                      choices=("rigid", "compliant"), read_only=True),

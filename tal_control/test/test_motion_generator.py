@@ -315,3 +315,22 @@ def test_invalid_measured_state_and_parameters(hyq):
         generator.update(0.0, good, (0.0, 0.0, 0.0))
     with pytest.raises(InputError, match="xyz must be 3 finite values"):
         generator.set_foothold(Leg.LF, 1, [0.0, 0.0])
+
+
+def test_com_centred_footholds_move_by_the_com_offset_under_the_trunk_attitude(hyq):
+    """foothold_centre="com": every nominal foothold moves by the horizontal part of R @ (CoM - hips' centre)
+    in the base frame (HyQ: 3.9 cm forward, 1.5 cm left), here with the trunk pitched 0.2 rad nose down."""
+    standing = standing_state(hyq)
+    quat = Rotation.from_euler("xyz", [0.0, 0.2, 0.0]).as_quat()
+    state = MeasuredState(standing.base_position, quat, standing.base_lin_vel, standing.base_ang_vel,
+                          standing.foot_positions, standing.foot_velocities, standing.com)
+    by_hips = MotionGenerator(hyq, TROT).update(0.0, state, (0.2, 0.0, 0.0))
+    centred = MotionGenerator(hyq, TROT, params=MotionParameters(foothold_centre="com"))
+    by_com = centred.update(0.0, state, (0.2, 0.0, 0.0))
+    offset_base = np.asarray(centred.trunk_params.com_offset_base_m)
+    assert offset_base[0] == pytest.approx(0.0394, abs=1e-3) and offset_base[1] == pytest.approx(0.0151, abs=1e-3)
+    offset = Rotation.from_quat(quat).as_matrix() @ offset_base
+    np.testing.assert_allclose(by_com.nominal_footholds[:, :2] - by_hips.nominal_footholds[:, :2],
+                               np.tile(offset[:2], (4, 1)), atol=1e-9)
+    with pytest.raises(MotionConfigError, match="foothold_centre"):
+        MotionParameters(foothold_centre="feet")

@@ -104,7 +104,11 @@ class VfaNode(Node):
                                               "(the swing can no longer re-plan its apex)", low=0.0, high=1.0,
                                               read_only=True),
             level_lock_dz_m=declare(self, "level_lock_dz_m", 0.02, "[m] a late re-decision moving the foothold "
-                                    "height by more than this is not taken", low=0.0, high=1.0, read_only=True))
+                                    "height by more than this is not taken", low=0.0, high=1.0, read_only=True),
+            pair_compensation_m=declare(self, "pair_compensation_m", 0.0, "[m] largest shift of a swinging "
+                                        "diagonal partner's nominal against the other leg's adaptation, so the "
+                                        "trot's support line stays under the CoM (0: off, the thesis' VFA; "
+                                        "0.08 in ViTAL's stairs runs)", low=0.0, high=0.3, read_only=True))
         self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
                                             "clock: sim time with use_sim_time)", low=0.05, high=60.0,
                                             read_only=True)

@@ -25,6 +25,16 @@ nominal than the new best candidate: near a step edge two
 safe regions can be almost equally close to the nominal, and flipping between them mid-swing retargets
 the foot by a whole tread (a jolt for the whole-body controller) for no gain in safety.
 
+Diagonal-pair compensation (``pair_compensation_m`` > 0; ours, not the thesis'): in a trot the two legs
+of a diagonal land together and their support line must pass under the CoM, or the trunk tips about it
+for the whole two-leg phase (no contact force on that line has a moment about it). When the VFA moves
+one leg of a swinging pair away from its nominal (a stair edge), the partner's nominal is shifted by
+the opposite amount (at most ``pair_compensation_m``) and the partner re-decided around it, so the
+line's midpoint stays where the nominals put it. The leg that moved more leads; the compensated
+decision keeps the gait's nominal in ``nominal`` (trigger "pair"). On ViTAL's stairs at 0.2 m/s a front
+foot moved 6-8 cm back from a tread edge left the CoM 4-8 cm ahead of the line; the trunk pitched 10 deg
+past its reference and the front shin hit the edge above.
+
 A re-decision is reported only when it changes something (the selection by more than
 ``selection_tolerance_m``, or the status), so the consumer re-targets the swing only when needed.
 
@@ -65,6 +75,7 @@ from tal_perception.vfa import FootholdSelector, VfaStatus
 FloatArray = NDArray[np.float64]
 SELECTORS: tuple[str, ...] = ("exact", "cnn")
 CLOCK_RESET_S = 0.5  # [s] a stamp this far behind the last one is a restarted clock, not reordering
+DIAGONAL_PAIRS: tuple[tuple[Leg, Leg], ...] = ((Leg.LF, Leg.RH), (Leg.RF, Leg.LH))
 
 
 class SelectorLike(Protocol):
@@ -105,10 +116,12 @@ class PlannerSettings:
     switch_hysteresis_m: float = 0.05  # [m] keep a still-safe selection unless the new one is this much closer
     level_lock_swing_fraction: float = 0.35  # [-] after this fraction of the swing, no change of level...
     level_lock_dz_m: float = 0.02  # [m] ...by more than this (foothold height)
+    pair_compensation_m: float = 0.0  # [m] largest shift of a diagonal partner's nominal (0: off)
+    pair_min_adaptation_m: float = 0.02  # [m] smaller adaptations of the leading leg are not compensated
 
     def __post_init__(self) -> None:
         for name in ("max_map_age_s", "min_swing_time_left_s", "nominal_shift_threshold_m", "selection_tolerance_m",
-                     "switch_hysteresis_m"):
+                     "switch_hysteresis_m", "pair_compensation_m", "pair_min_adaptation_m"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise FecConfigError(f"PlannerSettings.{name} must be a finite number, got {value!r}")
@@ -213,7 +226,8 @@ class PlannerCounters:
     """Counts since start: decisions by status and trigger, swings first seen too late to decide."""
 
     by_status: dict[str, int] = field(default_factory=lambda: {s.value: 0 for s in VfaStatus})
-    by_trigger: dict[str, int] = field(default_factory=lambda: {"swing_start": 0, "new_map": 0, "nominal_moved": 0})
+    by_trigger: dict[str, int] = field(default_factory=lambda: {"swing_start": 0, "new_map": 0, "nominal_moved": 0,
+                                                                "pair": 0})
     adapted: int = 0
     late_swings: int = 0
     restarts: int = 0
@@ -305,6 +319,7 @@ class VfaPlanner:
         self._gait_stamp_s: float | None = None
         self._decisions: dict[Leg, FootholdDecision] = {}
         self._late_step: dict[Leg, int] = {}  # the swing of each leg first seen with too little time left
+        self._compensation: dict[Leg, FloatArray] = {}  # (2,) [m] shift of the nominal in a leg's decision
 
     @property
     def map_stamp_s(self) -> float | None:
@@ -378,7 +393,49 @@ class VfaPlanner:
             self._count(decision)
             if previous is None or self._differs(previous, decision):
                 news.append(decision)
+        if self.settings.pair_compensation_m > 0.0:
+            news = self._compensate_pairs(gait, news)
         return news
+
+    def _compensate_pairs(self, gait: GaitSnapshot, news: list[FootholdDecision]) -> list[FootholdDecision]:
+        """Re-decide the partner of a swinging diagonal pair around its nominal shifted by minus the other
+        leg's own adaptation (module docstring); returns ``news`` with those decisions replaced."""
+        s = self.settings
+        for decision in news:  # decided from the leg's own nominal this tick
+            self._compensation.pop(decision.leg, None)
+        for leg in [leg for leg in self._compensation if leg not in self._decisions]:
+            del self._compensation[leg]
+        for first, second in DIAGONAL_PAIRS:
+            if first not in self._decisions or second not in self._decisions:
+                continue
+            own = {leg: self._own_adaptation(leg) for leg in (first, second)}
+            leader = first if np.linalg.norm(own[first]) >= np.linalg.norm(own[second]) else second
+            follower = second if leader is first else first
+            shift = -own[leader] if np.linalg.norm(own[leader]) > s.pair_min_adaptation_m else np.zeros(2)
+            size = float(np.linalg.norm(shift))
+            if size > s.pair_compensation_m:
+                shift *= s.pair_compensation_m / size
+            current = self._compensation.get(follower, np.zeros(2))
+            if (np.linalg.norm(shift - current) <= 0.5 * s.nominal_shift_threshold_m
+                    or gait.time_to_touchdown_s[follower] < s.min_swing_time_left_s):
+                continue
+            nominal = gait.nominal_foothold.copy()
+            nominal[follower, :2] += shift
+            previous = self._decisions[follower]
+            decision = self._decide(follower, replace(gait, nominal_foothold=nominal), "pair")
+            decision = replace(decision, nominal=gait.nominal_foothold[follower].copy())
+            if self._changes_level_late(follower, gait, previous, decision):
+                continue
+            self._decisions[follower] = decision
+            self._compensation[follower] = shift
+            self._count(decision)
+            news = [d for d in news if d.leg is not follower] + [decision]
+        return news
+
+    def _own_adaptation(self, leg: Leg) -> FloatArray:
+        """(2,) [m] how far the VFA moved ``leg``'s selection from its (compensated) nominal, horizontally."""
+        decision = self._decisions[leg]
+        return decision.selected[:2] - decision.nominal[:2] - self._compensation.get(leg, np.zeros(2))
 
     # -- decisions ----------------------------------------------------------------------------------
     def _trigger(self, leg: Leg, gait: GaitSnapshot) -> str | None:

@@ -66,6 +66,7 @@ class VitalRun:
     contact_feedback: bool = True  # the controller gets the simulator's foot contacts (TouchdownSearch)
     touchdown_depth_m: float = 0.02  # [m] swings end this far below the foothold (MotionParameters)
     k_feedback_s: float = 0.12  # [s] Raibert velocity feedback of the nominal footholds (MotionParameters)
+    foothold_centre: str = "com"  # nominal footholds about the CoM, not the hips (MotionParameters)
 
     @property
     def duration_s(self) -> float:
@@ -166,7 +167,8 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
                               initial_xy=(run.initial_x_m, 0.0), progress=progress,
                               contact_feedback=run.contact_feedback,
                               motion=MotionParameters(touchdown_depth_m=run.touchdown_depth_m,
-                                                      k_feedback=run.k_feedback_s))
+                                                      k_feedback=run.k_feedback_s,
+                                                      foothold_centre=run.foothold_centre))
     started = time.perf_counter()
     log = run_closed_loop(config, hook=loop)
     wall = time.perf_counter() - started

@@ -66,6 +66,8 @@ class VitalLoopSettings:
     vpa_use_cnn: bool = True
     vpa_update_period_s: float = 0.05  # [s] 20 Hz (thesis: 5 Hz, 0.2 s)
     vpa: VpaSettings = field(default_factory=VpaSettings)
+    # The vfa planner's settings; diagonal-pair compensation on (the planner's own default is off).
+    vfa_planner: PlannerSettings = field(default_factory=lambda: PlannerSettings(pair_compensation_m=0.08))
     heightmap_period_s: float = 0.05  # [s] the bridge's terrain/heightmap rate (20 Hz)
     heightmap_cells: int = 121  # [-] rows = cols; 121 x 0.02 m = 2.42 m around the base
     heightmap_resolution_m: float = 0.02
@@ -128,7 +130,7 @@ class VitalLoop:
         self.model = model
         self.settings = settings if settings is not None else VitalLoopSettings()
         s = self.settings
-        self.vfa = VfaPlanner.for_robot(model, s.vfa_selector, PlannerSettings()) if s.vfa else None
+        self.vfa = VfaPlanner.for_robot(model, s.vfa_selector, s.vfa_planner) if s.vfa else None
         if self.vfa is not None:
             self.vfa.warm_up()
         self.pose = (PosePlanner(model, s.pose_source, use_cnn=s.vpa_use_cnn, update_period_s=s.vpa_update_period_s,

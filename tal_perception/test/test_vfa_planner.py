@@ -87,7 +87,7 @@ def test_flat_ground_keeps_the_nominal_with_one_decision_per_swing(planner, hips
     # Later ticks of the same swings (same map, same nominal): no news, no new evaluation.
     for k in range(1, 5):
         assert planner.update(snapshot(hips_base, hip_height, stamp_s=1.0 + 0.004 * k, time_left_s=0.2 - 0.004 * k)) == []
-    assert planner.counters.by_trigger == {"swing_start": 2, "new_map": 0, "nominal_moved": 0}
+    assert planner.counters.by_trigger == {"swing_start": 2, "new_map": 0, "nominal_moved": 0, "pair": 0}
     # Stance, then the next swing of LF (step 4): a new decision.
     planner.update(snapshot(hips_base, hip_height, stamp_s=1.3, swing=(False, False, False, False)))
     assert planner.decision(Leg.LF) is None
@@ -313,3 +313,53 @@ def test_a_still_safe_selection_is_kept_when_the_other_side_is_only_slightly_clo
     else:
         assert Leg.LF in news and planner.counters.kept == 0
         assert math.copysign(1.0, current.selected[1] - nominal[1]) == -side  # across the gap
+
+
+def _pair_planner(selector: FootholdSelector, hips_base: np.ndarray, hyq: RobotModel, cap_m: float) -> VfaPlanner:
+    return VfaPlanner(selector, hips_base, hyq.description.foot_radius_m, PlannerSettings(pair_compensation_m=cap_m))
+
+
+def test_diagonal_partner_is_shifted_against_the_other_legs_adaptation(selector, hips_base, hip_height, hyq) -> None:
+    """LF moved off a gap by d: its diagonal partner RH (flat ground) is re-decided around its nominal - d,
+    keeps the gait's nominal in ``nominal`` and the trigger "pair"; without the setting RH stays nominal."""
+    gait = snapshot(hips_base, hip_height)
+    grid = course_map(gap_across_x(gait.nominal_foothold[Leg.LF][0]))
+    plain = VfaPlanner(selector, hips_base, hyq.description.foot_radius_m)
+    plain.set_map(grid, 1.0)
+    plain_rh = {d.leg: d for d in plain.update(gait)}[Leg.RH]
+    assert not plain_rh.adapted
+    planner = _pair_planner(selector, hips_base, hyq, cap_m=0.3)
+    planner.set_map(grid, 1.0)
+    decisions = {d.leg: d for d in planner.update(gait)}
+    lf, rh = decisions[Leg.LF], decisions[Leg.RH]
+    shift = lf.selected[:2] - lf.nominal[:2]
+    assert np.linalg.norm(shift) >= 0.09  # LF left the gap
+    assert rh.trigger == "pair" and rh.status is VfaStatus.SELECTED
+    np.testing.assert_allclose(rh.nominal, gait.nominal_foothold[Leg.RH])
+    np.testing.assert_allclose(rh.selected[:2], rh.nominal[:2] - shift, atol=0.011)  # within half a cell
+    assert planner.counters.by_trigger["pair"] == 1
+    # The same gait state again: nothing new (the compensation is already in place).
+    assert planner.update(dataclasses.replace(gait, stamp_s=1.004, time_to_touchdown_s=gait.time_to_touchdown_s
+                                              - 0.004 * gait.swing)) == []
+
+
+def test_diagonal_compensation_is_capped_and_undone_when_the_adaptation_goes(selector, hips_base, hip_height,
+                                                                              hyq) -> None:
+    gait = snapshot(hips_base, hip_height)
+    planner = _pair_planner(selector, hips_base, hyq, cap_m=0.05)
+    planner.set_map(course_map(gap_across_x(gait.nominal_foothold[Leg.LF][0])), 1.0)
+    rh = {d.leg: d for d in planner.update(gait)}[Leg.RH]
+    assert np.linalg.norm(rh.selected[:2] - rh.nominal[:2]) == pytest.approx(0.05, abs=0.011)
+    # A new map without the gap: LF goes back to its nominal, and so does RH.
+    later = snapshot(hips_base, hip_height, stamp_s=1.02, time_left_s=0.18)
+    planner.set_map(course_map(), 1.02)
+    decisions = {d.leg: d for d in planner.update(later)}
+    assert not decisions[Leg.LF].adapted
+    np.testing.assert_allclose(planner.decision(Leg.RH).selected[:2], later.nominal_foothold[Leg.RH][:2], atol=1e-9)
+
+
+def test_pair_compensation_settings_are_validated() -> None:
+    with pytest.raises(FecConfigError, match="pair_compensation_m"):
+        PlannerSettings(pair_compensation_m=-0.1)
+    with pytest.raises(FecConfigError, match="pair_min_adaptation_m"):
+        PlannerSettings(pair_min_adaptation_m=float("nan"))

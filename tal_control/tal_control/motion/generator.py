@@ -49,7 +49,11 @@ class MotionParameters:
     footholds for a swing with less time left are ignored. touchdown_depth_m [m]: the swing ends this far
     below the foothold's surface, so that a foot whose target height is a little too high (heightmap
     cells at a stair edge, tracking error) still reaches the ground by the planned touchdown instead of
-    hovering into its stance. trunk: None builds it from the robot model."""
+    hovering into its stance. foothold_centre: "hips" (Raibert: each nominal foothold about its hip) or
+    "com" (all four shifted by the CoM's horizontal offset from the hips' centre, under the trunk's
+    attitude, so that the diagonal support lines of a trot pass under the CoM: HyQ's CoM is 3.9 cm ahead
+    of its hips' centre, and with hip-centred footholds each two-leg phase tips the trunk forward about its
+    support line). trunk: None builds it from the robot model."""
 
     k_feedback: float = DEFAULT_K_FEEDBACK
     max_foothold_offset_m: float | None = None
@@ -57,9 +61,13 @@ class MotionParameters:
     retarget_threshold_m: float = 0.002
     min_external_time_left_s: float = 0.05
     touchdown_depth_m: float = 0.0
+    foothold_centre: str = "hips"
     trunk: TrunkParameters | None = None
 
     def __post_init__(self) -> None:
+        if self.foothold_centre not in ("hips", "com"):
+            raise MotionConfigError(f"motion parameter foothold_centre must be 'hips' or 'com', "
+                                    f"got {self.foothold_centre!r}")
         checks = {"k_feedback": self.k_feedback >= 0.0,
                   "retarget_threshold_m": self.retarget_threshold_m >= 0.0,
                   "retarget_until_progress": 0.0 <= self.retarget_until_progress <= 1.0,
@@ -320,6 +328,10 @@ class MotionGenerator:
         to_liftoff = phase.time_to_liftoff_s
         t_left = np.where(phase.swing, phase.time_to_touchdown_s,
                           np.where(np.isfinite(to_liftoff), to_liftoff + phase.swing_duration_s, 0.0))
+        if self.params.foothold_centre == "com":
+            # Every foothold moves with the CoM's offset from the hips' centre (base frame, nominal pose).
+            com_offset = measured.world_R_base() @ np.asarray(self.trunk_params.com_offset_base_m, dtype=float)
+            hips = hips + np.array([com_offset[0], com_offset[1], 0.0])
         xy = raibert_footholds_xy(hips[:, :2], v_cmd + v_error, v_cmd, yaw_rate, stance_s, t_left,
                                   self.params.k_feedback, rotation_centre_xy_world=measured.base_position[:2],
                                   max_offset_m=self.max_foothold_offset_m)
