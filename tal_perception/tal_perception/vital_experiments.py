@@ -8,7 +8,10 @@ heightmap at 20 Hz; VFA and VPA both exact, the VPA at 20 Hz). The controller ge
 contacts (a planned stance foot that does not touch searches for the ground instead of being loaded,
 ``TouchdownSearch``), ends each swing ``touchdown_depth_m`` below the foothold and places its nominal
 footholds with the Raibert velocity feedback ``k_feedback_s`` = 0.12 s (the generator's default 0.05 s
-let the trot's roll and lateral sway grow into falls on the stairs). Experiments (thesis, ViTAL results):
+let the trot's roll and lateral sway grow into falls on the stairs), centred under the CoM
+(``foothold_centre`` "com": HyQ's CoM is 3.9 cm ahead of its hips' centre), and the VFA compensates a
+leg's adaptation with its diagonal partner (``PlannerSettings.pair_compensation_m`` 0.08 m), so that the
+trot's support lines pass under the CoM. Experiments (thesis, ViTAL results):
 
 * ``speeds``: the stairs (rise 0.1 m, go 0.25 m, up and down; course ``vital_stairs``) at 0.2, 0.3, 0.4
   and 0.5 m/s with VFA + VPA, 3 runs each (starts x = -0.1, 0, +0.1 m): success, leg and foot
@@ -21,7 +24,10 @@ let the trot's roll and lateral sway grow into falls on the stairs). Experiments
 * ``rough``: cobblestones (``vital_rough``) at 0.2 m/s with ViTAL and blind (nominal footholds, default
   pose): collisions;
 * ``horizon``: stairs at 0.4 m/s with N_h = 1 and N_h = 2: pose variation per metre dz/dx, dpitch/dx;
-* ``cost``: stairs at 0.4 m/s with C_sum and C_int: envelope thickness |F(u*+m) - F(u*-m)|, m = 0.025 m.
+* ``cost``: stairs at 0.4 m/s with C_sum and C_int: envelope thickness |F(u*+m) - F(u*-m)|, m = 0.025 m;
+* ``centre`` (ours): the stairs with the previous footholds (about the hips, no pair compensation) at 0.2
+  and 0.3 m/s from the 3 starts, and at 0.4 m/s, where single runs succeed or fall by chance, both
+  configurations from 9 starts (the 3 above and ``EXTRA_STARTS_M``).
 
 A run succeeds when the robot reaches the course's goal x without falling (trunk too low or a trunk,
 hip or thigh touching the ground). Tracking errors are taken over the samples after the start (1.5 s).
@@ -49,7 +55,7 @@ from tal_perception.vpa_settings import CostKind
 
 START_S = 1.0  # [s] standing before the command starts
 SETTLE_S = 1.5  # [s] samples before this are left out of the tracking errors
-EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost")
+EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre")
 
 
 @dataclass(frozen=True)
@@ -103,6 +109,7 @@ class VitalRunResult:
 
 
 STARTS_M = (-0.1, 0.0, 0.1)  # [m] start positions of the repeated stairs runs
+EXTRA_STARTS_M = (-0.2, -0.15, -0.05, 0.05, 0.15, 0.2)  # [m] more starts for the 0.4 m/s comparison
 
 
 def _stairs(name: str, speed: float, loop: VitalLoopSettings | None, x0: float = 0.0) -> VitalRun:
@@ -111,7 +118,8 @@ def _stairs(name: str, speed: float, loop: VitalLoopSettings | None, x0: float =
 
 def stairs_name(speed: float, x0: float, source: str = "") -> str:
     """Run name of the stairs at ``speed`` [m/s] from ``x0`` [m] (``source``: "tbr", "cnn" or "" for the exact VPA)."""
-    return f"stairs_{speed:.1f}{'_' + source if source else ''}_x{x0:+.1f}"
+    start = f"{x0:+.1f}" if abs(round(x0, 1) - x0) < 1e-9 else f"{x0:+.2f}"
+    return f"stairs_{speed:.1f}{'_' + source if source else ''}_x{start}"
 
 
 def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[VitalRun]]:
@@ -140,6 +148,12 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
     if "cost" in only:
         c_sum = replace(vital, vpa=replace(vital.vpa, cost=CostKind.SUM))
         runs["cost"] = [_stairs(stairs_name(0.4, 0.0), 0.4, vital), _stairs("stairs_0.4_c_sum", 0.4, c_sum)]
+    if "centre" in only:
+        hips = replace(vital, vfa_planner=replace(vital.vfa_planner, pair_compensation_m=0.0))
+        speeds = ((0.2, STARTS_M), (0.3, STARTS_M), (0.4, STARTS_M + EXTRA_STARTS_M))
+        previous = [replace(_stairs(stairs_name(v, x0, "hips"), v, hips, x0), foothold_centre="hips")
+                    for v, starts in speeds for x0 in starts]
+        runs["centre"] = [_stairs(stairs_name(v, x0), v, vital, x0) for v, starts in speeds for x0 in starts] + previous
     return runs
 
 
@@ -241,18 +255,29 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
              "`python -m tal_perception.vital_experiments --out results/vital` (part of `make experiments`). "
              "HyQ, trot, sWBC on the ground-truth base with the simulator's foot contacts (late touchdowns search "
              "for the ground), swings ending 2 cm below the foothold, Raibert velocity feedback 0.12 s on the nominal "
-             "footholds; lockstep PyBullet; VFA exact, VPA exact at "
+             "footholds, which are centred under the CoM (`foothold_centre` com); VFA with diagonal-pair compensation "
+             "(0.08 m); lockstep PyBullet; VFA exact, VPA exact at "
              "20 Hz, N_h = 2, C_int unless the run says otherwise. Collisions are events (a collision starting): leg = "
              "shin/knee cylinder in the terrain by more than 5 mm; foot = swing foot hitting the terrain.", ""]
     titles = {"speeds": "Stairs (rise 0.1 m, go 0.25 m) at four speeds, VFA + VPA",
               "cnn": "Stairs with the VPA's CNN instead of the exact VPA, VFA + VPA (CNN)",
               "tbr": "VPA vs TBR on the stairs at 0.2 m/s (3 runs each)",
               "gaps": "Gapped stairs at 0.4 m/s", "rough": "Rough terrain at 0.2 m/s, with and without ViTAL",
-              "horizon": "Single vs receding horizon (stairs, 0.4 m/s)", "cost": "C_sum vs C_int (stairs, 0.4 m/s)"}
+              "horizon": "Single vs receding horizon (stairs, 0.4 m/s)", "cost": "C_sum vs C_int (stairs, 0.4 m/s)",
+              "centre": "Footholds under the CoM with diagonal-pair compensation vs about the hips (previous)"}
     for key, group in runs.items():
         lines += [f"## {titles[key]}", "", HEADER] + [_row(results[r.name]) for r in group] + [""]
         if key == "cnn":
             lines += speed_summary(group, results)
+        if key == "centre":
+            for label, members in (("under the CoM, pair compensation (these experiments)",
+                                    [r for r in group if r.foothold_centre == "com"]),
+                                   ("about the hips, no pair compensation (before)",
+                                    [r for r in group if r.foothold_centre == "hips"])):
+                lines += [f"Footholds {label}:", ""] + speed_summary(members, results)
+            lines += ["The runs under the CoM from the 3 standard starts are the speeds runs above. At 0.4 m/s a "
+                      "single run succeeds or falls by chance (the falls begin with a swinging front leg's hip joint "
+                      "at its limit, see below), hence the 9 starts.", ""]
         if key == "speeds":
             lines += speed_summary(group, results)
             lines += ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to "

@@ -84,15 +84,24 @@ def test_settings_and_experiment_list_are_checked() -> None:
     with pytest.raises(VpaConfigError, match="heightmap_period_s"):
         VitalLoopSettings(heightmap_period_s=0.0)
     runs = experiment_runs()
-    assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost"}
+    assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre"}
     assert all(r.loop.vpa_use_cnn for r in runs["cnn"]) and not any(r.loop.vpa_use_cnn for r in runs["speeds"])
-    names = [r.name for group in runs.values() for r in group]
+    names = [r.name for group in runs.values() if group is not runs["centre"] for r in group]
     shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)} | {"stairs_0.4_x+0.0"}
     assert len(set(names)) == len(names) - sum(names.count(n) - 1 for n in shared)
     assert [r.speed_mps for r in runs["speeds"]] == [v for v in (0.2, 0.3, 0.4, 0.5) for _ in range(3)]
     assert [r.initial_x_m for r in runs["speeds"][:3]] == [-0.1, 0.0, 0.1]
     assert all(r.k_feedback_s == 0.12 and r.contact_feedback for r in runs["speeds"])
     assert sum(r.loop is not None and r.loop.pose_source == "tbr" for r in runs["tbr"]) == 3
+    # centre: the speeds runs' configuration (footholds under the CoM, pair compensation) against the previous
+    # one (about the hips, none), from 3 starts at 0.2 and 0.3 m/s and 9 at 0.4 m/s; the shared runs are the same.
+    centre = {r.name: r for r in runs["centre"]}
+    assert all(centre[r.name] == r for r in runs["speeds"] if r.speed_mps < 0.45)
+    for config, pair in (("com", 0.08), ("hips", 0.0)):
+        members = [r for r in runs["centre"] if r.foothold_centre == config]
+        assert [sum(r.speed_mps == v for r in members) for v in (0.2, 0.3, 0.4)] == [3, 3, 9]
+        assert all(r.loop.vfa_planner.pair_compensation_m == pair for r in members)
+    assert len(centre) == len(runs["centre"]) == 30 and "stairs_0.4_hips_x-0.15" in centre
 
 
 @pytest.mark.slow
