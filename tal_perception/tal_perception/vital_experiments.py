@@ -23,8 +23,10 @@ trot's support lines pass under the CoM. Experiments (thesis, ViTAL results):
 * ``gaps``: gapped stairs (``vital_gap_stairs``) at 0.4 m/s with VPA and with TBR;
 * ``rough``: cobblestones (``vital_rough``) at 0.2 m/s with ViTAL and blind (nominal footholds, default
   pose): collisions;
-* ``horizon``: stairs at 0.4 m/s with N_h = 1 and N_h = 2: pose variation per metre dz/dx, dpitch/dx;
-* ``cost``: stairs at 0.4 m/s with C_sum and C_int: envelope thickness |F(u*+m) - F(u*-m)|, m = 0.025 m;
+* ``horizon``: stairs at 0.4 m/s with N_h = 1 and N_h = 2 (9 starts each): success, pose variation per
+  metre dz/dx, dpitch/dx;
+* ``cost``: stairs at 0.4 m/s with C_sum and C_int (9 starts each): success, envelope thickness
+  |F(u*+m) - F(u*-m)|, m = 0.025 m;
 * ``centre`` (ours): the stairs with the previous footholds (about the hips, no pair compensation) at 0.2
   and 0.3 m/s from the 3 starts, and at 0.4 m/s, where single runs succeed or fall by chance, both
   configurations from 9 starts (the 3 above and ``EXTRA_STARTS_M``).
@@ -141,13 +143,16 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
     if "rough" in only:
         runs["rough"] = [VitalRun("rough_0.2_vital", "vital_rough", 0.2, vital, goal_x_m=4.5),
                          VitalRun("rough_0.2_blind", "vital_rough", 0.2, None, goal_x_m=4.5)]
+    # At 0.4 m/s single runs succeed or fall by chance: the comparisons there run from 9 starts each.
+    starts_04 = STARTS_M + EXTRA_STARTS_M
     if "horizon" in only:
         single = replace(vital, vpa=replace(vital.vpa, horizon=1))
-        runs["horizon"] = [_stairs(stairs_name(0.4, 0.0), 0.4, vital),
-                           _stairs("stairs_0.4_single_horizon", 0.4, single)]
+        runs["horizon"] = ([_stairs(stairs_name(0.4, x0), 0.4, vital, x0) for x0 in starts_04]
+                           + [_stairs(stairs_name(0.4, x0, "single_horizon"), 0.4, single, x0) for x0 in starts_04])
     if "cost" in only:
         c_sum = replace(vital, vpa=replace(vital.vpa, cost=CostKind.SUM))
-        runs["cost"] = [_stairs(stairs_name(0.4, 0.0), 0.4, vital), _stairs("stairs_0.4_c_sum", 0.4, c_sum)]
+        runs["cost"] = ([_stairs(stairs_name(0.4, x0), 0.4, vital, x0) for x0 in starts_04]
+                        + [_stairs(stairs_name(0.4, x0, "c_sum"), 0.4, c_sum, x0) for x0 in starts_04])
     if "centre" in only:
         hips = replace(vital, vfa_planner=replace(vital.vfa_planner, pair_compensation_m=0.0))
         speeds = ((0.2, STARTS_M), (0.3, STARTS_M), (0.4, STARTS_M + EXTRA_STARTS_M))
@@ -286,6 +291,8 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
             lines += ["Thesis: TBR fails, VPA succeeds; TBR has fewer safe footholds.", "",
                       "![VPA vs TBR](vital_vpa_vs_tbr.png)", ""]
         common = _common_path_m([results[r.name] for r in group])
+        if key in ("horizon", "cost"):
+            lines += config_summary(group, results) + [""]
         if key == "horizon":
             lines += [f"| run | height variation [m/m] | pitch variation [deg/m] | same, over x <= {common:.2f} m "
                       "(the path both runs walked) |", "|---|---|---|---|"]
@@ -343,6 +350,15 @@ def _thickness_over(r: VitalRunResult, x_max: float) -> float:
     return _mean(values[np.isfinite(values)])
 
 
+def config_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
+    """Markdown line: successes per configuration of a comparison (the run names without their start)."""
+    configs: dict[str, list[VitalRunResult]] = {}
+    for run in group:
+        configs.setdefault(run.name.rsplit("_x", 1)[0], []).append(results[run.name])
+    return ["Success: " + "; ".join(f"`{name}` {sum(r.success for r in rs)} of {len(rs)}"
+                                    for name, rs in configs.items())]
+
+
 def speed_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
     """Markdown lines: per speed, successes of the repeated runs, collisions summed over them and the
     tracking errors averaged over the successful ones."""
@@ -397,7 +413,7 @@ def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRun
         _finish(plt, fig, ax, "safe footholds at the actual pose (4 legs)", out / "vital_vpa_vs_tbr.png")
     if "cost" in runs:
         fig, ax = plt.subplots(figsize=(9, 4))
-        for run in runs["cost"]:
+        for run in [run for run in runs["cost"] if run.initial_x_m == 0.0]:  # one start per cost
             s = results[run.name].series
             ax.plot(s["x"], np.nanmean(s["thickness"], axis=1), lw=0.9, label=run.name)
         _finish(plt, fig, ax, "|F(u*+m) - F(u*-m)| mean over legs", out / "vital_cost_envelope.png")

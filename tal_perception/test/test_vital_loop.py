@@ -86,9 +86,13 @@ def test_settings_and_experiment_list_are_checked() -> None:
     runs = experiment_runs()
     assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre"}
     assert all(r.loop.vpa_use_cnn for r in runs["cnn"]) and not any(r.loop.vpa_use_cnn for r in runs["speeds"])
-    names = [r.name for group in runs.values() if group is not runs["centre"] for r in group]
-    shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)} | {"stairs_0.4_x+0.0"}
+    names = [r.name for key in ("speeds", "cnn", "tbr", "gaps", "rough") for r in runs[key]]
+    shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)}
     assert len(set(names)) == len(names) - sum(names.count(n) - 1 for n in shared)
+    for key, variant in (("horizon", "single_horizon"), ("cost", "c_sum")):  # 9 starts each at 0.4 m/s
+        assert [r.name for r in runs[key][:9]] == [r.name for r in runs["centre"] if r.speed_mps == 0.4
+                                                    and r.foothold_centre == "com"]
+        assert all(variant in r.name for r in runs[key][9:]) and len(runs[key]) == 18
     assert [r.speed_mps for r in runs["speeds"]] == [v for v in (0.2, 0.3, 0.4, 0.5) for _ in range(3)]
     assert [r.initial_x_m for r in runs["speeds"][:3]] == [-0.1, 0.0, 0.1]
     assert all(r.k_feedback_s == 0.12 and r.contact_feedback for r in runs["speeds"])
