@@ -440,16 +440,14 @@ class CnnFootholdSelector:
         with torch.inference_mode():
             if self._fast_net is not None:
                 logits, safe_logits = self._fast_net(torch.from_numpy(image), torch.from_numpy(scalars))
-                if not self.decode.needs_safe_head:
+            else:
+                pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
+                if not self.decode.needs_safe_head:  # the optimum head alone is enough
+                    logits = self.net.optimum_logits(pixels, torch.from_numpy(scalars))
                     return logits.argmax(dim=1).numpy().astype(np.intp)
-                probability = torch.sigmoid(safe_logits)
-                unknown = image[:, 1].reshape(len(inputs), -1) > 0.5
-                return decode(self.decode, logits.numpy(), probability.numpy(), unknown)
-            pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
+                logits, safe_logits = self.net(pixels, torch.from_numpy(scalars))
             if not self.decode.needs_safe_head:
-                logits = self.net.optimum_logits(pixels, torch.from_numpy(scalars))
                 return logits.argmax(dim=1).numpy().astype(np.intp)
-            logits, safe_logits = self.net(pixels, torch.from_numpy(scalars))
             probability = torch.sigmoid(safe_logits)
         return decode(self.decode, logits.numpy(), probability.numpy(), image[:, 1].reshape(len(inputs), -1) > 0.5)
 

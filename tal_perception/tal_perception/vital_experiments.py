@@ -155,7 +155,7 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
                         + [_stairs(stairs_name(0.4, x0, "c_sum"), 0.4, c_sum, x0) for x0 in starts_04])
     if "centre" in only:
         hips = replace(vital, vfa_planner=replace(vital.vfa_planner, pair_compensation_m=0.0))
-        speeds = ((0.2, STARTS_M), (0.3, STARTS_M), (0.4, STARTS_M + EXTRA_STARTS_M))
+        speeds = ((0.2, STARTS_M), (0.3, STARTS_M), (0.4, starts_04))
         previous = [replace(_stairs(stairs_name(v, x0, "hips"), v, hips, x0), foothold_centre="hips")
                     for v, starts in speeds for x0 in starts]
         runs["centre"] = [_stairs(stairs_name(v, x0), v, vital, x0) for v, starts in speeds for x0 in starts] + previous

@@ -192,6 +192,9 @@ class MotionGenerator:
         self.nominal_height_m = height if nominal_height_m is None else float(nominal_height_m)
         self.trunk_params = self.params.trunk or TrunkParameters(
             nominal_height_m=self.nominal_height_m, com_offset_base_m=tuple(model.com() - base))
+        # [m] base frame: what the nominal footholds are moved by (rotated into the world each tick)
+        self._foothold_offset_base = (np.array(self.trunk_params.com_offset_base_m, dtype=float)
+                                      if self.params.foothold_centre == "com" else None)
         self.max_foothold_offset_m = (self.params.max_foothold_offset_m if self.params.max_foothold_offset_m
                                       is not None else _REACH_FRACTION * leg_height)
         self._scheduler = GaitScheduler(gait)
@@ -279,7 +282,7 @@ class MotionGenerator:
                 self._swings[leg] = None
                 self._external[leg] = False
                 self._pending.pop(leg, None)
-        nominal = self._nominal_footholds(phase, measured, hips, terrain_height_fn)
+        nominal = self._nominal_footholds(phase, measured, world_R_base, hips, terrain_height_fn)
         positions, velocities, accelerations = self._swing_feet(phase, measured, nominal, terrain_height_fn)
         ground = self._touchdown - np.array([0.0, 0.0, self.foot_radius_m])
         for leg in LEGS:
@@ -310,8 +313,8 @@ class MotionGenerator:
         if self._pose_override is not None:
             self._trunk.override(*self._pose_override)
 
-    def _nominal_footholds(self, phase: GaitPhase, measured: MeasuredState, hips: np.ndarray,
-                           height_fn: HeightFunction | None) -> np.ndarray:
+    def _nominal_footholds(self, phase: GaitPhase, measured: MeasuredState, world_R_base: np.ndarray,
+                           hips: np.ndarray, height_fn: HeightFunction | None) -> np.ndarray:
         """Raibert footholds (4, 3) for every leg: for the current swing, or the next one of stance legs.
 
         The crawl's CoM shift is taken out: the hips are moved back by the current shift and the velocity
@@ -328,10 +331,10 @@ class MotionGenerator:
         to_liftoff = phase.time_to_liftoff_s
         t_left = np.where(phase.swing, phase.time_to_touchdown_s,
                           np.where(np.isfinite(to_liftoff), to_liftoff + phase.swing_duration_s, 0.0))
-        if self.params.foothold_centre == "com":
+        if self._foothold_offset_base is not None:
             # Every foothold moves with the CoM's offset from the hips' centre (base frame, nominal pose).
-            com_offset = measured.world_R_base() @ np.asarray(self.trunk_params.com_offset_base_m, dtype=float)
-            hips = hips + np.array([com_offset[0], com_offset[1], 0.0])
+            offset = world_R_base @ self._foothold_offset_base
+            hips = hips + np.array([offset[0], offset[1], 0.0])
         xy = raibert_footholds_xy(hips[:, :2], v_cmd + v_error, v_cmd, yaw_rate, stance_s, t_left,
                                   self.params.k_feedback, rotation_centre_xy_world=measured.base_position[:2],
                                   max_offset_m=self.max_foothold_offset_m)
