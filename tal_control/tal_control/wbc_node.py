@@ -80,6 +80,13 @@ STAMPED_COMMAND_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, rel
                                  durability=DurabilityPolicy.VOLATILE)
 
 
+def _pose_filter_parameters(p: dict) -> dict[str, float]:
+    """The body-pose filter parameters given (non-zero) as ``MotionParameters`` keywords."""
+    names = {"pose_bandwidth_rad_s": "pose_bandwidth_rad_s", "pose_max_height_rate_m_s": "max_height_rate_m_s",
+             "pose_max_attitude_rate_rad_s": "max_attitude_rate_rad_s"}
+    return {key: float(p[name]) for name, key in names.items() if p[name] > 0.0}
+
+
 class WbcNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("wbc", **kwargs)
@@ -99,7 +106,8 @@ class WbcNode(Node):
         self.controller = LocomotionController(self.model, gait, gains, settings,
                                                motion=MotionParameters(touchdown_depth_m=p["touchdown_depth_m"],
                                                                        k_feedback=p["foothold_feedback_s"],
-                                                                       foothold_centre=p["foothold_centre"]))
+                                                                       foothold_centre=p["foothold_centre"],
+                                                                       **_pose_filter_parameters(p)))
         self.joint_names = list(self.model.description.joint_names)
         self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
         self.period_ns = round(p["control_period_s"] * 1e9)
@@ -223,6 +231,17 @@ class WbcNode(Node):
                                        "nominal footholds about the hips (Raibert) or about the CoM (the diagonal "
                                        "support lines of a trot under the CoM; ViTAL's stairs runs)",
                                        choices=("hips", "com"), read_only=True),
+            "pose_bandwidth_rad_s": declare(self, "pose_bandwidth_rad_s", 0.0,
+                                            "[rad/s] bandwidth of the body height and attitude reference filters "
+                                            "(0 = 4 rad/s; 6 in ViTAL's stairs runs)", low=0.0, high=100.0,
+                                            read_only=True),
+            "pose_max_height_rate_m_s": declare(self, "pose_max_height_rate_m_s", 0.0,
+                                                "[m/s] rate limit of the body height reference (0 = 0.1 m/s; "
+                                                "climbing stairs at v needs about v x rise / go)", low=0.0,
+                                                high=5.0, read_only=True),
+            "pose_max_attitude_rate_rad_s": declare(self, "pose_max_attitude_rate_rad_s", 0.0,
+                                                    "[rad/s] rate limit of the roll and pitch references "
+                                                    "(0 = 0.3 rad/s)", low=0.0, high=10.0, read_only=True),
             "contact_model": declare(self, "contact_model", "rigid",
                                      "rigid (sWBC) or compliant (c3WBC; with impedance_source tce: STANCE)",
                                      choices=("rigid", "compliant"), read_only=True),

@@ -334,3 +334,27 @@ def test_com_centred_footholds_move_by_the_com_offset_under_the_trunk_attitude(h
                                np.tile(offset[:2], (4, 1)), atol=1e-9)
     with pytest.raises(MotionConfigError, match="foothold_centre"):
         MotionParameters(foothold_centre="feet")
+
+
+def test_pose_filter_settings_set_how_fast_the_height_reference_follows_the_body_pose(hyq):
+    """A body pose 0.15 m above the standing height: the default filter (0.1 m/s) follows it at most 0.1 m/s;
+    with max_height_rate_m_s 0.3 and bandwidth 8 rad/s it rises faster, never faster than 0.3 m/s."""
+    state = standing_state(hyq)
+
+    def heights(params: MotionParameters) -> np.ndarray:
+        generator = MotionGenerator(hyq, TROT, params=params)
+        start = generator.update(0.0, state, (0.0, 0.0, 0.0)).trunk.base_position[2]
+        generator.set_body_pose_reference(start + 0.15, 0.0, 0.0)
+        return np.array([generator.update(k * DT, state, (0.0, 0.0, 0.0)).trunk.base_position[2]
+                         for k in range(1, 126)]) - start  # 0.5 s
+
+    slow = heights(MotionParameters())
+    fast = heights(MotionParameters(pose_bandwidth_rad_s=8.0, max_height_rate_m_s=0.3))
+    assert np.max(np.diff(slow)) / DT <= 0.1 + 1e-9 and np.max(np.diff(fast)) / DT <= 0.3 + 1e-9
+    assert slow[-1] < 0.05 < 0.12 < fast[-1] <= 0.15 + 1e-6
+    generator = MotionGenerator(hyq, TROT, params=MotionParameters(max_attitude_rate_rad_s=0.6))
+    assert generator.trunk_params.max_attitude_rate_rad_s == 0.6 and generator.trunk_params.max_height_rate_m_s == 0.1
+    with pytest.raises(MotionConfigError, match="max_height_rate_m_s must be > 0"):
+        MotionParameters(max_height_rate_m_s=0.0)
+    with pytest.raises(MotionConfigError, match="not both"):
+        MotionParameters(trunk=generator.trunk_params, pose_bandwidth_rad_s=8.0)

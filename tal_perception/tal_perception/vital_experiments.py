@@ -11,7 +11,9 @@ footholds with the Raibert velocity feedback ``k_feedback_s`` = 0.12 s (the gene
 let the trot's roll and lateral sway grow into falls on the stairs), centred under the CoM
 (``foothold_centre`` "com": HyQ's CoM is 3.9 cm ahead of its hips' centre), and the VFA compensates a
 leg's adaptation with its diagonal partner (``PlannerSettings.pair_compensation_m`` 0.08 m), so that the
-trot's support lines pass under the CoM. Experiments (thesis, ViTAL results):
+trot's support lines pass under the CoM. The body-pose reference (the VPA's, or the default) goes through a
+faster filter than the controller's default (6 rad/s, 0.25 m/s, 0.5 rad/s; ``POSE_BANDWIDTH_RAD_S``), which
+would let the trunk fall 10-20 cm behind the VPA's height on the way up at 0.4 m/s. Experiments (thesis, ViTAL results):
 
 * ``speeds``: the stairs (rise 0.1 m, go 0.25 m, up and down; course ``vital_stairs``) at 0.2, 0.3, 0.4
   and 0.5 m/s with VFA + VPA, 3 runs each (starts x = -0.1, 0, +0.1 m): success, leg and foot
@@ -27,12 +29,20 @@ trot's support lines pass under the CoM. Experiments (thesis, ViTAL results):
   metre dz/dx, dpitch/dx;
 * ``cost``: stairs at 0.4 m/s with C_sum and C_int (9 starts each): success, envelope thickness
   |F(u*+m) - F(u*-m)|, m = 0.025 m;
+* ``pose_filter`` (ours): the stairs at 0.4 m/s from 9 starts with the controller's default body-pose
+  filter (4 rad/s, 0.1 m/s, 0.3 rad/s) against these runs' filter;
+* ``step_frequency`` (ours): the stairs at 0.5 m/s from 9 starts at 1.8 Hz (these runs) and at 1.5 Hz;
 * ``centre`` (ours): the stairs with the previous footholds (about the hips, no pair compensation) at 0.2
-  and 0.3 m/s from the 3 starts, and at 0.4 m/s, where single runs succeed or fall by chance, both
-  configurations from 9 starts (the 3 above and ``EXTRA_STARTS_M``).
+  and 0.3 m/s from the 3 starts (at 0.4 m/s, with the previous body-pose filter, 3 vs 4 of 9 starts
+  succeeded: no measurable difference there).
+
+The comparisons at 0.4 and 0.5 m/s run from 9 starts (``STARTS_M`` + ``EXTRA_STARTS_M``): single runs there
+could succeed or fall by chance.
 
 A run succeeds when the robot reaches the course's goal x without falling (trunk too low or a trunk,
-hip or thigh touching the ground). Tracking errors are taken over the samples after the start (1.5 s).
+hip or thigh touching the ground) before the run ends: the forward command stops when its path is
+``past_goal_m`` (0.6 m) past the goal, and the robot trots in place for ``hold_s`` (3 s). Tracking
+errors are taken over the samples after the start (1.5 s).
 Writes ``closed_loop.md``, ``closed_loop.json`` and plots into ``--out``; progress on stderr. ``--jobs N``
 runs N closed loops at once (separate processes; each run is deterministic, so the results do not depend
 on it).
@@ -57,7 +67,21 @@ from tal_perception.vpa_settings import CostKind
 
 START_S = 1.0  # [s] standing before the command starts
 SETTLE_S = 1.5  # [s] samples before this are left out of the tracking errors
-EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre")
+# The body-pose filter of the ViTAL runs. Climbing the stairs at 0.4-0.5 m/s raises the trunk 0.16-0.2 m/s
+# (rise / go = 0.4), more than the controller's default rate limit (0.1 m/s), and a critically damped filter
+# lags a ramp by 2 rate / bandwidth: with the defaults the height reference fell 9-10 cm (up to 20 cm) behind
+# the VPA's on the way up at 0.4 m/s, the front legs started their swings compressed and their HFE reached its
+# limit. 6 rad/s, 0.25 m/s, 0.5 rad/s: 3.5 cm on average (probe sweeps at 0.4 m/s from 9 starts: 9 of 9
+# succeeded, against 6 of 9 with 4 rad/s and 5 of 9 with 8 rad/s, 0.3 m/s, 0.6 rad/s).
+POSE_BANDWIDTH_RAD_S = 6.0  # [rad/s]
+MAX_HEIGHT_RATE_M_S = 0.25  # [m/s]
+MAX_ATTITUDE_RATE_RAD_S = 0.5  # [rad/s]
+EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter", "step_frequency")
+# At 0.5 m/s the trot steps at 1.8 Hz instead of its preset 1.5 Hz: a stride of 0.28 m instead of 0.33 m, which
+# is more than the stairs' go (0.25 m) and made the feet skip treads (probe sweeps from 9 starts: 5 of 9
+# succeeded at 1.8 Hz, 1 of 9 at 1.5 Hz; experiment step_frequency).
+FAST_TROT_SPEED_MPS = 0.45  # [m/s] from this commanded speed on
+FAST_TROT_STEP_FREQUENCY_HZ = 1.8
 
 
 @dataclass(frozen=True)
@@ -70,15 +94,28 @@ class VitalRun:
     loop: VitalLoopSettings | None
     goal_x_m: float
     initial_x_m: float = 0.0
-    slack_s: float = 8.0  # [s] beyond the time the goal takes at the commanded speed
+    past_goal_m: float = 0.6  # [m] the command stops when its path is this far past the goal
+    hold_s: float = 3.0  # [s] trotting in place after the command stopped (a fall then still counts)
     contact_feedback: bool = True  # the controller gets the simulator's foot contacts (TouchdownSearch)
     touchdown_depth_m: float = 0.02  # [m] swings end this far below the foothold (MotionParameters)
     k_feedback_s: float = 0.12  # [s] Raibert velocity feedback of the nominal footholds (MotionParameters)
     foothold_centre: str = "com"  # nominal footholds about the CoM, not the hips (MotionParameters)
+    # Body-pose reference filter (MotionParameters; None: the controller's 4 rad/s, 0.1 m/s, 0.3 rad/s).
+    pose_bandwidth_rad_s: float | None = POSE_BANDWIDTH_RAD_S
+    max_height_rate_m_s: float | None = MAX_HEIGHT_RATE_M_S
+    max_attitude_rate_rad_s: float | None = MAX_ATTITUDE_RATE_RAD_S
+    step_frequency_hz: float | None = None  # [Hz] None: the trot preset's (1.5 Hz)
+
+    @property
+    def stop_s(self) -> float:
+        """[s] when the forward command returns to zero: the commanded path is then ``past_goal_m`` past
+        the goal, so a robot lagging its reference by less than that still reaches the goal, and no run
+        walks off the end of its course (the stairs course ends 3.2 m past the goal)."""
+        return START_S + (self.goal_x_m + self.past_goal_m - self.initial_x_m) / self.speed_mps
 
     @property
     def duration_s(self) -> float:
-        return START_S + (self.goal_x_m - self.initial_x_m) / self.speed_mps + self.slack_s
+        return self.stop_s + self.hold_s
 
 
 @dataclass
@@ -114,8 +151,14 @@ STARTS_M = (-0.1, 0.0, 0.1)  # [m] start positions of the repeated stairs runs
 EXTRA_STARTS_M = (-0.2, -0.15, -0.05, 0.05, 0.15, 0.2)  # [m] more starts for the 0.4 m/s comparison
 
 
+def step_frequency_for(speed_mps: float) -> float | None:
+    """[Hz] the trot's step frequency of a run at ``speed_mps`` (None: the preset's)."""
+    return FAST_TROT_STEP_FREQUENCY_HZ if speed_mps >= FAST_TROT_SPEED_MPS else None
+
+
 def _stairs(name: str, speed: float, loop: VitalLoopSettings | None, x0: float = 0.0) -> VitalRun:
-    return VitalRun(name, "vital_stairs", speed, loop, goal_x_m=4.8, initial_x_m=x0)
+    return VitalRun(name, "vital_stairs", speed, loop, goal_x_m=4.8, initial_x_m=x0,
+                    step_frequency_hz=step_frequency_for(speed))
 
 
 def stairs_name(speed: float, x0: float, source: str = "") -> str:
@@ -155,10 +198,19 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
                         + [_stairs(stairs_name(0.4, x0, "c_sum"), 0.4, c_sum, x0) for x0 in starts_04])
     if "centre" in only:
         hips = replace(vital, vfa_planner=replace(vital.vfa_planner, pair_compensation_m=0.0))
-        speeds = ((0.2, STARTS_M), (0.3, STARTS_M), (0.4, starts_04))
+        speeds = ((0.2, STARTS_M), (0.3, STARTS_M))
         previous = [replace(_stairs(stairs_name(v, x0, "hips"), v, hips, x0), foothold_centre="hips")
                     for v, starts in speeds for x0 in starts]
         runs["centre"] = [_stairs(stairs_name(v, x0), v, vital, x0) for v, starts in speeds for x0 in starts] + previous
+    if "pose_filter" in only:
+        default = [replace(_stairs(stairs_name(0.4, x0, "default_filter"), 0.4, vital, x0),
+                           pose_bandwidth_rad_s=None, max_height_rate_m_s=None, max_attitude_rate_rad_s=None)
+                   for x0 in starts_04]
+        runs["pose_filter"] = [_stairs(stairs_name(0.4, x0), 0.4, vital, x0) for x0 in starts_04] + default
+    if "step_frequency" in only:
+        preset = [replace(_stairs(stairs_name(0.5, x0, "1.5hz"), 0.5, vital, x0), step_frequency_hz=None)
+                  for x0 in starts_04]
+        runs["step_frequency"] = [_stairs(stairs_name(0.5, x0), 0.5, vital, x0) for x0 in starts_04] + preset
     return runs
 
 
@@ -168,6 +220,7 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
 
     from tal_control.experiments.closed_loop import ClosedLoopConfig, run_closed_loop
     from tal_control.experiments.fall_analysis import first_wrench_miss_of_log
+    from tal_control.motion.gait import TROT
     from tal_control.motion.generator import MotionParameters
     from tal_control.wbc import WbcSettings
     from tal_core.robot_description import load_robot_description
@@ -180,14 +233,19 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
     description = load_robot_description("hyq")
     loop = VitalLoop(course, RobotModel(description),
                      run.loop if run.loop is not None else VitalLoopSettings(vfa=False, pose_source="none"))
-    config = ClosedLoopConfig(name=run.name, course=course, gait="trot",
-                              commands=((0.0, 0.0, 0.0, 0.0), (START_S, run.speed_mps, 0.0, 0.0)),
+    gait = TROT if run.step_frequency_hz is None else replace(TROT, step_frequency_hz=run.step_frequency_hz)
+    config = ClosedLoopConfig(name=run.name, course=course, gait=gait,
+                              commands=((0.0, 0.0, 0.0, 0.0), (START_S, run.speed_mps, 0.0, 0.0),
+                                        (run.stop_s, 0.0, 0.0, 0.0)),
                               duration_s=run.duration_s if max_sim_s is None else min(run.duration_s, max_sim_s),
                               initial_xy=(run.initial_x_m, 0.0), progress=progress,
                               contact_feedback=run.contact_feedback,
                               motion=MotionParameters(touchdown_depth_m=run.touchdown_depth_m,
                                                       k_feedback=run.k_feedback_s,
-                                                      foothold_centre=run.foothold_centre))
+                                                      foothold_centre=run.foothold_centre,
+                                                      pose_bandwidth_rad_s=run.pose_bandwidth_rad_s,
+                                                      max_height_rate_m_s=run.max_height_rate_m_s,
+                                                      max_attitude_rate_rad_s=run.max_attitude_rate_rad_s))
     started = time.perf_counter()
     log = run_closed_loop(config, hook=loop)
     wall = time.perf_counter() - started
@@ -269,7 +327,9 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
               "tbr": "VPA vs TBR on the stairs at 0.2 m/s (3 runs each)",
               "gaps": "Gapped stairs at 0.4 m/s", "rough": "Rough terrain at 0.2 m/s, with and without ViTAL",
               "horizon": "Single vs receding horizon (stairs, 0.4 m/s)", "cost": "C_sum vs C_int (stairs, 0.4 m/s)",
-              "centre": "Footholds under the CoM with diagonal-pair compensation vs about the hips (previous)"}
+              "centre": "Footholds under the CoM with diagonal-pair compensation vs about the hips (previous)",
+              "pose_filter": "The body-pose filter of these runs vs the controller's default (stairs, 0.4 m/s)",
+              "step_frequency": "Trot at 1.8 Hz vs the preset's 1.5 Hz (stairs, 0.5 m/s)"}
     for key, group in runs.items():
         lines += [f"## {titles[key]}", "", HEADER] + [_row(results[r.name]) for r in group] + [""]
         if key == "cnn":
@@ -280,9 +340,14 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
                                    ("about the hips, no pair compensation (before)",
                                     [r for r in group if r.foothold_centre == "hips"])):
                 lines += [f"Footholds {label}:", ""] + speed_summary(members, results)
-            lines += ["The runs under the CoM from the 3 standard starts are the speeds runs above. At 0.4 m/s a "
-                      "single run succeeds or falls by chance (the falls begin with a swinging front leg's hip joint "
-                      "at its limit, see below), hence the 9 starts.", ""]
+            lines += ["The runs under the CoM are the speeds runs above.", ""]
+        if key == "pose_filter":
+            lines += per_config_summary(group, results)
+            lines += ["The default filter's rate limit (0.1 m/s) is below the 0.16-0.2 m/s at which the trunk "
+                      "rises on these stairs at 0.4-0.5 m/s, and it lags a ramp by 2 rate / bandwidth.", ""]
+        if key == "step_frequency":
+            lines += per_config_summary(group, results)
+            lines += ["At 1.5 Hz and 0.5 m/s the stride (0.33 m) is longer than the stairs' go (0.25 m).", ""]
         if key == "speeds":
             lines += speed_summary(group, results)
             lines += ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to "
@@ -350,13 +415,26 @@ def _thickness_over(r: VitalRunResult, x_max: float) -> float:
     return _mean(values[np.isfinite(values)])
 
 
-def config_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
-    """Markdown line: successes per configuration of a comparison (the run names without their start)."""
-    configs: dict[str, list[VitalRunResult]] = {}
+def _by_config(group: list[VitalRun]) -> dict[str, list[VitalRun]]:
+    """The runs of a comparison by configuration (the run names without their start)."""
+    configs: dict[str, list[VitalRun]] = {}
     for run in group:
-        configs.setdefault(run.name.rsplit("_x", 1)[0], []).append(results[run.name])
-    return ["Success: " + "; ".join(f"`{name}` {sum(r.success for r in rs)} of {len(rs)}"
-                                    for name, rs in configs.items())]
+        configs.setdefault(run.name.rsplit("_x", 1)[0], []).append(run)
+    return configs
+
+
+def config_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
+    """Markdown line: successes per configuration of a comparison."""
+    return ["Success: " + "; ".join(f"`{name}` {sum(results[r.name].success for r in runs)} of {len(runs)}"
+                                    for name, runs in _by_config(group).items())]
+
+
+def per_config_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
+    """Markdown lines: the speed summary of each configuration of a comparison."""
+    lines: list[str] = []
+    for name, runs in _by_config(group).items():
+        lines += [f"`{name}`:", "", *speed_summary(runs, results)]
+    return lines
 
 
 def speed_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:

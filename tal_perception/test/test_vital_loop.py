@@ -13,6 +13,7 @@ from tal_core.robot_model import RobotModel
 from tal_core.terrain import load_course
 from tal_perception.errors import VpaConfigError
 from tal_perception.vital_experiments import (
+    START_S,
     VitalRun,
     _variation_per_metre,
     experiment_runs,
@@ -84,28 +85,44 @@ def test_settings_and_experiment_list_are_checked() -> None:
     with pytest.raises(VpaConfigError, match="heightmap_period_s"):
         VitalLoopSettings(heightmap_period_s=0.0)
     runs = experiment_runs()
-    assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre"}
+    assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter",
+                         "step_frequency"}
     assert all(r.loop.vpa_use_cnn for r in runs["cnn"]) and not any(r.loop.vpa_use_cnn for r in runs["speeds"])
     names = [r.name for key in ("speeds", "cnn", "tbr", "gaps", "rough") for r in runs[key]]
     shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)}
     assert len(set(names)) == len(names) - sum(names.count(n) - 1 for n in shared)
     for key, variant in (("horizon", "single_horizon"), ("cost", "c_sum")):  # 9 starts each at 0.4 m/s
-        assert [r.name for r in runs[key][:9]] == [r.name for r in runs["centre"] if r.speed_mps == 0.4
-                                                    and r.foothold_centre == "com"]
+        assert [r.name for r in runs[key][:9]] == [r.name for r in runs["pose_filter"][:9]]
+        assert [r.initial_x_m for r in runs[key][:9]] == [-0.1, 0.0, 0.1, -0.2, -0.15, -0.05, 0.05, 0.15, 0.2]
         assert all(variant in r.name for r in runs[key][9:]) and len(runs[key]) == 18
     assert [r.speed_mps for r in runs["speeds"]] == [v for v in (0.2, 0.3, 0.4, 0.5) for _ in range(3)]
     assert [r.initial_x_m for r in runs["speeds"][:3]] == [-0.1, 0.0, 0.1]
     assert all(r.k_feedback_s == 0.12 and r.contact_feedback for r in runs["speeds"])
     assert sum(r.loop is not None and r.loop.pose_source == "tbr" for r in runs["tbr"]) == 3
     # centre: the speeds runs' configuration (footholds under the CoM, pair compensation) against the previous
-    # one (about the hips, none), from 3 starts at 0.2 and 0.3 m/s and 9 at 0.4 m/s; the shared runs are the same.
+    # one (about the hips, none), from 3 starts at 0.2 and 0.3 m/s; the shared runs are the same.
     centre = {r.name: r for r in runs["centre"]}
-    assert all(centre[r.name] == r for r in runs["speeds"] if r.speed_mps < 0.45)
+    assert all(centre[r.name] == r for r in runs["speeds"] if r.speed_mps < 0.35)
     for config, pair in (("com", 0.08), ("hips", 0.0)):
         members = [r for r in runs["centre"] if r.foothold_centre == config]
-        assert [sum(r.speed_mps == v for r in members) for v in (0.2, 0.3, 0.4)] == [3, 3, 9]
+        assert [sum(r.speed_mps == v for r in members) for v in (0.2, 0.3, 0.4)] == [3, 3, 0]
         assert all(r.loop.vfa_planner.pair_compensation_m == pair for r in members)
-    assert len(centre) == len(runs["centre"]) == 30 and "stairs_0.4_hips_x-0.15" in centre
+    assert len(centre) == len(runs["centre"]) == 12 and "stairs_0.3_hips_x-0.1" in centre
+    # pose_filter: the runs' body-pose filter against the controller's default, 9 starts at 0.4 m/s.
+    pose = runs["pose_filter"]
+    assert all(r.pose_bandwidth_rad_s == 6.0 and r.max_height_rate_m_s == 0.25 for r in runs["speeds"])
+    default = [r for r in pose if r.pose_bandwidth_rad_s is None]
+    assert len(default) == 9 and all(r.max_height_rate_m_s is None and "default_filter" in r.name for r in default)
+    assert [r for r in pose if r.pose_bandwidth_rad_s is not None] == runs["horizon"][:9]
+    # 0.5 m/s trots at 1.8 Hz, slower runs at the preset's; step_frequency compares the two at 0.5 m/s.
+    assert [r.step_frequency_hz for r in runs["speeds"][::3]] == [None, None, None, 1.8]
+    steps = runs["step_frequency"]
+    assert len(steps) == 18 and all(r.speed_mps == 0.5 for r in steps)
+    assert [r.step_frequency_hz for r in steps] == [1.8] * 9 + [None] * 9 and "1.5hz" in steps[-1].name
+    # The forward command stops 0.6 m past the goal: no run walks off its course (stairs: x <= 8 m).
+    for r in runs["speeds"]:
+        assert r.initial_x_m + r.speed_mps * (r.stop_s - START_S) == pytest.approx(r.goal_x_m + r.past_goal_m)
+        assert r.duration_s == pytest.approx(r.stop_s + r.hold_s)
 
 
 @pytest.mark.slow

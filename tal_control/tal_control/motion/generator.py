@@ -53,7 +53,10 @@ class MotionParameters:
     "com" (all four shifted by the CoM's horizontal offset from the hips' centre, under the trunk's
     attitude, so that the diagonal support lines of a trot pass under the CoM: HyQ's CoM is 3.9 cm ahead
     of its hips' centre, and with hip-centred footholds each two-leg phase tips the trunk forward about its
-    support line). trunk: None builds it from the robot model."""
+    support line). trunk: None builds it from the robot model, with the body-pose filter settings
+    pose_bandwidth_rad_s [rad/s] (height and attitude), max_height_rate_m_s [m/s] and
+    max_attitude_rate_rad_s [rad/s] where given (None: ``TrunkParameters``' defaults; a height reference
+    that climbs stairs at v needs a rate of about v x rise / go, 0.2 m/s at 0.5 m/s on ViTAL's stairs)."""
 
     k_feedback: float = DEFAULT_K_FEEDBACK
     max_foothold_offset_m: float | None = None
@@ -63,8 +66,17 @@ class MotionParameters:
     touchdown_depth_m: float = 0.0
     foothold_centre: str = "hips"
     trunk: TrunkParameters | None = None
+    pose_bandwidth_rad_s: float | None = None
+    max_height_rate_m_s: float | None = None
+    max_attitude_rate_rad_s: float | None = None
 
     def __post_init__(self) -> None:
+        for name in ("pose_bandwidth_rad_s", "max_height_rate_m_s", "max_attitude_rate_rad_s"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0.0):
+                raise MotionConfigError(f"motion parameter {name} must be > 0 or None, got {value!r}")
+        if self.trunk is not None and self.pose_filter_overrides():
+            raise MotionConfigError("motion parameters: give the pose filter settings in trunk, not both")
         if self.foothold_centre not in ("hips", "com"):
             raise MotionConfigError(f"motion parameter foothold_centre must be 'hips' or 'com', "
                                     f"got {self.foothold_centre!r}")
@@ -78,6 +90,14 @@ class MotionParameters:
         for name, ok in checks.items():
             if not (ok and math.isfinite(getattr(self, name))):
                 raise MotionConfigError(f"motion parameter {name} is out of range: {getattr(self, name)!r}")
+
+    def pose_filter_overrides(self) -> dict[str, float]:
+        """The given body-pose filter settings as ``TrunkParameters`` keywords."""
+        keys = {"height_bandwidth_rad_s": self.pose_bandwidth_rad_s,
+                "attitude_bandwidth_rad_s": self.pose_bandwidth_rad_s,
+                "max_height_rate_m_s": self.max_height_rate_m_s,
+                "max_attitude_rate_rad_s": self.max_attitude_rate_rad_s}
+        return {key: float(value) for key, value in keys.items() if value is not None}
 
 
 def _leg_and_point(caller: str, leg: Leg | int, xyz: Sequence[float]) -> tuple[Leg, np.ndarray]:
@@ -191,7 +211,8 @@ class MotionGenerator:
             raise MotionConfigError(f"nominal_height_m must be > 0, got {nominal_height_m!r}")
         self.nominal_height_m = height if nominal_height_m is None else float(nominal_height_m)
         self.trunk_params = self.params.trunk or TrunkParameters(
-            nominal_height_m=self.nominal_height_m, com_offset_base_m=tuple(model.com() - base))
+            nominal_height_m=self.nominal_height_m, com_offset_base_m=tuple(model.com() - base),
+            **self.params.pose_filter_overrides())
         # [m] base frame: what the nominal footholds are moved by (rotated into the world each tick)
         self._foothold_offset_base = (np.array(self.trunk_params.com_offset_base_m, dtype=float)
                                       if self.params.foothold_centre == "com" else None)
