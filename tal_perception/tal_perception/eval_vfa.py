@@ -106,12 +106,14 @@ def markdown(summary: dict[str, object]) -> str:
     def pct(x: float | None) -> str:
         return "-" if x is None else f"{100 * x:.1f} %"
 
+    seeds = ", ".join(str(x) for x in [summary["training_seed"], *summary.get("extra_training_seeds", [])])
     lines = [
         "# VFA CNN accuracy (g_hat versus the exact g)",
         "",
         f"Command: `{summary['command']}`  ",
         f"Weights: `{summary['weights']}` ({summary['weights_kb']:.0f} kB); test seed {summary['seed']} "
-        f"(training seed {summary['training_seed']}); {summary['samples_per_leg']} fresh tuples per leg, "
+        f"(training seeds {seeds}); "
+        f"{summary['samples_per_leg']} fresh tuples per leg, "
         "labelled by the full exact FEC + argmin (cached under the --data folder).",
         f"Sampling: {summary['sampling']}.",
         f"Network: `{summary['architecture']}`; decode (stored with the weights): `{summary['decode']}`.",
@@ -216,8 +218,9 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     res = evaluator.settings.resolution_m
     metadata = torch.load(args.weights, map_location="cpu", weights_only=True).get("metadata", {})
     training_seed = metadata.get("seed", "?")
-    if training_seed == args.seed:
-        LOG.warning("the test seed equals the training seed: the test tuples are training tuples")
+    extra_seeds = list(metadata.get("extra_seeds", []))  # fine-tuning data of other seeds (train_vfa --extra-seeds)
+    if args.seed == training_seed or args.seed in extra_seeds:
+        LOG.warning("the test seed is a training seed: the test tuples are training tuples")
     summary = {
         "command": "python -m tal_perception.eval_vfa " + " ".join(sys.argv[1:]),
         "weights": str(args.weights.name),
@@ -226,6 +229,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         "decode": selector.decode.to_dict(),
         "seed": args.seed,
         "training_seed": training_seed,
+        "extra_training_seeds": extra_seeds,
         "samples_per_leg": args.samples_per_leg,
         "sampling": mix_description(),
         "labelling_or_cache_s": labelling_s,

@@ -13,6 +13,13 @@ optimum logits against the exact optimum (softened with ``--soft-target``, see `
 with ``<out>/vfa_cnn_training.json`` (settings, data statistics, history). One CPU thread by default.
 The decode (``vfa_decode``) is chosen afterwards on a separate tuning set: ``tune_vfa_decode --store``.
 
+Fine-tuning: ``--init-weights <file>`` starts from saved weights (their architecture replaces the
+architecture options; the encoding must match), scores them as "epoch 0" on the validation set and keeps
+them unless an epoch beats their validation perfect match. ``--extra-seeds 4 ...`` adds training sets of
+other seeds (``<data>/train_seed<s>_n<count>.npz``, labelled when missing); each set is split 9:1 with its
+own seed, so the validation part of the ``--seed`` set is the same as in a run without extra seeds (weights
+trained on it never see its validation tuples).
+
 Departures from the thesis' training (Adam at 1e-3, plain cross-entropy), chosen on short pilots on a
 quarter of the data (see ``models/VFA_CARD.md``) because the thesis settings left the network at the class
 prior (the nominal) within our CPU budget: learning rate 3e-3 with cosine decay, the auxiliary safe-mask
@@ -50,6 +57,7 @@ from tal_perception.vfa_cnn import (
     VfaUNet,
     build_net,
     encode,
+    load_model,
     save_model,
 )
 from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate, mirrored, mix_description
@@ -96,12 +104,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--decoder-channels", type=int, nargs=3, default=[32, 16, 8],
                         help="unet: decoder widths at 9, 17 and 33 cells")  # fmt: skip
     parser.add_argument("--no-mirror", action="store_true", help="do not add the y-mirrored samples")
+    parser.add_argument(
+        "--init-weights", type=Path, default=None,
+        help="start from these weights (fine-tuning; their architecture is used, epoch 0 = them on validation)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--extra-seeds", type=int, nargs="+", default=[],
+        help="more training sets of these seeds (same --samples-per-leg), each split 9:1 with its own seed",
+    )  # fmt: skip
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = parser.parse_args(argv)
     if args.samples_per_leg < 10 or args.epochs < 1 or not 0.0 < args.val_fraction < 0.5:
         parser.error("need --samples-per-leg >= 10, --epochs >= 1 and 0 < --val-fraction < 0.5")
     if args.patience < 0 or not 0.0 <= args.warmup < args.epochs or not args.max_training_s >= 0.0:
         parser.error("need --patience >= 0, 0 <= --warmup < --epochs and --max-training-s >= 0")
+    if args.seed in args.extra_seeds or len(set(args.extra_seeds)) != len(args.extra_seeds):
+        parser.error("--extra-seeds must differ from --seed and from each other")
+    if {2, 3} & set(args.extra_seeds) or args.seed in (2, 3):
+        parser.error("seeds 2 (the protocol's test set) and 3 (the decode tuning set) must not be trained on")
     return args
 
 
@@ -133,6 +153,43 @@ def split(data: VfaDataset, val_fraction: float, seed: int, mirror: bool) -> tup
     if mirror:
         parts = [VfaDataset.concatenate([p, mirrored(p)]) for p in parts]
     return parts[0], parts[1]
+
+
+def training_sets(
+    args: argparse.Namespace, evaluator: FootholdEvaluator
+) -> tuple[VfaDataset, VfaDataset, dict[str, object]]:
+    """Training and validation sets (mirrored unless ``--no-mirror``) and the statistics of all tuples: the
+    ``--seed`` set and each ``--extra-seeds`` set (labelled or read from ``--data``) split 9:1 with its own
+    seed, the parts concatenated in that order."""
+    parts, sets = [], []
+    for seed in [args.seed, *args.extra_seeds]:
+        description = "labelling (exact FEC)" if seed == args.seed else f"labelling seed {seed} (exact FEC)"
+        data = load_or_generate(evaluator, cache_path(args.data, "train", seed, args.samples_per_leg), seed,
+                                args.samples_per_leg, description)  # fmt: skip
+        parts.append(split(data, args.val_fraction, seed, not args.no_mirror))
+        sets.append(data)
+    statistics = (sets[0] if len(sets) == 1 else VfaDataset.concatenate(sets)).statistics()
+    if len(parts) == 1:
+        return parts[0][0], parts[0][1], statistics
+    return (VfaDataset.concatenate([t for t, _ in parts]), VfaDataset.concatenate([v for _, v in parts]),
+            statistics)  # fmt: skip
+
+
+def initial_net(args: argparse.Namespace, config: NetConfig) -> tuple[VfaNet | VfaUNet, NetConfig]:
+    """A fresh network of ``config``, or with ``--init-weights`` the saved one (its architecture and layer
+    sizes replace ``config``'s; the encoding must be the same, else the inputs would mean something else)."""
+    if args.init_weights is None:
+        return build_net(config), config
+    net = load_model(args.init_weights)
+    if net.config.encoding != config.encoding:
+        raise SystemExit(f"--init-weights {args.init_weights}: encoding {net.config.encoding} differs from this "
+                         f"run's {config.encoding}")  # fmt: skip
+    if net.config.safe_head != config.safe_head:
+        raise SystemExit(f"--init-weights {args.init_weights}: safe head {net.config.safe_head}, --safe-weight "
+                         f"{args.safe_weight} asks for {config.safe_head}")  # fmt: skip
+    LOG.info("starting from %s (%s)", args.init_weights, net.config.architecture)
+    net.train()
+    return net, net.config
 
 
 def optimum_target(
@@ -191,18 +248,16 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     model = RobotModel.from_name(args.robot)
     evaluator = FootholdEvaluator(model)
     s = evaluator.settings
-    cache = cache_path(args.data, "train", args.seed, args.samples_per_leg)
-    data = load_or_generate(evaluator, cache, args.seed, args.samples_per_leg, "labelling (exact FEC)")
+    train_set, val_set, statistics = training_sets(args, evaluator)
     labelling_s = time.perf_counter() - started
-    statistics = data.statistics()
     LOG.info("dataset: %d samples, %.1f %% adapted, %d without a safe candidate (left out)",
-             len(data), 100 * statistics["adapted_fraction"], statistics["no_safe"])  # fmt: skip
-    train_set, val_set = split(data, args.val_fraction, args.seed, not args.no_mirror)
+             statistics["samples"], 100 * statistics["adapted_fraction"], statistics["no_safe"])  # fmt: skip
     encoding = EncodingConfig(cells=s.patch_cells, resolution_m=s.resolution_m,
                               nominal_hip_height_m=round(float(model.nominal_base_height_m), 4))  # fmt: skip
     config = NetConfig(tuple(args.channels), args.hidden, args.safe_weight > 0.0, encoding, args.architecture,
                        tuple(args.decoder_channels))  # fmt: skip
-    net = build_net(config).to(memory_format=torch.channels_last)
+    net, config = initial_net(args, config)
+    net = net.to(memory_format=torch.channels_last)
     train_batches, val_batches = Batches(train_set, encoding), Batches(val_set, encoding)
     # A fixed training subset as large as the validation set, scored like it each epoch (over-fitting check).
     train_probe = Batches(train_batches.data.subset(np.arange(min(len(val_batches), len(train_batches)))), encoding)
@@ -220,6 +275,15 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     best: dict[str, float] | None = None
     best_state: dict[str, torch.Tensor] | None = None
     training_started = time.perf_counter()
+    if args.init_weights is not None:  # epoch 0: the starting weights, kept unless an epoch beats them
+        best = {"epoch": 0, "loss": None, "lr_end": None, **evaluate(net, val_batches),
+                "train_perfect_match": evaluate(net, train_probe)["perfect_match"],
+                "elapsed_s": time.perf_counter() - training_started}  # fmt: skip
+        best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        history.append(best)
+        LOG.info("epoch 0 (the initial weights): validation perfect match %.1f %%, safe %.1f %%, mean distance "
+                 "%.4f m; training-subset perfect match %.1f %%", 100 * best["perfect_match"], 100 * best["safe"],
+                 best["mean_distance_m"], 100 * best["train_perfect_match"])  # fmt: skip
     for epoch in range(1, args.epochs + 1):
         net.train()
         order = rng.permutation(len(train_batches))
@@ -254,6 +318,7 @@ def train(args: argparse.Namespace) -> dict[str, object]:
         elif args.patience and epoch - int(best["epoch"]) >= args.patience:
             LOG.info("early stop: no better validation perfect match since epoch %d", best["epoch"])
             break
+        # this epoch's duration (after epoch 0's scoring when fine-tuning)
         epoch_s = metrics["elapsed_s"] - (history[-2]["elapsed_s"] if len(history) > 1 else 0.0)
         if args.max_training_s and epoch < args.epochs and metrics["elapsed_s"] + epoch_s > args.max_training_s:
             LOG.info("time budget: epoch %d would end after %.0f s; stopping", epoch + 1, args.max_training_s)
@@ -264,6 +329,8 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     report = {
         "command": "python -m tal_perception.train_vfa " + " ".join(sys.argv[1:]),
         "seed": args.seed,
+        "extra_seeds": args.extra_seeds,
+        "init_weights": None if args.init_weights is None else str(args.init_weights),
         "samples_per_leg": args.samples_per_leg,
         "sampling": mix_description(),
         "dataset": statistics,
@@ -283,7 +350,7 @@ def train(args: argparse.Namespace) -> dict[str, object]:
             "lr": args.lr,
             "schedule": f"linear warm-up {args.warmup:g} epochs, then cosine to 0 at epoch {args.epochs}",
             "epochs": args.epochs,
-            "epochs_run": len(history),
+            "epochs_run": sum(1 for h in history if h["epoch"] > 0),
             "patience": args.patience,
             "max_training_s": args.max_training_s,
             "batch_size": args.batch_size,
@@ -304,7 +371,13 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     }
     args.out.mkdir(parents=True, exist_ok=True)
     validation = {k: best[k] for k in ("perfect_match", "safe", "mean_distance_m")}
-    save_model(net, args.out / "vfa_cnn.pt", {"seed": args.seed, "best_epoch": best["epoch"], "validation": validation})
+    metadata = {
+        "seed": args.seed,
+        "extra_seeds": args.extra_seeds,
+        "best_epoch": best["epoch"],
+        "validation": validation,
+    }
+    save_model(net, args.out / "vfa_cnn.pt", metadata)
     (args.out / "vfa_cnn_training.json").write_text(json.dumps(report, indent=1))
     LOG.info("saved %s (%.2f MB); training took %.0f s", args.out / "vfa_cnn.pt",
              (args.out / "vfa_cnn.pt").stat().st_size / 1e6, training_s)  # fmt: skip

@@ -2,14 +2,18 @@
 
     python -m tal_perception.tune_vfa_decode --out results/vital [--weights ...] [--seed 3] [--samples-per-leg 2000]
 
-The tuning tuples (seed 3 by default: neither the training seed 1 nor the protocol's seed 2) are labelled
-like the protocol's (``vfa_dataset``, cached under ``--data``). Every decode of the grid (``argmax``;
-``masked_argmax`` and ``closest_safe`` over ``--taus``; ``closest_safe`` also over ``--bands``) is scored
-on them; the best of each mode (highest perfect match, then safe rate) is then scored once on the test set
-(seed 2, 4401 per leg). Same measures as ``eval_vfa`` (samples with a safe candidate only). Writes
-``<out>/vfa_cnn_decode.json`` and ``<out>/vfa_cnn_decode.md``; with ``--store`` the best decode of all
-modes on the tuning set is recorded in the weights file (``vfa_cnn.store_decode``; the weights unchanged),
-where ``CnnFootholdSelector`` and ``eval_vfa`` take it from.
+The tuning tuples (seed 3 by default: neither the training seeds 1 and 4 nor the protocol's seed 2) are
+labelled like the protocol's (``vfa_dataset``, cached under ``--data``). Every decode of the grid
+(``argmax``; ``masked_argmax`` and ``closest_safe`` over ``--taus``; ``closest_safe`` also over ``--bands``;
+``combined`` over ``--safe-weights`` x ``--distance-weights``) is scored on them; the best of each mode by
+the selection rule ``--rule`` is then scored once on the test set (seed 2, 4401 per leg), and the best of
+all modes by the same rule on the tuning set is the chosen decode. Rules (``RULES``): ``match`` = highest
+perfect match, then safe rate; ``match_plus_safe`` = highest perfect match + safe rate (= 1 + perfect match
+- unsafe rate: one point of perfect match is worth one point of safe rate), then perfect match. Same
+measures as ``eval_vfa`` (samples with a safe candidate only). Writes ``<out>/vfa_cnn_decode.json`` and
+``<out>/vfa_cnn_decode.md``; with ``--store`` the chosen decode is recorded in the weights file
+(``vfa_cnn.store_decode``; the weights unchanged), where ``CnnFootholdSelector`` and ``eval_vfa`` take it
+from. The test set never enters a choice.
 """
 
 from __future__ import annotations
@@ -35,6 +39,23 @@ LOG = logging.getLogger("tal_perception.tune_vfa_decode")
 MEASURES = ("perfect_match", "safe", "mean_distance_m", "verified_equals_g")
 DEFAULT_TAUS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 DEFAULT_BANDS = (-1.0, 0.0, 1.0, 2.0, 4.0, 8.0)  # -1: the exact tie rule (row-major)
+DEFAULT_SAFE_WEIGHTS = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)  # combined: lambda [-]
+DEFAULT_DISTANCE_WEIGHTS = (0.0, 0.01, 0.03, 0.1)  # combined: mu [1/cells^2]
+MODES = ("argmax", "masked_argmax", "closest_safe", "combined")
+RULES = {
+    "match": "highest perfect match, then safe rate",
+    "match_plus_safe": "highest perfect match + safe rate, then perfect match",
+}
+
+
+def rule_key(rule: str, row: dict[str, object]) -> tuple[float, float]:
+    """Sort key of a tuning row under the selection rule (see ``RULES``; larger is better)."""
+    match, safe = float(row["perfect_match"]), float(row["safe"])
+    if rule == "match":
+        return (match, safe)
+    if rule == "match_plus_safe":
+        return (match + safe, match)
+    raise ValueError(f"unknown selection rule {rule!r}; one of {sorted(RULES)}")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -55,6 +76,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--bands", type=float, nargs="+", default=list(DEFAULT_BANDS),
         help="closest_safe tie bands [cells^2]; a negative value = the exact tie rule",
     )  # fmt: skip
+    parser.add_argument(
+        "--safe-weights", type=float, nargs="+", default=list(DEFAULT_SAFE_WEIGHTS),
+        help="combined: lambda [-], the weight of log(p_safe)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--distance-weights", type=float, nargs="+", default=list(DEFAULT_DISTANCE_WEIGHTS),
+        help="combined: mu [1/cells^2], the weight of the squared distance from the nominal",
+    )  # fmt: skip
+    parser.add_argument("--rule", choices=sorted(RULES), default="match_plus_safe",
+                        help="selection rule on the tuning set (per mode and overall)")  # fmt: skip
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--no-test", action="store_true", help="tune only (pilots): do not score the test set")
     parser.add_argument(
@@ -100,8 +131,9 @@ def measures(data: VfaDataset, choices: np.ndarray, resolution_m: float) -> dict
 def fallback_rate(
     data: VfaDataset, settings: VfaDecode, logits: np.ndarray, probability: np.ndarray | None, unknown: np.ndarray
 ) -> float | None:
-    """Fraction of the scored samples where no known cell reaches tau (the masked decodes fall back to the argmax)."""
-    if not settings.needs_safe_head or probability is None:
+    """Fraction of the scored samples where no known cell reaches tau (the masked decodes fall back to the argmax);
+    None for the decodes without a threshold (argmax, combined)."""
+    if settings.mode not in ("masked_argmax", "closest_safe") or probability is None:
         return None
     rows = data.label >= 0
     return float(np.mean(~((probability[rows] >= settings.tau) & ~unknown[rows]).any(axis=1)))
@@ -124,10 +156,16 @@ def safe_head_quality(data: VfaDataset, probability: np.ndarray, taus: list[floa
     return out
 
 
-def grid_of_decodes(taus: list[float], bands: list[float]) -> list[VfaDecode]:
+def grid_of_decodes(
+    taus: list[float], bands: list[float], safe_weights: list[float] = (), distance_weights: list[float] = ()
+) -> list[VfaDecode]:
+    """argmax; masked_argmax per tau; closest_safe per tau x band (band < 0: exact ties); combined per
+    lambda x mu."""
     decodes = [VfaDecode("argmax")]
     decodes += [VfaDecode("masked_argmax", tau) for tau in taus]
     decodes += [VfaDecode("closest_safe", tau, None if band < 0 else band) for tau in taus for band in bands]
+    decodes += [VfaDecode("combined", safe_weight=lam, distance_weight=mu) for lam in safe_weights
+                for mu in distance_weights]  # fmt: skip
     return decodes
 
 
@@ -140,7 +178,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                             args.samples_per_leg, "labelling tuning set (exact FEC)")  # fmt: skip
     started = time.perf_counter()
     outputs = network_outputs(net, tune)
-    decodes = grid_of_decodes(args.taus, args.bands)
+    decodes = grid_of_decodes(args.taus, args.bands, args.safe_weights, args.distance_weights)
     if outputs[1] is None:
         decodes = decodes[:1]
     tuning = [
@@ -152,12 +190,13 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         for d in decodes
     ]
     best = {}
-    for mode in ("argmax", "masked_argmax", "closest_safe"):
+    for mode in MODES:
         rows = [r for r in tuning if r["decode"]["mode"] == mode]
         if rows:
-            best[mode] = max(rows, key=lambda r: (r["perfect_match"], r["safe"]))
+            best[mode] = max(rows, key=lambda r: rule_key(args.rule, r))
+    chosen = max(best.values(), key=lambda r: rule_key(args.rule, r))["decode"]
     if args.no_test:
-        summary = {"weights": args.weights.name, "grid": tuning, "best": best}
+        summary = {"weights": args.weights.name, "rule": args.rule, "grid": tuning, "best": best, "chosen": chosen}
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "vfa_cnn_decode_tuning.json").write_text(json.dumps(summary, indent=1))
         for mode, row in best.items():
@@ -175,6 +214,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     summary = {
         "command": "python -m tal_perception.tune_vfa_decode " + " ".join(sys.argv[1:]),
         "weights": args.weights.name,
+        "rule": args.rule,
         "tuning_set": {"seed": args.seed, "samples_per_leg": args.samples_per_leg,
                        "scored": int((tune.label >= 0).sum())},
         "test_set": {"seed": args.test_seed, "samples_per_leg": args.test_samples_per_leg,
@@ -184,7 +224,6 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         "safe_head": None if outputs[1] is None else safe_head_quality(tune, outputs[1], args.taus),
         "seconds": time.perf_counter() - started,
     }  # fmt: skip
-    chosen = max(best.values(), key=lambda r: (r["perfect_match"], r["safe"]))["decode"]
     summary["chosen"] = chosen
     if args.store:
         store_decode(args.weights, VfaDecode.from_dict(chosen))
@@ -212,22 +251,28 @@ def markdown(summary: dict[str, object]) -> str:
         '"verified = g": with the selector\'s verification an unsafe choice is replaced by the exact g, so the '
         "returned foothold is g in perfect match + (1 - safe) of the calls.",
         "",
-        "| decode | tau | tie band [cells^2] | tuning: perfect match / safe / mean distance / verified = g | "
-        "test: the same |",
-        "| --- | --- | --- | --- | --- |",
+        f"Selection rule (`--rule {summary.get('rule', 'match')}`, on the tuning set only, per mode and overall): "
+        f"{RULES[summary.get('rule', 'match')]}. Each mode's best is scored once on the test set.",
+        "",
+        "| decode | tau | tie band [cells^2] | lambda / mu [1/cells^2] | tuning: perfect match / safe / mean distance "
+        "/ verified = g | test: the same |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
 
     def triple(m: dict[str, float]) -> str:
         return (f"{100 * m['perfect_match']:.1f} % / {100 * m['safe']:.1f} % / {m['mean_distance_m']:.4f} m "
                 f"/ {100 * m['verified_equals_g']:.1f} %")  # fmt: skip
 
+    def weights(d: dict[str, object]) -> str:
+        return "-" if d["mode"] != "combined" else f"{d['safe_weight']:g} / {d['distance_weight']:g}"
+
     for mode, row in summary["best"].items():
         d = row["decode"]
         mode = f"**{mode}** (chosen)" if d == summary["chosen"] else mode
-        tau = "-" if d["mode"] == "argmax" else f"{d['tau']:g}"
+        tau = "-" if d["mode"] in ("argmax", "combined") else f"{d['tau']:g}"
         band = "-" if d["mode"] != "closest_safe" else ("exact (row-major)" if d["tie_band_cells2"] is None
                                                    else f"{d['tie_band_cells2']:g}")  # fmt: skip
-        lines.append(f"| {mode} | {tau} | {band} | {triple(row['tuning'])} | {triple(row['test'])} |")
+        lines.append(f"| {mode} | {tau} | {band} | {weights(d)} | {triple(row['tuning'])} | {triple(row['test'])} |")
     if summary.get("safe_head"):
         lines += ["", "Predicted safe mask per cell on the tuning set (scored samples):", ""]
         lines += ["| tau | precision | recall | cells right |", "| --- | --- | --- | --- |"]
@@ -240,14 +285,14 @@ def markdown(summary: dict[str, object]) -> str:
         "passes):",
         "",
     ]
-    lines += ["| decode | tau | tie band | tuning | fallback |", "| --- | --- | --- | --- | --- |"]
+    lines += ["| decode | tau | tie band | lambda / mu | tuning | fallback |", "| --- | --- | --- | --- | --- | --- |"]
     for row in summary["grid"]:
         d = row["decode"]
         band = "-" if d["mode"] != "closest_safe" else ("exact" if d["tie_band_cells2"] is None
                                                          else f"{d['tie_band_cells2']:g}")  # fmt: skip
-        tau = "-" if d["mode"] == "argmax" else f"{d['tau']:g}"
+        tau = "-" if d["mode"] in ("argmax", "combined") else f"{d['tau']:g}"
         fallback = "-" if row["fallback"] is None else f"{100 * row['fallback']:.1f} %"
-        lines.append(f"| {d['mode']} | {tau} | {band} | {triple(row)} | {fallback} |")
+        lines.append(f"| {d['mode']} | {tau} | {band} | {weights(d)} | {triple(row)} | {fallback} |")
     return "\n".join(lines) + "\n"
 
 

@@ -8,10 +8,18 @@ nominal (the patch centre), ties in row-major order". Decodes (``VfaDecode.mode`
 * ``masked_argmax``: argmax of the optimum logits over the candidates with safe probability >= ``tau``;
 * ``closest_safe``: the exact rule applied to the predicted safe mask (probability >= ``tau``): the passing
   candidate closest to the centre, ties in row-major order; with ``tie_band_cells2`` = b >= 0 the
-  candidate with the highest optimum logit among the passing ones within d^2 <= d_min^2 + b [cells^2].
+  candidate with the highest optimum logit among the passing ones within d^2 <= d_min^2 + b [cells^2];
+* ``combined``: no threshold; the argmax over the known candidates of the score
+  optimum_logit + lambda * log(p_safe) - mu * d^2, lambda = ``safe_weight`` [-], mu =
+  ``distance_weight`` [1/cells^2], d the distance from the nominal [cells]. The softmax of the optimum
+  logits is the network's probability that a cell is g, so with mu = 0 the score is the log of
+  P(g) * p_safe^lambda (a product of the two heads' beliefs, lambda weighting the safe head); mu > 0 adds
+  the exact rule's preference for cells near the nominal. log(p_safe) is taken of p_safe clipped to
+  >= 1e-30 (float32 sigmoids underflow to 0 below a logit of about -88).
 
 Unknown (NaN) cells never pass (the exact FEC never selects them). When no candidate passes, the
-masked decodes fall back to ``argmax`` over the known cells (and over all cells if none is known).
+masked decodes fall back to ``argmax`` over the known cells (and over all cells if none is known);
+``combined`` takes the argmax of its score over the known cells (over all cells if none is known).
 """
 
 from __future__ import annotations
@@ -24,7 +32,8 @@ from numpy.typing import NDArray
 
 from tal_perception.errors import FecConfigError, PerceptionInputError
 
-DECODE_MODES = ("argmax", "masked_argmax", "closest_safe")
+DECODE_MODES = ("argmax", "masked_argmax", "closest_safe", "combined")
+_MIN_PROBABILITY = 1e-30  # clip of p_safe before the log (combined)
 
 
 @dataclass(frozen=True)
@@ -34,11 +43,15 @@ class VfaDecode:
     mode: one of ``DECODE_MODES``; tau [-]: safe-probability threshold in (0, 1) (masked modes only);
     tie_band_cells2 [cells^2]: ``closest_safe`` only; None = exact tie rule (row-major), >= 0 = the highest
     optimum logit among the passing candidates within that band of squared distance of the closest one.
+    safe_weight [-] (lambda) and distance_weight [1/cells^2] (mu): ``combined`` only, both >= 0; the score
+    is optimum_logit + lambda * log(p_safe) - mu * d^2 (tau is not used).
     """
 
     mode: str = "argmax"
     tau: float = 0.5
     tie_band_cells2: float | None = None
+    safe_weight: float = 1.0
+    distance_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mode not in DECODE_MODES:
@@ -53,18 +66,27 @@ class VfaDecode:
             raise FecConfigError(
                 f"VfaDecode.tie_band_cells2 must be None or a finite value >= 0 [cells^2], got {band!r}"
             )
+        for name in ("safe_weight", "distance_weight"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= float(value) < float("inf"):
+                raise FecConfigError(f"VfaDecode.{name} must be a finite value >= 0, got {value!r}")
 
     @property
     def needs_safe_head(self) -> bool:
         return self.mode != "argmax"
 
     def to_dict(self) -> dict[str, object]:
-        return {"mode": self.mode, "tau": float(self.tau), "tie_band_cells2": self.tie_band_cells2}
+        """The settings as a JSON-able mapping; ``safe_weight`` and ``distance_weight`` only for ``combined``
+        (so the files of the other modes read as before)."""
+        values: dict[str, object] = {"mode": self.mode, "tau": float(self.tau), "tie_band_cells2": self.tie_band_cells2}
+        if self.mode == "combined":
+            values |= {"safe_weight": float(self.safe_weight), "distance_weight": float(self.distance_weight)}
+        return values
 
     @classmethod
     def from_dict(cls, values: dict[str, object]) -> VfaDecode:
         """The decode stored by ``to_dict`` (unknown keys are an error, missing ones take the defaults)."""
-        unknown = set(values) - {"mode", "tau", "tie_band_cells2"}
+        unknown = set(values) - {"mode", "tau", "tie_band_cells2", "safe_weight", "distance_weight"}
         if unknown:
             raise FecConfigError(f"VfaDecode: unknown settings {sorted(unknown)}")
         return cls(**values)  # type: ignore[arg-type]
@@ -88,7 +110,7 @@ def decode(
 ) -> NDArray[np.intp]:
     """Flat candidate index per sample.
 
-    optimum_logits (B, n*n); safe_probability (B, n*n) in [0, 1] (only read by the masked modes); unknown
+    optimum_logits (B, n*n); safe_probability (B, n*n) in [0, 1] (not read by ``argmax``); unknown
     (B, n*n) True on unknown (NaN) cells; row-major candidate order, n odd (the nominal is the centre).
     """
     logits = np.asarray(optimum_logits)  # float32 or float64 as given: the same argmax either way
@@ -110,6 +132,8 @@ def decode(
     if probability.shape != logits.shape:
         raise PerceptionInputError(f"VFA decode: safe_probability must be {logits.shape}, got {probability.shape}")
     known = ~unknown
+    if settings.mode == "combined":
+        return _masked_argmax(combined_score(settings, logits, probability, cells), known)
     passing = known & (probability >= np.float64(settings.tau))  # compared in float64 whatever the dtype
     if settings.mode == "masked_argmax":
         choice = _masked_argmax(logits, passing)
@@ -119,6 +143,19 @@ def decode(
     if none.any():  # the fallback: argmax over the known cells (over all if none is known)
         choice[none] = _masked_argmax(logits[none], known[none])
     return choice.astype(np.intp, copy=False)
+
+
+def combined_score(
+    settings: VfaDecode, logits: NDArray[np.floating], probability: NDArray[np.floating], cells: int
+) -> NDArray[np.float64]:
+    """The ``combined`` score per candidate (B, n*n), float64: optimum_logit + lambda * log(max(p_safe, 1e-30))
+    - mu * d^2, d [cells] from the centre (unknown cells are not excluded here)."""
+    score = logits.astype(np.float64)
+    if settings.safe_weight:
+        score += settings.safe_weight * np.log(np.maximum(probability, _MIN_PROBABILITY, dtype=np.float64))
+    if settings.distance_weight:
+        score -= settings.distance_weight * _distance_sq(cells)[0][None, :]
+    return score
 
 
 def _masked_argmax(logits: NDArray[np.floating], allowed: NDArray[np.bool_]) -> NDArray[np.intp]:
@@ -143,4 +180,4 @@ def _closest(
     return _masked_argmax(logits, near)
 
 
-__all__ = ["DECODE_MODES", "VfaDecode", "decode"]
+__all__ = ["DECODE_MODES", "VfaDecode", "combined_score", "decode"]

@@ -20,7 +20,7 @@ from tal_perception.vfa_cnn import (
     store_decode,
 )
 from tal_perception.vfa_dataset import closest_safe_index
-from tal_perception.vfa_decode import VfaDecode, decode
+from tal_perception.vfa_decode import VfaDecode, combined_score, decode
 
 N = 5  # a 5 x 5 patch: centre (2, 2) = flat index 12
 
@@ -80,6 +80,63 @@ def test_a_batch_is_decoded_sample_by_sample() -> None:
     b = outputs({}, best=(4, 0))
     batch = [np.concatenate([x, y]) for x, y in zip(a, b)]
     assert decode(VfaDecode("closest_safe"), *batch).tolist() == [flat(1, 1), flat(4, 0)]
+
+
+def test_combined_picks_a_safe_cell_over_a_likelier_unsafe_one() -> None:
+    # (2, 3) has the best optimum logit but is predicted unsafe; (3, 3) is nearly as likely and predicted safe.
+    logits, probability, unknown = outputs({(3, 3): 0.9}, best=(2, 3))
+    logits[0, flat(2, 3)], logits[0, flat(3, 3)] = 3.0, 2.5
+    assert decode(VfaDecode("argmax"), logits, probability, unknown).tolist() == [flat(2, 3)]
+    # lambda 1: 3 + log 0.05 = 0.00 < 2.5 + log 0.9 = 2.39; lambda 0.1: 2.70 > 2.49 (the logits win)
+    assert decode(VfaDecode("combined", safe_weight=1.0), logits, probability, unknown).tolist() == [flat(3, 3)]
+    assert decode(VfaDecode("combined", safe_weight=0.1), logits, probability, unknown).tolist() == [flat(2, 3)]
+    assert decode(VfaDecode("combined", safe_weight=0.0), logits, probability, unknown).tolist() == [flat(2, 3)]
+    # no threshold: a cell below any usual tau is still chosen when it is the best trade
+    probability[0, flat(3, 3)] = 0.2
+    assert decode(VfaDecode("combined", safe_weight=1.0), logits, probability, unknown).tolist() == [flat(3, 3)]
+    assert decode(VfaDecode("masked_argmax", tau=0.3), logits, probability, unknown).tolist() == [flat(2, 3)]
+
+
+def test_combined_distance_penalty_prefers_the_cell_nearer_the_nominal() -> None:
+    # two cells predicted equally safe: (0, 0) (d^2 = 8) with logit 5, (2, 3) (d^2 = 1) with logit 4.
+    logits, probability, unknown = outputs({(0, 0): 0.9, (2, 3): 0.9}, best=(0, 0))
+    logits[0, flat(2, 3)] = 4.0
+    assert decode(VfaDecode("combined"), logits, probability, unknown).tolist() == [flat(0, 0)]
+    # mu (8 - 1) > 1 flips the choice: mu 0.2 -> 5 - 1.6 = 3.4 < 4 - 0.2 = 3.8; mu 0.1 -> 4.2 > 3.9
+    assert decode(VfaDecode("combined", distance_weight=0.2), logits, probability, unknown).tolist() == [flat(2, 3)]
+    assert decode(VfaDecode("combined", distance_weight=0.1), logits, probability, unknown).tolist() == [flat(0, 0)]
+    expected = logits[0] + np.log(probability[0]) - 0.2 * np.array(
+        [(r - 2) ** 2 + (c - 2) ** 2 for r in range(N) for c in range(N)], float
+    )  # fmt: skip
+    np.testing.assert_allclose(combined_score(VfaDecode("combined", distance_weight=0.2), logits, probability, N)[0],
+                               expected)  # fmt: skip
+
+
+def test_combined_excludes_unknown_cells_and_survives_zero_probabilities() -> None:
+    logits, probability, unknown = outputs({(2, 2): 0.99, (0, 2): 0.8}, best=(2, 2))
+    unknown[0, flat(2, 2)] = True
+    assert decode(VfaDecode("combined"), logits, probability, unknown).tolist() == [flat(0, 2)]
+    probability[:] = 0.0  # float32 sigmoids underflow: log clipped, the logits still decide among the known cells
+    logits[0, flat(4, 0)] = 1.0
+    assert decode(VfaDecode("combined"), logits, probability.astype(np.float32), unknown).tolist() == [flat(4, 0)]
+    unknown[:] = True  # nothing known: the argmax of the score over all cells
+    assert decode(VfaDecode("combined"), logits, probability, unknown).tolist() == [flat(2, 2)]
+    with pytest.raises(PerceptionInputError, match="needs the safe-mask probabilities"):
+        decode(VfaDecode("combined"), logits, None, unknown)
+
+
+@pytest.mark.parametrize("field", ["safe_weight", "distance_weight"])
+@pytest.mark.parametrize("value", [-0.1, float("inf"), float("nan"), True, "1"])
+def test_invalid_combined_weights_are_rejected(field: str, value: object) -> None:
+    with pytest.raises(FecConfigError, match=f"{field} must be a finite value >= 0"):
+        VfaDecode("combined", **{field: value})  # type: ignore[arg-type]
+
+
+def test_combined_round_trips_and_the_other_modes_store_no_weights() -> None:
+    settings = VfaDecode("combined", safe_weight=2.0, distance_weight=0.05)
+    assert VfaDecode.from_dict(settings.to_dict()) == settings
+    assert "safe_weight" not in VfaDecode("masked_argmax", 0.1).to_dict()
+    assert VfaDecode("combined").needs_safe_head
 
 
 @pytest.mark.parametrize("tau", [0.0, 1.0, -0.1, 1.5, float("nan"), True, "0.5"])
@@ -155,15 +212,34 @@ def test_tune_vfa_decode_scores_the_grid_and_stores_the_best_decode(tmp_path) ->
     args = tune_vfa_decode.parse_args(
         ["--out", str(tmp_path / "out"), "--weights", str(weights), "--data", str(tmp_path / "data"),
          "--samples-per-leg", "3", "--test-samples-per-leg", "2", "--taus", "0.3", "0.7", "--bands", "-1", "2",
-         "--store"]
+         "--safe-weights", "1", "4", "--distance-weights", "0", "0.1", "--store"]
     )  # fmt: skip
     summary = tune_vfa_decode.run(args)
-    assert len(summary["grid"]) == 1 + 2 + 2 * 2 and set(summary["best"]) == {"argmax", "masked_argmax", "closest_safe"}
+    assert len(summary["grid"]) == 1 + 2 + 2 * 2 + 2 * 2 and set(summary["best"]) == set(tune_vfa_decode.MODES)
+    assert summary["rule"] == "match_plus_safe"  # the default
+    tuning_rows = [row["tuning"] for row in summary["best"].values()]
+    best_sum = max(r["perfect_match"] + r["safe"] for r in tuning_rows)
+    chosen_row = next(row["tuning"] for row in summary["best"].values() if row["decode"] == summary["chosen"])
+    assert chosen_row["perfect_match"] + chosen_row["safe"] == best_sum  # chosen on the tuning set by the rule
     for row in summary["best"].values():
         m = row["test"]
         assert 0.0 <= m["perfect_match"] <= m["safe"] <= 1.0
         assert m["verified_equals_g"] == pytest.approx(m["perfect_match"] + 1.0 - m["safe"])
     assert load_model(weights).decode == VfaDecode.from_dict(summary["chosen"])
-    assert (tmp_path / "out" / "vfa_cnn_decode.md").read_text().startswith("# VFA CNN decodes")
+    report = (tmp_path / "out" / "vfa_cnn_decode.md").read_text()
+    assert report.startswith("# VFA CNN decodes") and "perfect match + safe rate" in report
     with pytest.raises(SystemExit):
         tune_vfa_decode.parse_args(["--out", "x", "--seed", "2"])  # the tuning seed must not be the test seed
+
+
+def test_selection_rules_trade_perfect_match_against_safe_rate() -> None:
+    from tal_perception.tune_vfa_decode import rule_key
+
+    rows = [{"perfect_match": 0.74, "safe": 0.83}, {"perfect_match": 0.72, "safe": 0.88},
+            {"perfect_match": 0.60, "safe": 0.95}]  # fmt: skip
+    assert max(rows, key=lambda r: rule_key("match", r)) is rows[0]
+    assert max(rows, key=lambda r: rule_key("match_plus_safe", r)) is rows[1]  # 1.60 > 1.57, 1.55
+    tied = [{"perfect_match": 0.5, "safe": 0.75}, {"perfect_match": 0.75, "safe": 0.5}]  # equal sums (exact)
+    assert max(tied, key=lambda r: rule_key("match_plus_safe", r)) is tied[1]  # then the higher perfect match
+    with pytest.raises(ValueError, match="unknown selection rule"):
+        rule_key("safe", rows[0])
