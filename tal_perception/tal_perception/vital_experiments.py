@@ -77,9 +77,9 @@ POSE_BANDWIDTH_RAD_S = 6.0  # [rad/s]
 MAX_HEIGHT_RATE_M_S = 0.25  # [m/s]
 MAX_ATTITUDE_RATE_RAD_S = 0.5  # [rad/s]
 EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter", "step_frequency")
-# At 0.5 m/s the trot steps at 1.8 Hz instead of its preset 1.5 Hz: a stride of 0.28 m instead of 0.33 m, which
-# is more than the stairs' go (0.25 m) and made the feet skip treads (probe sweeps from 9 starts: 5 of 9
-# succeeded at 1.8 Hz, 1 of 9 at 1.5 Hz; experiment step_frequency).
+# At 0.5 m/s the trot steps at 1.8 Hz instead of its preset 1.5 Hz: the preset's stride (0.33 m) is longer than
+# the stairs' go (0.25 m) and made the feet skip treads; at 1.8 Hz it is 0.28 m (probe sweeps from 9 starts: 5 of
+# 9 succeeded at 1.8 Hz, 1 of 9 at 1.5 Hz; experiment step_frequency).
 FAST_TROT_SPEED_MPS = 0.45  # [m/s] from this commanded speed on
 FAST_TROT_STEP_FREQUENCY_HZ = 1.8
 
