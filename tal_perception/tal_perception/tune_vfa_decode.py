@@ -263,16 +263,11 @@ def markdown(summary: dict[str, object]) -> str:
         return (f"{100 * m['perfect_match']:.1f} % / {100 * m['safe']:.1f} % / {m['mean_distance_m']:.4f} m "
                 f"/ {100 * m['verified_equals_g']:.1f} %")  # fmt: skip
 
-    def weights(d: dict[str, object]) -> str:
-        return "-" if d["mode"] != "combined" else f"{d['safe_weight']:g} / {d['distance_weight']:g}"
-
     for mode, row in summary["best"].items():
         d = row["decode"]
         mode = f"**{mode}** (chosen)" if d == summary["chosen"] else mode
-        tau = "-" if d["mode"] in ("argmax", "combined") else f"{d['tau']:g}"
-        band = "-" if d["mode"] != "closest_safe" else ("exact (row-major)" if d["tie_band_cells2"] is None
-                                                   else f"{d['tie_band_cells2']:g}")  # fmt: skip
-        lines.append(f"| {mode} | {tau} | {band} | {weights(d)} | {triple(row['tuning'])} | {triple(row['test'])} |")
+        lines.append(f"| {mode} | {_settings_cells(d, 'exact (row-major)')} | {triple(row['tuning'])} | "
+                     f"{triple(row['test'])} |")  # fmt: skip
     if summary.get("safe_head"):
         lines += ["", "Predicted safe mask per cell on the tuning set (scored samples):", ""]
         lines += ["| tau | precision | recall | cells right |", "| --- | --- | --- | --- |"]
@@ -288,12 +283,18 @@ def markdown(summary: dict[str, object]) -> str:
     lines += ["| decode | tau | tie band | lambda / mu | tuning | fallback |", "| --- | --- | --- | --- | --- | --- |"]
     for row in summary["grid"]:
         d = row["decode"]
-        band = "-" if d["mode"] != "closest_safe" else ("exact" if d["tie_band_cells2"] is None
-                                                         else f"{d['tie_band_cells2']:g}")  # fmt: skip
-        tau = "-" if d["mode"] in ("argmax", "combined") else f"{d['tau']:g}"
         fallback = "-" if row["fallback"] is None else f"{100 * row['fallback']:.1f} %"
-        lines.append(f"| {d['mode']} | {tau} | {band} | {weights(d)} | {triple(row)} | {fallback} |")
+        lines.append(f"| {d['mode']} | {_settings_cells(d, 'exact')} | {triple(row)} | {fallback} |")
     return "\n".join(lines) + "\n"
+
+
+def _settings_cells(d: dict[str, object], exact_band: str) -> str:
+    """The tau, tie band and lambda / mu cells of a decode's table row ("-" where the mode has none)."""
+    tau = "-" if d["mode"] in ("argmax", "combined") else f"{d['tau']:g}"
+    band = "-" if d["mode"] != "closest_safe" else (exact_band if d["tie_band_cells2"] is None
+                                                    else f"{d['tie_band_cells2']:g}")  # fmt: skip
+    weights = "-" if d["mode"] != "combined" else f"{d['safe_weight']:g} / {d['distance_weight']:g}"
+    return f"{tau} | {band} | {weights}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -442,10 +442,10 @@ class CnnFootholdSelector:
                 logits, safe_logits = self._fast_net(torch.from_numpy(image), torch.from_numpy(scalars))
             else:
                 pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
-                if not self.decode.needs_safe_head:  # the optimum head alone is enough
+                if self.decode.needs_safe_head:
+                    logits, safe_logits = self.net(pixels, torch.from_numpy(scalars))
+                else:  # the optimum head alone is enough
                     logits = self.net.optimum_logits(pixels, torch.from_numpy(scalars))
-                    return logits.argmax(dim=1).numpy().astype(np.intp)
-                logits, safe_logits = self.net(pixels, torch.from_numpy(scalars))
             if not self.decode.needs_safe_head:
                 return logits.argmax(dim=1).numpy().astype(np.intp)
             probability = torch.sigmoid(safe_logits)
