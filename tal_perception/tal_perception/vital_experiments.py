@@ -34,7 +34,10 @@ would let the trunk fall 10-20 cm behind the VPA's height on the way up at 0.4 m
 * ``step_frequency`` (ours): the stairs at 0.5 m/s from 9 starts at 1.8 Hz (these runs) and at 1.5 Hz;
 * ``centre`` (ours): the stairs with the previous footholds (about the hips, no pair compensation) at 0.2
   and 0.3 m/s from the 3 starts (at 0.4 m/s, with the previous body-pose filter, 3 vs 4 of 9 starts
-  succeeded: no measurable difference there).
+  succeeded: no measurable difference there);
+* ``starts`` (ours): the speeds runs' configuration at all four speeds from the 9 starts, with the Wilson
+  95 % interval of each success rate (the 0.4 and 0.5 m/s runs are those of ``pose_filter`` and
+  ``step_frequency``; 12 runs of its own).
 
 The comparisons at 0.4 and 0.5 m/s run from 9 starts (``STARTS_M`` + ``EXTRA_STARTS_M``): single runs there
 could succeed or fall by chance.
@@ -76,7 +79,8 @@ SETTLE_S = 1.5  # [s] samples before this are left out of the tracking errors
 POSE_BANDWIDTH_RAD_S = 6.0  # [rad/s]
 MAX_HEIGHT_RATE_M_S = 0.25  # [m/s]
 MAX_ATTITUDE_RATE_RAD_S = 0.5  # [rad/s]
-EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter", "step_frequency")
+EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter", "step_frequency",
+               "starts")
 # At 0.5 m/s the trot steps at 1.8 Hz instead of its preset 1.5 Hz: the preset's stride (0.33 m) is longer than
 # the stairs' go (0.25 m) and made the feet skip treads; at 1.8 Hz it is 0.28 m (probe sweeps from 9 starts: 5 of
 # 9 succeeded at 1.8 Hz, 1 of 9 at 1.5 Hz; experiment step_frequency).
@@ -211,6 +215,8 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
         preset = [replace(_stairs(stairs_name(0.5, x0, "1.5hz"), 0.5, vital, x0), step_frequency_hz=None)
                   for x0 in starts_04]
         runs["step_frequency"] = [_stairs(stairs_name(0.5, x0), 0.5, vital, x0) for x0 in starts_04] + preset
+    if "starts" in only:  # the speeds runs from all 9 starts (shared with the speeds, pose_filter, step_frequency runs)
+        runs["starts"] = [_stairs(stairs_name(v, x0), v, vital, x0) for v in (0.2, 0.3, 0.4, 0.5) for x0 in starts_04]
     return runs
 
 
@@ -329,7 +335,8 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
               "horizon": "Single vs receding horizon (stairs, 0.4 m/s)", "cost": "C_sum vs C_int (stairs, 0.4 m/s)",
               "centre": "Footholds under the CoM with diagonal-pair compensation vs about the hips (previous)",
               "pose_filter": "The body-pose filter of these runs vs the controller's default (stairs, 0.4 m/s)",
-              "step_frequency": "Trot at 1.8 Hz vs the preset's 1.5 Hz (stairs, 0.5 m/s)"}
+              "step_frequency": "Trot at 1.8 Hz vs the preset's 1.5 Hz (stairs, 0.5 m/s)",
+              "starts": "Stairs at four speeds from 9 starts each, VFA + VPA (the speeds runs' configuration)"}
     for key, group in runs.items():
         lines += [f"## {titles[key]}", "", HEADER] + [_row(results[r.name]) for r in group] + [""]
         if key == "cnn":
@@ -348,6 +355,10 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
         if key == "step_frequency":
             lines += per_config_summary(group, results)
             lines += ["At 1.5 Hz and 0.5 m/s the stride (0.33 m) is longer than the stairs' go (0.25 m).", ""]
+        if key == "starts":
+            lines += speed_summary(group, results)
+            lines += ["The start x shifts where the gait's phase meets the first riser. The interval is the Wilson "
+                      "score interval (95 %) of the success rate over the 9 starts.", ""]
         if key == "speeds":
             lines += speed_summary(group, results)
             lines += ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to "
@@ -440,16 +451,33 @@ def per_config_summary(group: list[VitalRun], results: dict[str, VitalRunResult]
 def speed_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
     """Markdown lines: per speed, successes of the repeated runs, collisions summed over them and the
     tracking errors averaged over the successful ones."""
-    lines = ["| speed [m/s] | success | leg collisions (all runs) | foot collisions (all runs) | "
-             "pitch MAE [deg] (successful runs) | height MAE [cm] (successful runs) |", "|---|---|---|---|---|---|"]
+    lines = ["| speed [m/s] | success | success rate, 95 % interval | leg collisions (all runs) | foot collisions "
+             "(all runs) | pitch MAE [deg] (successful runs) | height MAE [cm] (successful runs) |",
+             "|---|---|---|---|---|---|---|"]
     for speed in sorted({run.speed_mps for run in group}):
         rs = [results[run.name] for run in group if run.speed_mps == speed]
         ok = [r for r in rs if r.success]
         pitch = f"{np.mean([r.pitch_mae_deg for r in ok]):.2f}" if ok else "-"
         height = f"{np.mean([r.height_mae_cm for r in ok]):.2f}" if ok else "-"
-        lines.append(f"| {speed:.1f} | {len(ok)} of {len(rs)} | {sum(sum(r.leg_collisions) for r in rs)} | "
-                     f"{sum(sum(r.foot_collisions) for r in rs)} | {pitch} | {height} |")
+        low, high = wilson_interval(len(ok), len(rs))
+        lines.append(f"| {speed:.1f} | {len(ok)} of {len(rs)} | {100 * low:.0f}-{100 * high:.0f} % | "
+                     f"{sum(sum(r.leg_collisions) for r in rs)} | {sum(sum(r.foot_collisions) for r in rs)} | "
+                     f"{pitch} | {height} |")
     return [*lines, ""]
+
+
+def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval [-] of a success rate (z = 1.96: 95 %); (0, 1) without trials. Unlike the
+    normal approximation it stays inside [0, 1] and is not zero-width at 0 or n successes of few trials."""
+    if trials <= 0:
+        return 0.0, 1.0
+    if not 0 <= successes <= trials:
+        raise ValueError(f"successes must be in [0, {trials}], got {successes}")
+    rate = successes / trials
+    denominator = 1.0 + z * z / trials
+    centre = (rate + z * z / (2 * trials)) / denominator
+    half = z * math.sqrt(rate * (1.0 - rate) / trials + z * z / (4 * trials * trials)) / denominator
+    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRunResult]) -> None:

@@ -19,6 +19,7 @@ from tal_perception.vital_experiments import (
     experiment_runs,
     plot,
     run_vital,
+    wilson_interval,
     write_report,
 )
 from tal_perception.vital_loop import VitalLoop, VitalLoopSettings, collision_events
@@ -86,7 +87,7 @@ def test_settings_and_experiment_list_are_checked() -> None:
         VitalLoopSettings(heightmap_period_s=0.0)
     runs = experiment_runs()
     assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter",
-                         "step_frequency"}
+                         "step_frequency", "starts"}
     assert all(r.loop.vpa_use_cnn for r in runs["cnn"]) and not any(r.loop.vpa_use_cnn for r in runs["speeds"])
     names = [r.name for key in ("speeds", "cnn", "tbr", "gaps", "rough") for r in runs[key]]
     shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)}
@@ -119,10 +120,29 @@ def test_settings_and_experiment_list_are_checked() -> None:
     steps = runs["step_frequency"]
     assert len(steps) == 18 and all(r.speed_mps == 0.5 for r in steps)
     assert [r.step_frequency_hz for r in steps] == [1.8] * 9 + [None] * 9 and "1.5hz" in steps[-1].name
+    # starts: the speeds runs from 9 starts; at 0.4 and 0.5 m/s the very runs of pose_filter and step_frequency.
+    starts = runs["starts"]
+    assert [sum(r.speed_mps == v for r in starts) for v in (0.2, 0.3, 0.4, 0.5)] == [9, 9, 9, 9]
+    assert set(runs["speeds"]) <= set(starts)
+    assert [r for r in starts if r.speed_mps == 0.4] == runs["pose_filter"][:9]
+    assert [r for r in starts if r.speed_mps == 0.5] == runs["step_frequency"][:9]
+    everything = {r.name for group in runs.values() for r in group}
+    assert len(everything - {r.name for key, group in runs.items() if key != "starts" for r in group}) == 12
     # The forward command stops 0.6 m past the goal: no run walks off its course (stairs: x <= 8 m).
     for r in runs["speeds"]:
         assert r.initial_x_m + r.speed_mps * (r.stop_s - START_S) == pytest.approx(r.goal_x_m + r.past_goal_m)
         assert r.duration_s == pytest.approx(r.stop_s + r.hold_s)
+
+
+def test_wilson_interval_brackets_the_rate_and_stays_in_the_unit_interval() -> None:
+    low, high = wilson_interval(5, 9)
+    assert low < 5 / 9 < high
+    assert (low, high) == pytest.approx((0.267, 0.811), abs=1e-3)  # textbook value for 5 of 9
+    assert wilson_interval(9, 9)[1] == pytest.approx(1.0) and 0.66 < wilson_interval(9, 9)[0] < 0.71
+    assert wilson_interval(0, 9)[0] == pytest.approx(0.0) and wilson_interval(0, 0) == (0.0, 1.0)
+    assert wilson_interval(3, 3)[0] < wilson_interval(9, 9)[0]  # fewer trials, wider interval
+    with pytest.raises(ValueError, match="successes"):
+        wilson_interval(4, 3)
 
 
 @pytest.mark.slow
