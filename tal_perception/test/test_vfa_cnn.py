@@ -457,3 +457,27 @@ def test_backend_defaults_to_onnxruntime_and_falls_back_to_torch_without_it(
         explicit = CnnFootholdSelector(evaluator, net, verify=False, backend="onnxruntime")
     assert explicit.backend == "torch"
     assert explicit.predict([]).shape == (0,)
+
+
+# -- Net2Net widening (widen_vfa) -----------------------------------------------------------------------
+def test_widening_computes_the_same_function_and_noise_separates_the_copies(fresh_set: VfaDataset) -> None:
+    from tal_perception.widen_vfa import widen_unet
+
+    torch.manual_seed(6)
+    net = build_net(NetConfig(architecture="unet", hidden=64)).eval()
+    image, scalars = _encoded([fresh_set.fec_input(i) for i in range(6)], net.config.encoding)
+    with torch.inference_mode():
+        expected, expected_safe = net(image, scalars)
+    scale = float(expected.abs().max())
+    for channels, decoder in (((8, 16, 32), (32, 16, 16)), ((16, 32, 64), (64, 32, 16)), ((8, 32, 32), (32, 16, 24))):
+        wide = widen_unet(net, channels, decoder)
+        assert (wide.config.channels, wide.config.decoder_channels) == (channels, decoder)
+        with torch.inference_mode():
+            logits, safe_logits = wide(image, scalars)
+        torch.testing.assert_close(logits, expected, rtol=0.0, atol=1e-5 * scale)
+        torch.testing.assert_close(safe_logits, expected_safe, rtol=0.0, atol=1e-5 * scale)
+    noisy = widen_unet(net, (8, 16, 32), (32, 16, 16), noise=0.01)
+    first, copy = noisy.decoders[2].weight[:8], noisy.decoders[2].weight[8:]
+    assert not torch.equal(first, copy) and float((first - copy).abs().max()) < 0.1 * float(first.abs().max())
+    with pytest.raises(ValueError, match="multiples"):
+        widen_unet(net, (12, 16, 32), (32, 16, 8))
