@@ -41,9 +41,9 @@ TROT_SWING = GaitTiming(step_frequency_hz=1.5, duty_factor=0.6, swing_time_left_
 TWIST = np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.1])
 RIGID = {"stiffness_n_per_m": 2e6, "damping_ns_per_m": 400.0}
 NOMINAL = np.array([0.40, 0.21, 0.0])
-# Measured on the 4401-per-leg protocol (results/vital/vfa_cnn_accuracy.md, the fine-tuned VfaUNet weights
-# with their stored decode, combined lambda 2): perfect match 73.8 %, safe 87.8 %, perfect match on the
-# samples that need adaptation 56.2 %. The thresholds sit below (400 samples vary by a few %) and above the
+# Measured on the 4401-per-leg protocol (results/vital/vfa_cnn_accuracy.md, the widened, fine-tuned VfaUNet
+# weights with their stored decode, combined lambda 2): perfect match 74.5 %, safe 88.3 %, perfect match on
+# the samples that need adaptation 57.6 % (the previous weights: 73.8 / 87.8 / 56.2 %). The thresholds sit below (400 samples vary by a few %) and above the
 # previous VfaNet weights (64.9 / 75.5 / 39.6 %); the last one fails a network that always keeps the nominal
 # (0 % there, while that trivial answer scores ~44 % perfect match overall).
 MIN_PERFECT_MATCH = 0.67
