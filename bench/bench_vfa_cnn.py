@@ -6,9 +6,11 @@ Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/be
 
 Inputs: the same cases as ``bench_vfa.py`` (``make_cases``: 65 x 65 maps of 0.02 m around the nominal
 foothold at random headings, random hip height, twist and time left in a trot swing). The committed
-weights (``tal_perception/models/vfa_cnn.pt``), torch on one CPU thread, ``torch.inference_mode``; the
-selector's default network path (``fast``: a ``VfaUNet`` runs as ``vfa_cnn_fast``'s traced, frozen
-rearrangement; ``--plain``: the module's own forward, for comparison).
+weights (``tal_perception/models/vfa_cnn.pt``) on one CPU thread, with each network runtime of ``--backends``
+(default both, interleaved in one session: ``onnxruntime``, the selector's default, = ``vfa_cnn_ort``;
+``torch`` = ``torch.inference_mode`` with the fast path, ``vfa_cnn_fast``'s traced, frozen rearrangement,
+or with ``--plain`` the module's own forward). The first backend's figures are the JSON's ``results``
+(what ``bench/report.py`` reads); a last table compares the backends' medians and p99 with ratios.
 Per call we time (time.perf_counter, after a warm-up call), in ``--rounds`` alternating rounds pooled:
 
 * ``cnn``: ``CnnFootholdSelector.select`` for one leg, no verification (patch extraction, encoding, one
@@ -118,9 +120,42 @@ def report(summary: dict, n: int, path: str) -> str:
     lines.append(
         f"\n4-leg batch (`select_legs`): median {batch['stats']['median']:.3f} ms per call "
         f"(p99 {batch['stats']['p99']:.3f}), i.e. {batch['per_leg_stats']['median']:.3f} ms per leg "
-        f"(p99 {batch['per_leg_stats']['p99']:.3f}); {n} terrains; network path: {path}."
+        f"(p99 {batch['per_leg_stats']['p99']:.3f}); {n} terrains; network: {path}."
     )
     lines.append(f"Thesis: CNN VFA {THESIS_MEAN_MS} ms +- 1 ms per leg (mean); goal <= {GOAL_MS} ms.")
+    return "\n".join(lines)
+
+
+def headline(summary: dict) -> dict[str, dict[str, float]]:
+    """Median and p99 [ms] of the three figures the comparison lists: the 4-leg batch per leg, one leg per
+    call (all legs pooled) and the verified call (all legs pooled)."""
+    single = [t for r in summary["cnn"].values() for t in r["ms"]]
+    verified = [t for r in summary["cnn_verified"].values() for t in r["ms"]]
+    batch = summary["cnn_4legs"]["4legs"]["ms_per_leg"]
+    return {
+        "4legs_per_leg": {k: stats(batch)[k] for k in ("median", "p99")},
+        "one_leg": {k: stats(single)[k] for k in ("median", "p99")},
+        "verified": {k: stats(verified)[k] for k in ("median", "p99")},
+    }
+
+
+def comparison(headlines: dict[str, dict[str, dict[str, float]]], labels: dict[str, str]) -> str:
+    """Markdown table of the backends' headline figures, with each one's ratio to the first backend."""
+    names = list(headlines)
+    base = names[0]
+    lines = [
+        "| network | 4-leg batch, per leg: median (p99) [ms] | one leg per call: median (p99) [ms] | "
+        "verified one leg: median (p99) [ms] |",
+        "| --- | --- | --- | --- |",
+    ]
+    for name in names:
+        cells = []
+        for key in ("4legs_per_leg", "one_leg", "verified"):
+            value = headlines[name][key]
+            ratio = value["median"] / headlines[base][key]["median"]
+            cells.append(f"{value['median']:.3f} ({value['p99']:.3f})" + ("" if name == base else f", x{ratio:.2f}"))
+        lines.append(f"| {labels[name]} | " + " | ".join(cells) + " |")
+    lines.append(f"(ratios: median / the {labels[base]} median, same session, rounds interleaved)")
     return "\n".join(lines)
 
 
@@ -131,66 +166,114 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the modes, pooled (default 3)")
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
-    parser.add_argument("--plain", action="store_true", help="the network's own forward instead of the fast path")
+    parser.add_argument(
+        "--backends", default="onnxruntime,torch",
+        help="comma-separated network runtimes, measured interleaved in one session (default onnxruntime,torch; "
+        "the first one's figures are the headline, `results` in the JSON)",
+    )  # fmt: skip
+    parser.add_argument("--plain", action="store_true", help="torch: the module's forward, not the fast path")
     add_wait_quiet_option(parser)
     args = parser.parse_args()
     n = args.samples or (QUICK_SAMPLES if args.quick else DEFAULT_SAMPLES)
     if n < 5 or args.rounds < 1:
         parser.error("need --samples >= 5 and --rounds >= 1")
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    if not backends or any(b not in ("onnxruntime", "torch") for b in backends) or len(set(backends)) != len(backends):
+        parser.error("--backends: distinct names out of onnxruntime, torch")
     torch.set_num_threads(1)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     load_at_start = settle_machine(args.wait_quiet, progress)
     model = RobotModel.from_name("hyq")
-    selector = CnnFootholdSelector(FootholdEvaluator(model), load_model(args.weights), fast=not args.plain)
-    path = "fast (vfa_cnn_fast, TorchScript)" if selector.fast else "plain (the module's forward)"
-    progress(f"{n} terrains (seed {args.seed}), 4 legs, weights {args.weights.name}, network path: {path}")
+    net = load_model(args.weights)
+    selectors, labels = {}, {}
+    for backend in backends:
+        selector = CnnFootholdSelector(FootholdEvaluator(model), net, fast=not args.plain, backend=backend)
+        if selector.backend != backend:
+            raise SystemExit(f"bench_vfa_cnn: backend {backend} is not available (onnxruntime / onnx not installed)")
+        selectors[backend] = selector
+        if backend == "onnxruntime":
+            labels[backend] = f"onnxruntime {vfa_cnn_ort_version()} (module's forward exported to ONNX), 1 thread"
+        else:
+            path = "fast path (vfa_cnn_fast, TorchScript)" if selector.fast else "plain forward"
+            labels[backend] = f"torch {torch.__version__}, {path}, 1 thread"
+    progress(f"{n} terrains (seed {args.seed}), 4 legs, weights {args.weights.name}, backends: {', '.join(backends)}")
     cases = make_cases(model, n, args.seed)
-    pooled: dict[str, dict[str, dict]] = {mode: {} for mode in MODES}
-    round_medians: dict[str, dict[str, list[float]]] = {mode: {} for mode in MODES}
+    pooled = {b: {mode: {} for mode in MODES} for b in backends}
+    round_medians = {b: {mode: {} for mode in MODES} for b in backends}
     others_busy = []
     for r in range(1, args.rounds + 1):
         for mode in MODES:
-            progress(f"round {r}/{args.rounds}: {mode}")
-            start = cpu_snapshot()
-            if mode == "cnn_4legs":
-                result = run_batch(selector, cases)
-            else:
-                result = run_single(selector, cases, verify=mode == "cnn_verified")
-            others_busy.append(other_cores_busy(start, cpu_snapshot()))
-            for key, value in result.items():
-                entry = pooled[mode].setdefault(key, {k: [] if isinstance(v, list) else 0 for k, v in value.items()})
-                for k, v in value.items():
-                    entry[k] = entry[k] + v  # lists extend, counts add up over the rounds
-                round_medians[mode].setdefault(key, []).append(float(np.median(value["ms"])))
-    summary = {mode: {key: {**r, "stats": stats(r["ms"]), "round_medians_ms": round_medians[mode][key]}
-                      for key, r in value.items()} for mode, value in pooled.items()}  # fmt: skip
-    batch = summary["cnn_4legs"]["4legs"]
-    batch["per_leg_stats"] = stats(batch["ms_per_leg"])
+            for backend, selector in selectors.items():
+                progress(f"round {r}/{args.rounds}: {mode}, {backend}")
+                start = cpu_snapshot()
+                if mode == "cnn_4legs":
+                    result = run_batch(selector, cases)
+                else:
+                    result = run_single(selector, cases, verify=mode == "cnn_verified")
+                others_busy.append(other_cores_busy(start, cpu_snapshot()))
+                for key, value in result.items():
+                    entry = pooled[backend][mode].setdefault(
+                        key, {k: [] if isinstance(v, list) else 0 for k, v in value.items()}
+                    )
+                    for k, v in value.items():
+                        entry[k] = entry[k] + v  # lists extend, counts add up over the rounds
+                    round_medians[backend][mode].setdefault(key, []).append(float(np.median(value["ms"])))
+    summaries = {}
+    for backend in backends:
+        summary = {mode: {key: {**r, "stats": stats(r["ms"]), "round_medians_ms": round_medians[backend][mode][key]}
+                          for key, r in value.items()} for mode, value in pooled[backend].items()}  # fmt: skip
+        batch = summary["cnn_4legs"]["4legs"]
+        batch["per_leg_stats"] = stats(batch["ms_per_leg"])
+        summaries[backend] = summary
     busy = [b for b in others_busy if b is not None]
     progress(f"other processes kept {np.mean(busy):.2f} cores busy on average" if busy else "CPU use unknown")
-    print(report(summary, n, path))
+    for backend in backends:
+        print(f"\n### {labels[backend]}\n")
+        print(report(summaries[backend], n, labels[backend]))
+    headlines = {b: headline(summaries[b]) for b in backends}
+    print("\n" + comparison(headlines, labels))
+
+    def strip(summary: dict) -> dict:
+        return {mode: {key: {k: v for k, v in r.items() if k not in ("ms", "ms_per_leg")} for key, r in value.items()}
+                for mode, value in summary.items()}  # fmt: skip
+
+    first = backends[0]
     document = {
         "benchmark": "bench_vfa_cnn",
         "machine": machine_info(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
+        "onnxruntime": vfa_cnn_ort_version(),
         "load_average_at_start": load_at_start,
         "weights": args.weights.name,
-        "network_path": "fast" if selector.fast else "plain",
+        "backend": first,
+        "network_path": labels[first],
         "other_processes_cores_busy": others_busy,
         "rounds": args.rounds,
         "inputs": {"samples": n, "seed": args.seed},
         "thesis_mean_ms": THESIS_MEAN_MS,
         "goal_ms": GOAL_MS,
-        "results": {
-            mode: {key: {k: v for k, v in r.items() if k not in ("ms", "ms_per_leg")} for key, r in value.items()}
-            for mode, value in summary.items()
-        },
-        "samples_ms": {mode: {key: r["ms"] for key, r in value.items()} for mode, value in summary.items()},
+        "results": strip(summaries[first]),
+        "backends": {
+            b: {"label": labels[b], "headline_ms": headlines[b], "results": strip(summaries[b])} for b in backends
+        },  # fmt: skip
+        "samples_ms": {
+            b: {mode: {key: r["ms"] for key, r in value.items()} for mode, value in summaries[b].items()}
+            for b in backends
+        },  # fmt: skip
     }
     JSON_PATH.write_text(json.dumps(document, indent=1))
     progress(f"wrote {JSON_PATH.relative_to(ROOT)}")
     return 0
+
+
+def vfa_cnn_ort_version() -> str | None:
+    """The installed onnxruntime's version (None when it is not installed)."""
+    try:
+        import onnxruntime
+    except ImportError:
+        return None
+    return str(onnxruntime.__version__)
 
 
 if __name__ == "__main__":

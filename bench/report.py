@@ -377,6 +377,18 @@ def rows_vfa_cnn(doc: dict) -> list[Row]:
     goal = Goal("<=", float(doc.get("goal_ms", 0.5)), "issue 6")
     thesis = f"thesis: {doc.get('thesis_mean_ms', THESIS_VFA_CNN_MS)} +- 1 ms mean (i7, CPU)"
     median, spread = _worst_leg(doc["results"]["cnn"])
+    backends = doc.get("backends", {})  # bench_vfa_cnn measures several network runtimes in one session
+    first = doc.get("backend")
+    if first in backends:
+        runtime = backends[first]["label"]
+    else:
+        runtime = f"torch {doc.get('torch', '?')}, {doc.get('torch_threads', '?')} thread"
+    others = [
+        f"same session, {b['label']}: {b['headline_ms']['4legs_per_leg']['median']:.3f} ms per leg batched, "
+        f"{b['headline_ms']['one_leg']['median']:.3f} ms one leg"
+        for name, b in backends.items()
+        if name != first
+    ]
     rows.append(
         Row(
             g,
@@ -385,7 +397,7 @@ def rows_vfa_cnn(doc: dict) -> list[Row]:
             "ms",
             goal,
             thesis,
-            note=f"{spread}; torch {doc.get('torch', '?')}, {doc.get('torch_threads', '?')} thread",
+            note=f"{spread}; {runtime}",
         )
     )
     batch = doc["results"]["cnn_4legs"]["4legs"]
@@ -397,6 +409,7 @@ def rows_vfa_cnn(doc: dict) -> list[Row]:
             "ms",
             goal,
             thesis,
+            note=f"p99 {batch['per_leg_stats']['p99']:.3f} ms" + "".join(f"; {o}" for o in others),
         )
     )
     verified = doc["results"]["cnn_verified"]

@@ -175,3 +175,30 @@ def test_main_writes_the_markdown(report, tmp_path) -> None:
     assert "100 states x 2 sequences x 2 rounds (reduced)" in text
     assert "CPUs" in text  # machine info
     assert "\nQuiet machine.\n" in text
+
+
+def test_the_vfa_cnn_rows_name_the_runtime_and_the_other_backend_of_the_session(report, tmp_path) -> None:
+    def results(one_leg: float, batch: float) -> dict:
+        leg = {"stats": {"median": one_leg, "p99": 2 * one_leg, "n": 10}, "fallbacks": 1}
+        return {
+            "cnn": {name: dict(leg) for name in ("LF", "RF", "LH", "RH")},
+            "cnn_4legs": {"4legs": {"per_leg_stats": {"median": batch, "p99": 0.6}}},
+            "cnn_verified": {name: dict(leg) for name in ("LF", "RF", "LH", "RH")},
+        }
+
+    headline = {"4legs_per_leg": {"median": 0.47, "p99": 0.66}, "one_leg": {"median": 0.9, "p99": 1.1}}
+    doc = {
+        "goal_ms": 0.5,
+        "backend": "onnxruntime",
+        "results": results(0.62, 0.46),
+        "backends": {
+            "onnxruntime": {"label": "onnxruntime X", "results": results(0.62, 0.46)},
+            "torch": {"label": "torch Y", "headline_ms": headline, "results": results(0.9, 0.47)},
+        },
+    }
+    _write(tmp_path, "bench_vfa_cnn", doc)
+    rows, _ = report.collect(tmp_path)
+    batch = _by_what(rows, "4 legs in one batch")
+    assert batch.value == pytest.approx(0.46) and batch.met is True
+    assert "same session, torch Y: 0.470 ms per leg batched, 0.900 ms one leg" in batch.note
+    assert "onnxruntime X" in _by_what(rows, "one leg per call").note

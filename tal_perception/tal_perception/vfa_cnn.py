@@ -30,6 +30,7 @@ Patch frame as in ``fec_settings`` (x forward, y left, origin at the nominal foo
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from functools import lru_cache
@@ -42,6 +43,7 @@ from torch import nn
 
 from tal_core.heightmap import HeightMapGrid
 from tal_core.legs import LEGS, Leg
+from tal_perception import vfa_cnn_ort
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
@@ -77,6 +79,7 @@ class EncodingConfig:
 
 
 ARCHITECTURES = ("thesis", "unet")
+BACKENDS = ("auto", "onnxruntime", "torch")  # CnnFootholdSelector's network runtimes (auto: onnxruntime if present)
 
 
 @dataclass(frozen=True)
@@ -380,14 +383,22 @@ class CnnFootholdSelector:
     decode: how the network's outputs become a candidate (``vfa_decode.VfaDecode``); None = the decode
     stored with the weights (``net.decode``; the thesis' argmax for a network without one).
 
-    fast: run a ``VfaUNet`` (with its safe head) through ``vfa_cnn_fast.compile_fast_unet``, the same
-    function rearranged for inference (same selections; the weights are copied once here, so later
-    changes of ``net`` are not seen); False, or another network: the module's own forward.
+    backend: which runtime computes the network. ``"onnxruntime"``: the module's forward exported to ONNX
+    and run by ONNX Runtime on one thread (``vfa_cnn_ort``; the faster one, see ``models/VFA_CARD.md``);
+    ``"torch"``: PyTorch (see ``fast``); ``"auto"`` (default): onnxruntime when ``onnxruntime`` and
+    ``onnx`` import, else torch. An explicit ``"onnxruntime"`` that cannot be imported falls back to torch
+    with a ``RuntimeWarning``. ``self.backend`` says which one runs. Both compute the same function (float32
+    summation order aside; same selections); the weights are copied once here, so later changes of
+    ``net`` are not seen.
+
+    fast (torch backend only): run a ``VfaUNet`` (with its safe head) through
+    ``vfa_cnn_fast.compile_fast_unet``, the same function rearranged for inference (same selections);
+    False, or another network: the module's own forward.
     """
 
     def __init__(
         self, evaluator: FootholdEvaluator, net: VfaNet | VfaUNet | None = None, max_map_age_s: float = 0.5,
-        verify: bool = True, decode: VfaDecode | None = None, fast: bool = True,
+        verify: bool = True, decode: VfaDecode | None = None, fast: bool = True, backend: str = "auto",
     ) -> None:  # fmt: skip
         self.exact = FootholdSelector(evaluator, max_map_age_s)  # validates max_map_age_s
         self.evaluator = evaluator
@@ -408,12 +419,26 @@ class CnnFootholdSelector:
                 f"settings have {s.patch_cells} x {s.patch_cells} of {s.resolution_m} m"
             )
         self._margin = np.array(disc_offsets(s.uncertainty_margin_m, s.resolution_m, include_centre=True))
-        use_fast = fast and isinstance(self.net, VfaUNet) and self.net.config.safe_head
+        if backend not in BACKENDS:
+            raise FecConfigError(f"CnnFootholdSelector: backend must be one of {BACKENDS}, got {backend!r}")
+        self._ort_net: vfa_cnn_ort.OrtVfaNet | None = None
+        if backend != "torch":
+            if vfa_cnn_ort.available():
+                self._ort_net = vfa_cnn_ort.OrtVfaNet(self.net)
+            elif backend == "onnxruntime":
+                warnings.warn("CnnFootholdSelector: onnxruntime / onnx not importable, the VFA CNN runs on torch",
+                              RuntimeWarning, stacklevel=2)  # fmt: skip
+        use_fast = self._ort_net is None and fast and isinstance(self.net, VfaUNet) and self.net.config.safe_head
         self._fast_net = compile_fast_unet(self.net, enc.cells) if use_fast else None
 
     @property
+    def backend(self) -> str:
+        """The runtime that computes the network: ``"onnxruntime"`` or ``"torch"``."""
+        return "onnxruntime" if self._ort_net is not None else "torch"
+
+    @property
     def fast(self) -> bool:
-        """True when ``predict`` runs the rearranged network (``vfa_cnn_fast``)."""
+        """True when ``predict`` runs the rearranged torch network (``vfa_cnn_fast``)."""
         return self._fast_net is not None
 
     @property
@@ -437,6 +462,13 @@ class CnnFootholdSelector:
             self.net.config.encoding, np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
             np.stack([i.twist for i in inputs]), gait, np.array([int(i.leg) for i in inputs]),
         )  # fmt: skip
+        if self._ort_net is not None:
+            ort_logits, ort_safe = self._ort_net(image, scalars)
+            if not self.decode.needs_safe_head:
+                return ort_logits.argmax(axis=1).astype(np.intp)
+            with torch.inference_mode():
+                probability = torch.sigmoid(torch.from_numpy(ort_safe))
+            return decode(self.decode, ort_logits, probability.numpy(), image[:, 1].reshape(len(inputs), -1) > 0.5)
         with torch.inference_mode():
             if self._fast_net is not None:
                 logits, safe_logits = self._fast_net(torch.from_numpy(image), torch.from_numpy(scalars))
@@ -559,7 +591,7 @@ def _vector(value: object, size: int, name: str) -> FloatArray:
 
 
 __all__ = [
-    "ARCHITECTURES", "DEFAULT_WEIGHTS", "CnnFootholdSelector", "CnnVfaCounters", "EncodingConfig", "FootholdRequest",
-    "NetConfig", "VfaNet", "VfaUNet", "build_net", "encode", "load_model", "save_model", "store_decode",
-    "stored_decode",
+    "ARCHITECTURES", "BACKENDS", "DEFAULT_WEIGHTS", "CnnFootholdSelector", "CnnVfaCounters", "EncodingConfig",
+    "FootholdRequest", "NetConfig", "VfaNet", "VfaUNet", "build_net", "encode", "load_model", "save_model",
+    "store_decode", "stored_decode",
 ]  # fmt: skip
