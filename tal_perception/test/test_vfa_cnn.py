@@ -477,7 +477,7 @@ def test_widening_computes_the_same_function_and_noise_separates_the_copies(fres
         torch.testing.assert_close(logits, expected, rtol=0.0, atol=1e-5 * scale)
         torch.testing.assert_close(safe_logits, expected_safe, rtol=0.0, atol=1e-5 * scale)
     noisy = widen_unet(net, (8, 16, 32), (32, 16, 16), noise=0.01)
-    first, copy = noisy.decoders[2].weight[:8], noisy.decoders[2].weight[8:]
+    first, copy = noisy.decoders[2].weight.detach()[:8], noisy.decoders[2].weight.detach()[8:]
     assert not torch.equal(first, copy) and float((first - copy).abs().max()) < 0.1 * float(first.abs().max())
     with pytest.raises(ValueError, match="multiples"):
         widen_unet(net, (12, 16, 32), (32, 16, 8))
