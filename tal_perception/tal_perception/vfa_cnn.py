@@ -462,26 +462,32 @@ class CnnFootholdSelector:
             self.net.config.encoding, np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
             np.stack([i.twist for i in inputs]), gait, np.array([int(i.leg) for i in inputs]),
         )  # fmt: skip
+        logits, safe_logits = self._network_outputs(image, scalars)
+        if safe_logits is None:  # the decode needs the optimum head alone
+            return logits.argmax(axis=1).astype(np.intp)
+        with torch.inference_mode():
+            probability = torch.sigmoid(torch.from_numpy(safe_logits)).numpy()
+        return decode(self.decode, logits, probability, image[:, 1].reshape(len(inputs), -1) > 0.5)
+
+    def _network_outputs(
+        self, image: NDArray[np.float32], scalars: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+        """(optimum logits (B, n*n), safe-mask logits (B, n*n) or None when the decode does not use them) from
+        the backend in use: ONNX Runtime, the torch fast path or the module's forward."""
+        needs_safe = self.decode.needs_safe_head
         if self._ort_net is not None:
-            ort_logits, ort_safe = self._ort_net(image, scalars)
-            if not self.decode.needs_safe_head:
-                return ort_logits.argmax(axis=1).astype(np.intp)
-            with torch.inference_mode():
-                probability = torch.sigmoid(torch.from_numpy(ort_safe))
-            return decode(self.decode, ort_logits, probability.numpy(), image[:, 1].reshape(len(inputs), -1) > 0.5)
+            logits, safe_logits = self._ort_net(image, scalars)
+            return logits, safe_logits if needs_safe else None
         with torch.inference_mode():
             if self._fast_net is not None:
-                logits, safe_logits = self._fast_net(torch.from_numpy(image), torch.from_numpy(scalars))
+                out, safe = self._fast_net(torch.from_numpy(image), torch.from_numpy(scalars))
             else:
                 pixels = torch.from_numpy(image).contiguous(memory_format=torch.channels_last)
-                if self.decode.needs_safe_head:
-                    logits, safe_logits = self.net(pixels, torch.from_numpy(scalars))
+                if needs_safe:
+                    out, safe = self.net(pixels, torch.from_numpy(scalars))
                 else:  # the optimum head alone is enough
-                    logits = self.net.optimum_logits(pixels, torch.from_numpy(scalars))
-            if not self.decode.needs_safe_head:
-                return logits.argmax(dim=1).numpy().astype(np.intp)
-            probability = torch.sigmoid(safe_logits)
-        return decode(self.decode, logits.numpy(), probability.numpy(), image[:, 1].reshape(len(inputs), -1) > 0.5)
+                    out, safe = self.net.optimum_logits(pixels, torch.from_numpy(scalars)), None
+            return out.numpy(), (safe.numpy() if needs_safe and safe is not None else None)
 
     def is_safe(self, inp: FecInput, index: int) -> bool:
         """Exact FEC on one candidate: the candidate and every cell within the uncertainty margin are safe."""
