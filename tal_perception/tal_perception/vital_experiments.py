@@ -60,6 +60,7 @@ import math
 import multiprocessing
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -339,33 +340,15 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
               "starts": "Stairs at four speeds from 9 starts each, VFA + VPA (the speeds runs' configuration)"}
     for key, group in runs.items():
         lines += [f"## {titles[key]}", "", HEADER] + [_row(results[r.name]) for r in group] + [""]
-        if key == "cnn":
-            lines += speed_summary(group, results)
+        if key in SUMMARIES:
+            lines += SUMMARIES[key](group, results)
         if key == "centre":
             for label, members in (("under the CoM, pair compensation (these experiments)",
                                     [r for r in group if r.foothold_centre == "com"]),
                                    ("about the hips, no pair compensation (before)",
                                     [r for r in group if r.foothold_centre == "hips"])):
                 lines += [f"Footholds {label}:", ""] + speed_summary(members, results)
-            lines += ["The runs under the CoM are the speeds runs above.", ""]
-        if key == "pose_filter":
-            lines += per_config_summary(group, results)
-            lines += ["The default filter's rate limit (0.1 m/s) is below the 0.16-0.2 m/s at which the trunk "
-                      "rises on these stairs at 0.4-0.5 m/s, and it lags a ramp by 2 rate / bandwidth.", ""]
-        if key == "step_frequency":
-            lines += per_config_summary(group, results)
-            lines += ["At 1.5 Hz and 0.5 m/s the stride (0.33 m) is longer than the stairs' go (0.25 m).", ""]
-        if key == "starts":
-            lines += speed_summary(group, results)
-            lines += ["The start x shifts where the gait's phase meets the first riser. The interval is the Wilson "
-                      "score interval (95 %) of the success rate over the 9 starts.", ""]
-        if key == "speeds":
-            lines += speed_summary(group, results)
-            lines += ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to "
-                      "0.5 m/s, all successful.", "", "![stairs](vital_stairs_speeds.png)", ""]
-        if key == "tbr":
-            lines += ["Thesis: TBR fails, VPA succeeds; TBR has fewer safe footholds.", "",
-                      "![VPA vs TBR](vital_vpa_vs_tbr.png)", ""]
+        lines += NOTES.get(key, [])
         common = _common_path_m([results[r.name] for r in group])
         if key in ("horizon", "cost"):
             lines += config_summary(group, results) + [""]
@@ -478,6 +461,28 @@ def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float
     centre = (rate + z * z / (2 * trials)) / denominator
     half = z * math.sqrt(rate * (1.0 - rate) / trials + z * z / (4 * trials * trials)) / denominator
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+# The summary table(s) under an experiment's run table, and the note after them.
+SUMMARIES: dict[str, Callable[[list[VitalRun], dict[str, VitalRunResult]], list[str]]] = {
+    "cnn": speed_summary,
+    "speeds": speed_summary,
+    "starts": speed_summary,
+    "pose_filter": per_config_summary,
+    "step_frequency": per_config_summary,
+}
+NOTES: dict[str, list[str]] = {
+    "centre": ["The runs under the CoM are the speeds runs above.", ""],
+    "pose_filter": ["The default filter's rate limit (0.1 m/s) is below the 0.16-0.2 m/s at which the trunk rises on "
+                    "these stairs at 0.4-0.5 m/s, and it lags a ramp by 2 rate / bandwidth.", ""],
+    "step_frequency": ["At 1.5 Hz and 0.5 m/s the stride (0.33 m) is longer than the stairs' go (0.25 m).", ""],
+    "starts": ["The start x shifts where the gait's phase meets the first riser. The interval is the Wilson score "
+               "interval (95 %) of the success rate over the 9 starts.", ""],
+    "speeds": ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to 0.5 m/s, all "
+               "successful.", "", "![stairs](vital_stairs_speeds.png)", ""],
+    "tbr": ["Thesis: TBR fails, VPA succeeds; TBR has fewer safe footholds.", "", "![VPA vs TBR](vital_vpa_vs_tbr.png)",
+            ""],
+}
 
 
 def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRunResult]) -> None:
