@@ -18,9 +18,8 @@ import argparse
 import sys
 import time
 
-import numpy as np
 import torch
-from bench_vfa import make_cases
+from bench_vfa import make_cases, stats
 
 from tal_core.legs import LEGS
 from tal_core.robot_model import RobotModel
@@ -76,9 +75,9 @@ def main() -> int:
           "one leg per call: median (p99) [ms] |")  # fmt: skip
     print("| --- | --- | --- | --- | --- |")
     for (text, backend), (_, parameters) in selectors.items():
-        b, o = np.array(times[(text, backend)]["batch"]), np.array(times[(text, backend)]["one"])
-        print(f"| {text} | {parameters:,} | {backend} | {np.median(b):.3f} ({np.percentile(b, 99):.3f}) | "
-              f"{np.median(o):.3f} ({np.percentile(o, 99):.3f}) |")  # fmt: skip
+        b, o = stats(times[(text, backend)]["batch"]), stats(times[(text, backend)]["one"])
+        print(f"| {text} | {parameters:,} | {backend} | {b['median']:.3f} ({b['p99']:.3f}) | "
+              f"{o['median']:.3f} ({o['p99']:.3f}) |")  # fmt: skip
     return 0
 
 
