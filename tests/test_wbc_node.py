@@ -4,6 +4,7 @@ state, and rejects bad input without crashing."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -74,6 +75,8 @@ def test_graph_trots_forward_on_the_state_estimate_with_gait_state_and_diagnosti
     assert sum(f.z for f in diag.desired_force) == pytest.approx(86.77 * 9.81, rel=0.3)
     gait = last["gait"]
     assert gait.gait == "trot" and max(gait.step_count) >= 3
+    # The hips move forward with the trunk reference (the vfa node predicts the hip height at touchdown).
+    assert all(math.isfinite(v.z) and v.x > 0.0 for v in gait.hip_velocity)
     # The estimator ran at 333 Hz in sim time, clean, and tracked the truth while the robot walked on it.
     report = json.loads((tmp_path / "estimator.json").read_text())
     assert 990 <= report["ticks"] <= 1001 and report["rejected"] == {} and report["restarts"] == 0

@@ -43,4 +43,6 @@ def gait_state_message(out: TickOutput, stamp) -> GaitState:
         msg.nominal_foothold[leg] = _point(targets.nominal_footholds[leg])
         msg.target_foothold[leg] = _point(targets.target_footholds[leg])
         msg.hip_position[leg] = _point(targets.hip_positions[leg])
+    for leg, velocity in enumerate(targets.hip_velocities()):
+        msg.hip_velocity[leg] = Vector3(x=float(velocity[0]), y=float(velocity[1]), z=float(velocity[2]))
     return msg

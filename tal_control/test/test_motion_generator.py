@@ -358,3 +358,20 @@ def test_pose_filter_settings_set_how_fast_the_height_reference_follows_the_body
         MotionParameters(max_height_rate_m_s=0.0)
     with pytest.raises(MotionConfigError, match="not both"):
         MotionParameters(trunk=generator.trunk_params, pose_bandwidth_rad_s=8.0)
+
+
+def test_hip_velocities_are_the_trunk_references_rigid_body_velocity_at_the_hips(hyq) -> None:
+    """A lowered and pitched pose reference: the hips move with v_com + w x (hip - com), so the front
+    hips (ahead of the CoM) sink faster than the hind ones while the trunk pitches nose down."""
+    state = standing_state(hyq)
+    generator = MotionGenerator(hyq, TROT)
+    start = generator.update(0.0, state, (0.0, 0.0, 0.0)).trunk.base_position[2]
+    generator.set_body_pose_reference(start - 0.1, 0.0, 0.2)
+    for k in range(1, 26):
+        targets = generator.update(k * DT, state, (0.0, 0.0, 0.0))
+    trunk = targets.trunk
+    expected = trunk.com_velocity + np.cross(trunk.angular_velocity, targets.hip_positions - trunk.com_position)
+    np.testing.assert_allclose(targets.hip_velocities(), expected, atol=1e-12)
+    assert trunk.com_velocity[2] < -0.01 and trunk.angular_velocity[1] > 0.01  # sinking, pitching nose down
+    front, hind = targets.hip_velocities()[[Leg.LF, Leg.RF], 2], targets.hip_velocities()[[Leg.LH, Leg.RH], 2]
+    assert np.all(front < trunk.com_velocity[2] - 0.01) and np.all(hind > trunk.com_velocity[2] + 0.01)

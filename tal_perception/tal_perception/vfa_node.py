@@ -52,7 +52,8 @@ def gait_snapshot_from_message(msg: GaitState) -> GaitSnapshot:
         base_twist=np.array([linear.x, linear.y, linear.z, angular.x, angular.y, angular.z]),
         swing=np.array(msg.swing, dtype=bool), time_to_touchdown_s=np.array(msg.time_to_touchdown, dtype=float),
         step_count=np.array(msg.step_count, dtype=np.int64), liftoff_position=_points(msg.liftoff_position),
-        nominal_foothold=_points(msg.nominal_foothold), hip_position=_points(msg.hip_position))
+        nominal_foothold=_points(msg.nominal_foothold), hip_position=_points(msg.hip_position),
+        hip_velocity=_points(msg.hip_velocity))
 
 
 def grid_from_message(msg: HeightMap) -> tuple[HeightMapGrid, float]:

@@ -100,7 +100,7 @@ def gait_snapshot_from_tick(t_s: float, out) -> GaitSnapshot:
         step_count=np.asarray(phase.step_count, dtype=np.int64),
         liftoff_position=np.asarray(targets.liftoff_positions, dtype=float),
         nominal_foothold=np.asarray(targets.nominal_footholds, dtype=float),
-        hip_position=np.asarray(targets.hip_positions, dtype=float))
+        hip_position=np.asarray(targets.hip_positions, dtype=float), hip_velocity=targets.hip_velocities())
 
 
 @dataclass

@@ -14,6 +14,7 @@ from tal_core.heightmap import HeightMapGrid, extract_heightmap
 from tal_core.legs import Leg
 from tal_core.robot_model import RobotModel
 from tal_core.terrain import Course, DefaultGround, GapPatch, Region
+from tal_core.terrain_patches import StairsPatch
 from tal_perception.errors import FecConfigError, VfaInputError
 from tal_perception.vfa import FootholdSelector, VfaStatus
 from tal_perception.vfa_planner import GaitSnapshot, PlannerSettings, VfaPlanner, make_selector
@@ -230,6 +231,8 @@ def test_malformed_gait_states_raise_precise_input_errors(hips_base, hip_height)
         ({"time_to_touchdown_s": np.array([-0.1, 0.0, 0.0, 0.2])}, "gait_state_invalid",
          r"time_to_touchdown_s < 0 for swinging leg\(s\) LF"),
         ({"step_count": np.array([1, 2, -1, 3])}, "gait_state_invalid", r"step_count must be integers >= 0"),
+        ({"hip_velocity": np.where(np.arange(4)[:, None] == 2, np.nan, 0.0) * np.ones((4, 3))}, "gait_state_nan",
+         r"hip_velocity has NaN/inf at \['LH'\]"),
     ]
     for change, reason, message in cases:
         fields = {f.name: getattr(good, f.name) for f in dataclasses.fields(GaitSnapshot)}
@@ -363,3 +366,31 @@ def test_pair_compensation_settings_are_validated() -> None:
         PlannerSettings(pair_compensation_m=-0.1)
     with pytest.raises(FecConfigError, match="pair_min_adaptation_m"):
         PlannerSettings(pair_min_adaptation_m=float("nan"))
+
+
+def test_a_descending_hip_is_evaluated_at_its_height_at_touchdown(selector, hips_base, hip_height, hyq) -> None:
+    """LF's nominal 0.1 m past a tread edge going down 0.1 m. At touchdown a hip sinking at 0.3 m/s is
+    0.06 m lower (0.2 s left): its knee sits further back over the edge, so the planner moves the foothold
+    further from the edge than at the current hip height, exactly as for a hip already 0.06 m lower. A
+    rising hip keeps its current height, as does every hip with the prediction off."""
+    level = snapshot(hips_base, hip_height)
+    edge_x = float(level.nominal_foothold[Leg.LF, 0]) - 0.1
+    grid = course_map(StairsPatch(name="down", region=Region(edge_x, edge_x + 2.0, -3, 3), rise_m=0.1, go_m=0.25,
+                                  count=3, direction="down", start_height_m=0.0, **RIGID))
+
+    def lf(gait: GaitSnapshot, predict: bool = True) -> np.ndarray:
+        planner = VfaPlanner(selector, hips_base, hyq.description.foot_radius_m,
+                             PlannerSettings(predict_hip_descent=predict))
+        planner.set_map(grid, 1.0)
+        decision = {d.leg: d for d in planner.update(gait)}[Leg.LF]
+        assert decision.status is VfaStatus.SELECTED
+        return decision.selected
+
+    sinking = np.zeros((4, 3))
+    sinking[:, 2] = -0.3
+    descending = dataclasses.replace(level, hip_velocity=sinking)
+    np.testing.assert_allclose(lf(descending), lf(snapshot(hips_base, hip_height - 0.06), predict=False))
+    assert lf(descending)[0] > lf(level)[0] + 0.04
+    np.testing.assert_allclose(lf(descending, predict=False), lf(level))
+    np.testing.assert_allclose(lf(dataclasses.replace(level, hip_velocity=-sinking)), lf(level))
+    assert np.all(level.hip_velocity == 0.0)  # a gait state without hip velocities: zeros

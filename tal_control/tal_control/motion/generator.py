@@ -186,6 +186,14 @@ class MotionTargets:
             if isinstance(value, np.ndarray):
                 value.setflags(write=False)
 
+    def hip_velocities(self) -> np.ndarray:
+        """(4, 3) [m/s] world frame: the hips' velocities in the trunk reference (the CoM's reference
+        velocity plus the reference angular velocity about the CoM, applied at ``hip_positions``). With
+        ``time_to_touchdown`` it predicts where a swinging leg's hip is at touchdown (the ``vfa`` node's
+        hip height on the way down a flight of stairs)."""
+        lever = self.hip_positions - self.trunk.com_position[None, :]
+        return self.trunk.com_velocity[None, :] + np.cross(self.trunk.angular_velocity[None, :], lever)
+
 
 class MotionGenerator:
     """Gait, footholds, swing and trunk references for a quadruped described by a robot model/description.
