@@ -206,7 +206,8 @@ class FootholdDecision:
     safe_candidates: the number of safe candidates when the selector knows it (None: lazy search or not
     evaluated); score [-]: the selector's confidence (1 for the exact evaluation, 0 when nothing was
     evaluated: no map or a stale one); trigger: why it was decided ("swing_start", "new_map",
-    "nominal_moved"); elapsed_s [s] wall time of the selection.
+    "nominal_moved"); elapsed_s [s] wall time of the selection (in a batched selection of several legs: the
+    call's time / its legs, plus this leg's hysteresis check).
     """
 
     leg: Leg
