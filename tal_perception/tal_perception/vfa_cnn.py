@@ -58,7 +58,7 @@ from tal_perception.vfa import (
     extract_patches,
 )
 from tal_perception.vfa_cnn_fast import compile_fast_unet
-from tal_perception.vfa_decode import VfaDecode, decode
+from tal_perception.vfa_decode import VfaDecode, decode, decode_unchecked
 
 FloatArray = NDArray[np.float64]
 MODEL_DIR = Path(__file__).resolve().parent / "models"
@@ -484,13 +484,14 @@ class CnnFootholdSelector:
         if safe_logits is None:  # the decode needs the optimum head alone
             return logits.argmax(axis=1).astype(np.intp)
         b = image.shape[0]
+        unknown = image[:, 1].reshape(b, -1) > 0.5
         if workspace is not None and workspace.safe_logits_tensor is not None:  # the bound ORT output
-            probability = workspace.probability
             torch.sigmoid(workspace.safe_logits_tensor, out=workspace.probability_tensor)
-        else:
-            with torch.inference_mode():
-                probability = torch.sigmoid(torch.from_numpy(safe_logits)).numpy()
-        return decode(self.decode, logits, probability, image[:, 1].reshape(b, -1) > 0.5)
+            # our own arrays, of known shapes and types: the decode's checks are skipped
+            return decode_unchecked(self.decode, logits, workspace.probability, unknown, self.net.config.encoding.cells)
+        with torch.inference_mode():
+            probability = torch.sigmoid(torch.from_numpy(safe_logits)).numpy()
+        return decode(self.decode, logits, probability, unknown)
 
     def _network_outputs(
         self, image: NDArray[np.float32], scalars: NDArray[np.float32], workspace: _Workspace | None = None
