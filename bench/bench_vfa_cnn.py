@@ -2,7 +2,10 @@
 """Time of the CNN-approximated VFA (g_hat) per leg on HyQ, on the seeded terrains of bench_vfa.
 
 Run after ``source scripts/env.sh``:  ``python bench/bench_vfa_cnn.py [--quick] [--samples N] [--seed S]``.
-Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/bench_vfa_cnn.json``.
+Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/bench_vfa_cnn.json`` (``--json``).
+To time another commit's selector with this script (before / after, back to back): ``git worktree add
+/tmp/base <commit>`` and ``PYTHONPATH=/tmp/base/tal_perception:$PYTHONPATH python bench/bench_vfa_cnn.py --json
+...``; the JSON's ``tal_perception`` says which code was timed.
 
 Inputs: the same cases as ``bench_vfa.py`` (``make_cases``: 65 x 65 maps of 0.02 m around the nominal
 foothold at random headings, random hip height, twist and time left in a trot swing). The committed
@@ -17,6 +20,8 @@ Per call we time (time.perf_counter, after a warm-up call), in ``--rounds`` alte
   forward pass, the argmax and the result);
 * ``cnn_4legs``: ``select_legs`` for the four legs on one map (one batched forward pass); the time per
   leg is the call's time / 4;
+* ``cnn_2legs``: ``select_legs`` for a trot's diagonal pair (LF, RH) on one map, the call the ``vfa`` node's
+  planner makes when both legs of the swinging pair are decided in the same tick; per leg = call / 2;
 * ``cnn_verified``: ``select`` with the verification the node uses (the exact FEC on the chosen candidate,
   the exact lazy search if it is unsafe); the table counts how often it fell back.
 
@@ -44,6 +49,7 @@ from machine import (  # bench/machine.py
 try:
     import torch
 
+    import tal_perception
     from tal_core.legs import LEGS
     from tal_core.robot_model import RobotModel
     from tal_perception.fec import FootholdEvaluator
@@ -59,7 +65,8 @@ GOAL_MS = 0.5
 DEFAULT_SAMPLES = 200
 QUICK_SAMPLES = 40
 DEFAULT_SEED = 20240601  # bench_vfa's seed: the same inputs as the exact VFA's bench
-MODES = ("cnn", "cnn_4legs", "cnn_verified")
+MODES = ("cnn", "cnn_4legs", "cnn_2legs", "cnn_verified")
+BATCHES = {"cnn_4legs": LEGS, "cnn_2legs": (LEGS[0], LEGS[3])}  # all legs; a trot's diagonal pair (LF, RH)
 
 
 def progress(message: str) -> None:
@@ -88,12 +95,12 @@ def run_single(selector: CnnFootholdSelector, cases: list[dict], verify: bool) -
     return out
 
 
-def run_batch(selector: CnnFootholdSelector, cases: list[dict]) -> dict[str, dict]:
-    """One ``select_legs`` call for the 4 legs per case; times [ms] per call and per leg."""
+def run_batch(selector: CnnFootholdSelector, cases: list[dict], legs: tuple = LEGS) -> dict[str, dict]:
+    """One ``select_legs`` call for ``legs`` per case; times [ms] per call and per leg."""
     selector.verify = False
 
     def requests(case: dict) -> list[FootholdRequest]:
-        return [FootholdRequest(leg, case["nominal"], case["hip"], case["twist"], case["gait"]) for leg in LEGS]
+        return [FootholdRequest(leg, case["nominal"], case["hip"], case["twist"], case["gait"]) for leg in legs]
 
     selector.select_legs(requests(cases[0]), cases[0]["grid"], yaw=cases[0]["grid"].yaw)  # warm-up
     times = []
@@ -102,7 +109,7 @@ def run_batch(selector: CnnFootholdSelector, cases: list[dict]) -> dict[str, dic
         start = time.perf_counter()
         selector.select_legs(batch, case["grid"], yaw=case["grid"].yaw)
         times.append((time.perf_counter() - start) * 1e3)
-    return {"4legs": {"ms": times, "ms_per_leg": [t / len(LEGS) for t in times]}}
+    return {f"{len(legs)}legs": {"ms": times, "ms_per_leg": [t / len(legs) for t in times]}}
 
 
 def report(summary: dict, n: int, path: str) -> str:
@@ -116,24 +123,29 @@ def report(summary: dict, n: int, path: str) -> str:
             f"| {leg.name} | {cnn['stats']['median']:.3f} | {cnn['stats']['p99']:.3f} | "
             f"{ver['stats']['median']:.3f} | {ver['stats']['p99']:.3f} | {ver['fallbacks']}/{ver['stats']['n']} |"
         )
-    batch = summary["cnn_4legs"]["4legs"]
-    lines.append(
-        f"\n4-leg batch (`select_legs`): median {batch['stats']['median']:.3f} ms per call "
-        f"(p99 {batch['stats']['p99']:.3f}), i.e. {batch['per_leg_stats']['median']:.3f} ms per leg "
-        f"(p99 {batch['per_leg_stats']['p99']:.3f}); {n} terrains; network: {path}."
-    )
+    lines.append("")
+    for mode, legs in BATCHES.items():
+        batch = summary[mode][f"{len(legs)}legs"]
+        lines.append(
+            f"{len(legs)}-leg batch (`select_legs`, {'+'.join(leg.name for leg in legs)}): median "
+            f"{batch['stats']['median']:.3f} ms per call (p99 {batch['stats']['p99']:.3f}), i.e. "
+            f"{batch['per_leg_stats']['median']:.3f} ms per leg (p99 {batch['per_leg_stats']['p99']:.3f})."
+        )
+    lines.append(f"{n} terrains; network: {path}.")
     lines.append(f"Thesis: CNN VFA {THESIS_MEAN_MS} ms +- 1 ms per leg (mean); goal <= {GOAL_MS} ms.")
     return "\n".join(lines)
 
 
 def headline(summary: dict) -> dict[str, dict[str, float]]:
-    """Median and p99 [ms] of the three figures the comparison lists: the 4-leg batch per leg, one leg per
-    call (all legs pooled) and the verified call (all legs pooled)."""
+    """Median and p99 [ms] of the figures the comparison lists: the 4-leg and the 2-leg batch per leg, one
+    leg per call (all legs pooled) and the verified call (all legs pooled)."""
     single = [t for r in summary["cnn"].values() for t in r["ms"]]
     verified = [t for r in summary["cnn_verified"].values() for t in r["ms"]]
     batch = summary["cnn_4legs"]["4legs"]["ms_per_leg"]
+    pair = summary["cnn_2legs"]["2legs"]["ms_per_leg"]
     return {
         "4legs_per_leg": {k: stats(batch)[k] for k in ("median", "p99")},
+        "2legs_per_leg": {k: stats(pair)[k] for k in ("median", "p99")},
         "one_leg": {k: stats(single)[k] for k in ("median", "p99")},
         "verified": {k: stats(verified)[k] for k in ("median", "p99")},
     }
@@ -144,13 +156,13 @@ def comparison(headlines: dict[str, dict[str, dict[str, float]]], labels: dict[s
     names = list(headlines)
     base = names[0]
     lines = [
-        "| network | 4-leg batch, per leg: median (p99) [ms] | one leg per call: median (p99) [ms] | "
-        "verified one leg: median (p99) [ms] |",
-        "| --- | --- | --- | --- |",
+        "| network | 4-leg batch, per leg: median (p99) [ms] | 2-leg batch, per leg: median (p99) [ms] | "
+        "one leg per call: median (p99) [ms] | verified one leg: median (p99) [ms] |",
+        "| --- | --- | --- | --- | --- |",
     ]
     for name in names:
         cells = []
-        for key in ("4legs_per_leg", "one_leg", "verified"):
+        for key in ("4legs_per_leg", "2legs_per_leg", "one_leg", "verified"):
             value = headlines[name][key]
             ratio = value["median"] / headlines[base][key]["median"]
             cells.append(f"{value['median']:.3f} ({value['p99']:.3f})" + ("" if name == base else f", x{ratio:.2f}"))
@@ -172,6 +184,7 @@ def main() -> int:
         "the first one's figures are the headline, `results` in the JSON)",
     )  # fmt: skip
     parser.add_argument("--plain", action="store_true", help="torch: the module's forward, not the fast path")
+    parser.add_argument("--json", type=Path, default=JSON_PATH, help=f"output file (default {JSON_PATH})")
     add_wait_quiet_option(parser)
     args = parser.parse_args()
     n = args.samples or (QUICK_SAMPLES if args.quick else DEFAULT_SAMPLES)
@@ -206,8 +219,8 @@ def main() -> int:
             for backend, selector in selectors.items():
                 progress(f"round {r}/{args.rounds}: {mode}, {backend}")
                 start = cpu_snapshot()
-                if mode == "cnn_4legs":
-                    result = run_batch(selector, cases)
+                if mode in BATCHES:
+                    result = run_batch(selector, cases, BATCHES[mode])
                 else:
                     result = run_single(selector, cases, verify=mode == "cnn_verified")
                 others_busy.append(other_cores_busy(start, cpu_snapshot()))
@@ -222,8 +235,9 @@ def main() -> int:
     for backend in backends:
         summary = {mode: {key: {**r, "stats": stats(r["ms"]), "round_medians_ms": round_medians[backend][mode][key]}
                           for key, r in value.items()} for mode, value in pooled[backend].items()}  # fmt: skip
-        batch = summary["cnn_4legs"]["4legs"]
-        batch["per_leg_stats"] = stats(batch["ms_per_leg"])
+        for mode, legs in BATCHES.items():
+            batch = summary[mode][f"{len(legs)}legs"]
+            batch["per_leg_stats"] = stats(batch["ms_per_leg"])
         summaries[backend] = summary
     busy = [b for b in others_busy if b is not None]
     progress(f"other processes kept {np.mean(busy):.2f} cores busy on average" if busy else "CPU use unknown")
@@ -244,6 +258,7 @@ def main() -> int:
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
         "onnxruntime": vfa_cnn_ort_version(),
+        "tal_perception": str(Path(tal_perception.__file__).parent),  # the code timed (see the docstring)
         "load_average_at_start": load_at_start,
         "weights": args.weights.name,
         "backend": first,
@@ -262,8 +277,9 @@ def main() -> int:
             for b in backends
         },  # fmt: skip
     }
-    JSON_PATH.write_text(json.dumps(document, indent=1))
-    progress(f"wrote {JSON_PATH.relative_to(ROOT)}")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(document, indent=1))
+    progress(f"wrote {args.json}")
     return 0
 
 

@@ -412,6 +412,19 @@ def rows_vfa_cnn(doc: dict) -> list[Row]:
             note=f"p99 {batch['per_leg_stats']['p99']:.3f} ms" + "".join(f"; {o}" for o in others),
         )
     )
+    pair = doc["results"].get("cnn_2legs", {}).get("2legs")  # recorded since the planner batches a trot's pair
+    if pair is not None:
+        rows.append(
+            Row(
+                g,
+                "CNN VFA, 2 legs (a trot's pair) in one batch: time per leg, median",
+                pair["per_leg_stats"]["median"],
+                "ms",
+                goal,
+                thesis,
+                note=f"p99 {pair['per_leg_stats']['p99']:.3f} ms",
+            )
+        )
     verified = doc["results"]["cnn_verified"]
     median, spread = _worst_leg(verified)
     fallbacks = sum(r.get("fallbacks", 0) for r in verified.values())

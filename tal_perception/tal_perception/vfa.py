@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import Enum
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,6 +68,19 @@ class VfaResult:
         return bool(self.offset_cells is not None and self.offset_cells != (0, 0))
 
 
+@dataclass(frozen=True, eq=False)
+class FootholdRequest:
+    """One leg's VFA inputs (the arguments of ``FootholdSelector.select`` for that leg)."""
+
+    leg: Leg
+    nominal_world: ArrayLike  # (3,) [m] world frame
+    hip_height_m: float  # [m] world z of the leg's HAA joint
+    twist: ArrayLike  # (6,) [m/s, rad/s] horizontal frame
+    gait: GaitTiming
+    liftoff_world: ArrayLike | None = None  # (3,) [m]; the CNN selector: only its exact verification uses it
+    hip_touchdown_world: ArrayLike | None = None  # (2,) [m]; likewise
+
+
 def check_map_age(map_age_s: float, who: str) -> None:
     """PerceptionInputError unless ``map_age_s`` [s] (now minus the map's stamp) is finite and not more
     than the clock jitter tolerance in the future; ``who`` names the caller in the message."""
@@ -106,6 +120,73 @@ def _aligned_patch(grid: HeightMapGrid, center_xy: ArrayLike, cells: int) -> Flo
     if src_r.start < src_r.stop and src_c.start < src_c.stop:
         heights[src_r.start - r0 : src_r.stop - r0, src_c.start - c0 : src_c.stop - c0] = grid.heights[src_r, src_c]
     return heights
+
+
+def extract_patches(
+    grid: HeightMapGrid, centers_xy: ArrayLike, yaw: float, cells: int, resolution_m: float,
+    out: NDArray[np.floating] | None = None,
+) -> NDArray[np.floating]:
+    """``extract_patch`` for B centres at once: heights (B, cells, cells) [m] around each of ``centers_xy``
+    (B, 2) [m] (world), rows along ``yaw`` [rad], NaN outside ``grid``; the same values as B calls of
+    ``extract_patch`` (the same arithmetic, element by element). Written into ``out`` when given (float32
+    holds the grid's float32 heights exactly), else into a new float64 array.
+
+    Why: the CNN selector extracts one patch per leg per call; one vectorised pass saves the per-call
+    meshgrid and index set-up of each leg (~10 us per leg)."""
+    centers = np.asarray(centers_xy, dtype=float).reshape(-1, 2)
+    b = centers.shape[0]
+    if out is None:
+        out = np.empty((b, cells, cells))
+    if abs(math.remainder(yaw - grid.yaw, 2.0 * math.pi)) < 1e-9 and abs(resolution_m - grid.resolution_m) < 1e-12:
+        for k, (x, y) in enumerate(centers.tolist()):
+            r0, c0 = _nearest_cell(grid, x, y)
+            _copy_aligned(grid, r0 - cells // 2, c0 - cells // 2, out[k])
+        return out
+    forward, left = _patch_offsets(cells, resolution_m)
+    c, s = math.cos(yaw), math.sin(yaw)
+    x = centers[:, 0, None, None] + c * forward - s * left  # the order of extract_patch's sums (same rounding)
+    y = centers[:, 1, None, None] + s * forward + c * left
+    rows, cols = grid.cell_index(x, y)
+    inside = rows >= 0
+    out[...] = np.nan
+    out[inside] = grid.heights[rows[inside], cols[inside]]
+    return out
+
+
+def _nearest_cell(grid: HeightMapGrid, x: float, y: float) -> tuple[int, int]:
+    """(row, col) of the cell whose centre is nearest to world (x, y) [m] (may lie outside ``grid``):
+    ``HeightMapGrid.fractional_index`` then floor(. + 0.5) as ``_aligned_patch`` does, in the same order of
+    double-precision operations on Python floats (the same result; ~8 us less than the array call)."""
+    cos_yaw, sin_yaw = math.cos(grid.yaw), math.sin(grid.yaw)
+    offset_x, offset_y = x - grid.center_xy[0], y - grid.center_xy[1]
+    forward = cos_yaw * offset_x + sin_yaw * offset_y
+    left = -sin_yaw * offset_x + cos_yaw * offset_y
+    rows = forward / grid.resolution_m + 0.5 * (grid.rows - 1)
+    cols = left / grid.resolution_m + 0.5 * (grid.cols - 1)
+    return math.floor(rows + 0.5), math.floor(cols + 0.5)
+
+
+def _copy_aligned(grid: HeightMapGrid, r0: int, c0: int, out: NDArray[np.floating]) -> None:
+    """``_aligned_patch`` into ``out`` (cells, cells): the grid's cells from row ``r0``, column ``c0`` on."""
+    cells = out.shape[0]
+    src_r = slice(max(r0, 0), min(r0 + cells, grid.rows))
+    src_c = slice(max(c0, 0), min(c0 + cells, grid.cols))
+    if src_r.stop - src_r.start == cells and src_c.stop - src_c.start == cells:
+        out[...] = grid.heights[src_r, src_c]  # the common case: the patch lies inside the map
+        return
+    out[...] = np.nan
+    if src_r.start < src_r.stop and src_c.start < src_c.stop:
+        out[src_r.start - r0 : src_r.stop - r0, src_c.start - c0 : src_c.stop - c0] = grid.heights[src_r, src_c]
+
+
+@lru_cache(maxsize=4)
+def _patch_offsets(cells: int, resolution_m: float) -> tuple[FloatArray, FloatArray]:
+    """(forward, left) (cells, cells) [m] of each patch cell centre from the patch centre (read-only)."""
+    offsets = (np.arange(cells) - 0.5 * (cells - 1)) * resolution_m
+    forward, left = np.meshgrid(offsets, offsets, indexing="ij")
+    forward.setflags(write=False)
+    left.setflags(write=False)
+    return forward, left
 
 
 class FootholdSelector:
@@ -253,4 +334,7 @@ def _vector(value: object, size: int, name: str) -> FloatArray:
     return array
 
 
-__all__ = ["FootholdSelector", "VfaResult", "VfaStatus", "extract_patch", "select_foothold"]
+__all__ = [
+    "FootholdRequest", "FootholdSelector", "VfaResult", "VfaStatus", "extract_patch", "extract_patches",
+    "select_foothold",
+]  # fmt: skip

@@ -48,9 +48,17 @@ from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
-from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, check_map_age, extract_patch
+from tal_perception.fec_settings import _vector as _fec_vector
+from tal_perception.vfa import (
+    FootholdRequest,
+    FootholdSelector,
+    VfaResult,
+    VfaStatus,
+    check_map_age,
+    extract_patches,
+)
 from tal_perception.vfa_cnn_fast import compile_fast_unet
-from tal_perception.vfa_decode import VfaDecode, decode
+from tal_perception.vfa_decode import VfaDecode, decode, decode_unchecked
 
 FloatArray = NDArray[np.float64]
 MODEL_DIR = Path(__file__).resolve().parent / "models"
@@ -105,19 +113,26 @@ def encode(
     twist: NDArray[np.floating],
     gait: NDArray[np.floating],
     leg: NDArray[np.integer],
+    out: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Network inputs of B tuples (see the module docstring): image (B, 4, n, n), scalars (B, S).
 
     heights (B, n, n) [m] world z, NaN unknown; hip_height_m (B,) [m] world z of the HAA joint; twist
     (B, 6) [m/s, rad/s] horizontal frame; gait (B, 4): step frequency [Hz], duty factor [-], time left
-    until touchdown [s], step height [m]; leg (B,) index into LEGS.
+    until touchdown [s], step height [m]; leg (B,) index into LEGS. out: preallocated (image, scalars) of
+    those shapes, float32, C-contiguous, written and returned (the selector's per-call buffers).
     """
     heights = np.asarray(heights, dtype=np.float32)
     hip = np.asarray(hip_height_m, dtype=np.float32)
     b = heights.shape[0]
     coordinates, twist_scale, gait_centre, gait_scale = _constants(cfg)
     unknown = np.isnan(heights)
-    image = np.empty((b, IMAGE_CHANNELS, cfg.cells, cfg.cells), np.float32)
+    if out is None:
+        image = np.empty((b, IMAGE_CHANNELS, cfg.cells, cfg.cells), np.float32)
+        scalars = np.zeros((b, cfg.scalar_count), np.float32)
+    else:
+        image, scalars = out
+        scalars.fill(0.0)
     relative = image[:, 0]
     np.subtract(heights, (hip - cfg.nominal_hip_height_m)[:, None, None], out=relative)
     relative[unknown] = 0.0
@@ -125,15 +140,17 @@ def encode(
     relative /= cfg.height_scale_m
     image[:, 1] = unknown
     image[:, 2:] = coordinates
-    hip_above = np.zeros(b, np.float32)  # 0 when nothing is known
     median, has_known = _row_medians(heights.reshape(b, -1), unknown.reshape(b, -1))
-    hip_above[has_known] = (hip[has_known] - median[has_known] - cfg.nominal_hip_height_m) / cfg.hip_scale_m
+    if has_known.all():  # the same float32 operations as below, without the masked copies
+        np.divide(hip - median - cfg.nominal_hip_height_m, cfg.hip_scale_m, out=scalars[:, 0])
+    else:  # 0 when nothing is known
+        hip_above = np.zeros(b, np.float32)
+        hip_above[has_known] = (hip[has_known] - median[has_known] - cfg.nominal_hip_height_m) / cfg.hip_scale_m
+        scalars[:, 0] = hip_above
     twist = np.asarray(twist, dtype=np.float32)
     gait = np.asarray(gait, dtype=np.float32)
-    scalars = np.zeros((b, cfg.scalar_count), np.float32)
-    scalars[:, 0] = hip_above
-    scalars[:, 1:4] = twist[:, [0, 1, 5]] / twist_scale
-    scalars[:, 4:8] = (gait - gait_centre) / gait_scale
+    np.divide(twist[:, [0, 1, 5]], twist_scale, out=scalars[:, 1:4])
+    np.divide(gait - gait_centre, gait_scale, out=scalars[:, 4:8])
     scalars[:, 8] = gait[:, 2] / ((1.0 - gait[:, 1]) / gait[:, 0])  # fraction of the swing still to go
     scalars[np.arange(b), 9 + np.asarray(leg, dtype=np.intp)] = 1.0  # one-hot leg
     return image, scalars
@@ -160,6 +177,11 @@ def _row_medians(
     the middle positions of every row. Each median is ``np.median``'s in float32: the middle value, or
     0.5 * (sum of the two middle values) for an even count (~25 us for 4 rows of 1089, 4 x ~10 us before)."""
     rows, m = values.shape
+    if not unknown.any():  # the common case: every row's middle is at the same positions (no index arrays)
+        ordered = np.partition(values, ((m - 1) // 2, m // 2), axis=1)
+        high, low = ordered[:, m // 2], ordered[:, (m - 1) // 2]
+        median = high if m % 2 == 1 else np.float32(0.5) * (low + high)
+        return median.astype(np.float32, copy=False), np.ones(rows, dtype=bool)
     count = m - unknown.sum(axis=1)
     has_known = count > 0
     upper = np.minimum(count // 2, m - 1)
@@ -356,19 +378,6 @@ class CnnVfaCounters:
     rejected: int = 0  # ... of which were unsafe: the exact lazy search ran instead
 
 
-@dataclass(frozen=True, eq=False)
-class FootholdRequest:
-    """One leg's VFA inputs (the arguments of ``FootholdSelector.select`` for that leg)."""
-
-    leg: Leg
-    nominal_world: ArrayLike  # (3,) [m] world frame
-    hip_height_m: float  # [m] world z of the leg's HAA joint
-    twist: ArrayLike  # (6,) [m/s, rad/s] horizontal frame
-    gait: GaitTiming
-    liftoff_world: ArrayLike | None = None  # (3,) [m]; only the exact verification / fallback uses it
-    hip_touchdown_world: ArrayLike | None = None  # (2,) [m]; only the exact verification / fallback uses it
-
-
 class CnnFootholdSelector:
     """g_hat: the VFA's foothold evaluation by the CNN, with the interface and results of
     ``FootholdSelector`` (same patch extraction, same NO_MAP / STALE_MAP pass-through).
@@ -422,6 +431,7 @@ class CnnFootholdSelector:
         if backend not in BACKENDS:
             raise FecConfigError(f"CnnFootholdSelector: backend must be one of {BACKENDS}, got {backend!r}")
         self._ort_net: vfa_cnn_ort.OrtVfaNet | None = None
+        self._workspaces: dict[int, _Workspace] = {}  # by batch size (select_legs' buffers)
         if backend != "torch":
             if vfa_cnn_ort.available():
                 self._ort_net = vfa_cnn_ort.OrtVfaNet(self.net)
@@ -456,27 +466,45 @@ class CnnFootholdSelector:
                 )
         if not inputs:
             return np.zeros(0, np.intp)
-        gait = np.array([[i.gait.step_frequency_hz, i.gait.duty_factor, i.gait.swing_time_left_s,
-                          i.gait.step_height_m] for i in inputs])  # fmt: skip
-        image, scalars = encode(
-            self.net.config.encoding, np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
+        gait = np.array([_gait_row(i.gait) for i in inputs])
+        return self._choose(
+            np.stack([i.heights for i in inputs]), np.array([i.hip_height_m for i in inputs]),
             np.stack([i.twist for i in inputs]), gait, np.array([int(i.leg) for i in inputs]),
         )  # fmt: skip
-        logits, safe_logits = self._network_outputs(image, scalars)
+
+    def _choose(
+        self, heights: NDArray[np.floating], hip_height_m: NDArray[np.floating], twist: NDArray[np.floating],
+        gait: NDArray[np.floating], legs: NDArray[np.integer], workspace: _Workspace | None = None,
+    ) -> NDArray[np.intp]:  # fmt: skip
+        """The CNN's choices (B,) for the arrays of ``encode``: encoding, network, decode; into ``workspace``'s
+        buffers when given (a call of 1-4 legs), else into new arrays."""
+        out = (workspace.image, workspace.scalars) if workspace is not None else None
+        image, scalars = encode(self.net.config.encoding, heights, hip_height_m, twist, gait, legs, out=out)
+        logits, safe_logits = self._network_outputs(image, scalars, workspace)
         if safe_logits is None:  # the decode needs the optimum head alone
             return logits.argmax(axis=1).astype(np.intp)
+        b = image.shape[0]
+        unknown = image[:, 1].reshape(b, -1) > 0.5
+        if workspace is not None and workspace.safe_logits_tensor is not None:  # the bound ORT output
+            torch.sigmoid(workspace.safe_logits_tensor, out=workspace.probability_tensor)
+            # our own arrays, of known shapes and types: the decode's checks are skipped
+            return decode_unchecked(self.decode, logits, workspace.probability, unknown, self.net.config.encoding.cells)
         with torch.inference_mode():
             probability = torch.sigmoid(torch.from_numpy(safe_logits)).numpy()
-        return decode(self.decode, logits, probability, image[:, 1].reshape(len(inputs), -1) > 0.5)
+        return decode(self.decode, logits, probability, unknown)
 
     def _network_outputs(
-        self, image: NDArray[np.float32], scalars: NDArray[np.float32]
+        self, image: NDArray[np.float32], scalars: NDArray[np.float32], workspace: _Workspace | None = None
     ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
         """(optimum logits (B, n*n), safe-mask logits (B, n*n) or None when the decode does not use them) from
-        the backend in use: ONNX Runtime, the torch fast path or the module's forward."""
+        the backend in use: ONNX Runtime (bound to ``workspace``'s buffers when given), the torch fast path or
+        the module's forward."""
         needs_safe = self.decode.needs_safe_head
         if self._ort_net is not None:
-            logits, safe_logits = self._ort_net(image, scalars)
+            if workspace is not None and workspace.binding is not None:
+                logits, safe_logits = workspace.binding.run()
+            else:
+                logits, safe_logits = self._ort_net(image, scalars)
             return logits, safe_logits if needs_safe else None
         with torch.inference_mode():
             if self._fast_net is not None:
@@ -488,6 +516,16 @@ class CnnFootholdSelector:
                 else:  # the optimum head alone is enough
                     out, safe = self.net.optimum_logits(pixels, torch.from_numpy(scalars)), None
             return out.numpy(), (safe.numpy() if needs_safe and safe is not None else None)
+
+    def _workspace(self, batch: int) -> _Workspace | None:
+        """The preallocated buffers of a call of ``batch`` legs (1 to 4; None for other sizes), made once."""
+        if not 1 <= batch <= len(LEGS):
+            return None
+        workspace = self._workspaces.get(batch)
+        if workspace is None:
+            workspace = _Workspace(batch, self.net.config.encoding, self._ort_net)
+            self._workspaces[batch] = workspace
+        return workspace
 
     def is_safe(self, inp: FecInput, index: int) -> bool:
         """Exact FEC on one candidate: the candidate and every cell within the uncertainty margin are safe."""
@@ -520,7 +558,10 @@ class CnnFootholdSelector:
         self, requests: Sequence[FootholdRequest], grid: HeightMapGrid | None, *, yaw: float | None = None,
         map_age_s: float = 0.0,
     ) -> list[VfaResult]:  # fmt: skip
-        """g_hat for several legs on one map: one batched CNN pass (the VFA node's call, 4 legs)."""
+        """g_hat for several legs on one map: one batched CNN pass (the VFA node's call, 4 legs).
+
+        The patches, the network's inputs and outputs of a call of 1-4 legs live in buffers kept between
+        calls (``_Workspace``): one call at a time per selector (not re-entrant)."""
         nominals = [_vector(r.nominal_world, 3, "nominal_world") for r in requests]
         check_map_age(map_age_s, "VFA")
         legs = [Leg(r.leg) for r in requests]
@@ -530,45 +571,54 @@ class CnnFootholdSelector:
         heading = grid.yaw if yaw is None else float(yaw)
         if not math.isfinite(heading):
             raise PerceptionInputError(f"VFA: yaw must be finite [rad], got {yaw!r}")
+        if not requests:
+            return []
+        twist = np.stack([_check_request(r) for r in requests])
         s = self.evaluator.settings
-        inputs = [
-            FecInput(leg, extract_patch(grid, nom[:2], heading, s.patch_cells, s.resolution_m), r.hip_height_m,
-                     r.twist, r.gait)
-            for leg, nom, r in zip(legs, nominals, requests)
-        ]  # fmt: skip
-        choices = self.predict(inputs)
+        workspace = self._workspace(len(requests))
+        patches = extract_patches(
+            grid, [nom[:2] for nom in nominals], heading, s.patch_cells, s.resolution_m,
+            out=workspace.patches if workspace is not None else None,
+        )  # fmt: skip
+        if np.isinf(patches).any():  # FecInput's check (a map may hold +-inf; the planner rejects it earlier)
+            raise PerceptionInputError("FecInput.heights must be finite or NaN (unknown), got +-inf")
+        gait = np.array([_gait_row(r.gait) for r in requests])
+        hip = np.array([r.hip_height_m for r in requests], dtype=float)
+        choices = self._choose(patches, hip, twist, gait, np.array([int(leg) for leg in legs]), workspace)
         results = []
-        for request, inp, nominal, index in zip(requests, inputs, nominals, choices):
+        for request, leg, patch, nominal, index in zip(requests, legs, patches, nominals, choices.tolist()):
             self.counters.selections += 1
-            results.append(self._result(request, inp, nominal, int(index), grid, heading, map_age_s))
+            results.append(self._result(request, leg, patch, nominal, index, grid, heading, map_age_s))
         return results
 
     def _result(
-        self, request: FootholdRequest, inp: FecInput, nominal: FloatArray, index: int, grid: HeightMapGrid,
-        heading: float, map_age_s: float,
+        self, request: FootholdRequest, leg: Leg, patch: NDArray[np.floating], nominal: FloatArray, index: int,
+        grid: HeightMapGrid, heading: float, map_age_s: float,
     ) -> VfaResult:  # fmt: skip
-        """The VfaResult of the CNN's choice ``index``, verified (and replaced by the exact g) if asked."""
+        """The VfaResult of the CNN's choice ``index`` on ``patch`` (n, n) [m], verified (and replaced by the
+        exact g) if asked."""
         if self.verify:
             self.counters.verified += 1
-            exact_inp = inp
+            exact_inp = FecInput(leg, patch.astype(np.float64), request.hip_height_m, request.twist, request.gait)
             if request.liftoff_world is not None or request.hip_touchdown_world is not None:
-                exact_inp = self._with_exact_extras(inp, request, nominal, heading)
+                exact_inp = self._with_exact_extras(exact_inp, request, nominal, heading)
             if not self.is_safe(exact_inp, index):
                 self.counters.rejected += 1
                 return self.exact.select(
-                    inp.leg, nominal, grid, hip_height_m=request.hip_height_m, twist=request.twist, gait=request.gait,
+                    leg, nominal, grid, hip_height_m=request.hip_height_m, twist=request.twist, gait=request.gait,
                     yaw=heading, map_age_s=map_age_s, liftoff_world=request.liftoff_world,
                     hip_touchdown_world=request.hip_touchdown_world,
                 )  # fmt: skip
-        n = inp.heights.shape[0]
-        z = inp.heights.reshape(-1)[index]
+        n = patch.shape[0]
+        z = float(patch.reshape(-1)[index])  # float32 -> float: exact (the float64 patch held the same value)
         if not math.isfinite(z):  # an unknown cell is never a foothold
-            return VfaResult(inp.leg, nominal, nominal.copy(), False, VfaStatus.NO_SAFE_CANDIDATE, None, None)
+            return VfaResult(leg, nominal, nominal.copy(), False, VfaStatus.NO_SAFE_CANDIDATE, None, None)
         d_row, d_col = index // n - n // 2, index % n - n // 2
-        forward, left = d_row * self.evaluator.settings.resolution_m, d_col * self.evaluator.settings.resolution_m
+        resolution = self.evaluator.settings.resolution_m
+        forward, left = d_row * resolution, d_col * resolution
         c, s = math.cos(heading), math.sin(heading)
         selected = np.array([nominal[0] + c * forward - s * left, nominal[1] + s * forward + c * left, z])
-        return VfaResult(inp.leg, nominal, selected, True, VfaStatus.SELECTED, None, (int(d_row), int(d_col)))
+        return VfaResult(leg, nominal, selected, True, VfaStatus.SELECTED, None, (int(d_row), int(d_col)))
 
     @staticmethod
     def _with_exact_extras(inp: FecInput, request: FootholdRequest, nominal: FloatArray, heading: float) -> FecInput:
@@ -594,6 +644,42 @@ def _vector(value: object, size: int, name: str) -> FloatArray:
     if array.shape != (size,) or not np.isfinite(array).all():
         raise PerceptionInputError(f"VFA: {name} must be {size} finite values, got {value!r}")
     return array
+
+
+def _gait_row(gait: GaitTiming) -> tuple[float, float, float, float]:
+    """The ``gait`` row of ``encode``: step frequency [Hz], duty factor [-], time left [s], step height [m]."""
+    return (gait.step_frequency_hz, gait.duty_factor, gait.swing_time_left_s, gait.step_height_m)
+
+
+def _check_request(request: FootholdRequest) -> FloatArray:
+    """The checks ``FecInput`` makes of a request's hip height, twist and gait (same errors), without building
+    one (the CNN path needs only the arrays); returns the twist (6,) [m/s, rad/s] as float64."""
+    hip = request.hip_height_m
+    if not (isinstance(hip, (int, float, np.floating)) and math.isfinite(hip)):
+        raise PerceptionInputError(f"FecInput.hip_height_m must be a finite number [m], got {hip!r}")
+    twist = _fec_vector(request.twist, 6, "twist")
+    if not isinstance(request.gait, GaitTiming):
+        raise PerceptionInputError(f"FecInput.gait must be a GaitTiming, got {type(request.gait).__name__}")
+    return twist
+
+
+class _Workspace:
+    """The buffers of ``select_legs`` calls of one batch size, made once per selector and reused: the patches,
+    the network's inputs (``encode`` writes them), its outputs (ONNX Runtime writes them through an I/O
+    binding) and the safe probabilities. Why: a call of 1-4 legs otherwise spends a good part of its
+    Python time allocating and filling fresh arrays and ORT feeds."""
+
+    def __init__(self, batch: int, cfg: EncodingConfig, ort_net: vfa_cnn_ort.OrtVfaNet | None) -> None:
+        n = cfg.cells
+        self.patches = np.empty((batch, n, n), np.float32)  # [m] world z, NaN unknown (the grid's float32)
+        self.image = np.empty((batch, IMAGE_CHANNELS, n, n), np.float32)
+        self.scalars = np.empty((batch, cfg.scalar_count), np.float32)
+        self.probability = np.empty((batch, n * n), np.float32)
+        self.probability_tensor = torch.from_numpy(self.probability)  # shares the memory
+        self.binding = ort_net.bind(self.image, self.scalars) if ort_net is not None else None
+        # a torch view of the bound safe-logit output: the sigmoid reads it and writes the probabilities in place
+        safe_logits = self.binding.safe_logits if self.binding is not None else None
+        self.safe_logits_tensor = torch.from_numpy(safe_logits) if safe_logits is not None else None
 
 
 __all__ = [

@@ -104,6 +104,7 @@ class OrtVfaNet:
         import onnxruntime as ort
 
         self.safe_head = bool(net.config.safe_head)  # type: ignore[attr-defined]
+        self.candidates = int(net.config.encoding.cells) ** 2  # type: ignore[attr-defined]
         self.model_bytes = export_onnx(net)
         self.session = ort.InferenceSession(self.model_bytes, session_options(), providers=["CPUExecutionProvider"])
 
@@ -115,5 +116,46 @@ class OrtVfaNet:
         outputs = self.session.run(None, feed)
         return outputs[0], (outputs[1] if self.safe_head else None)
 
+    def bind(self, image: NDArray[np.float32], scalars: NDArray[np.float32]) -> OrtBinding:
+        """A run of the network on fixed input buffers into preallocated outputs (``OrtBinding``).
 
-__all__ = ["ONNX_OPSET", "OrtVfaNet", "available", "export_onnx", "session_options"]
+        image (B, 4, n, n) and scalars (B, S): float32, C-contiguous; the caller writes them before each
+        run and keeps them alive as long as the binding."""
+        for name, array in (("image", image), ("scalars", scalars)):
+            if array.dtype != np.float32 or not array.flags.c_contiguous:
+                raise ValueError(f"OrtVfaNet.bind: {name} must be a C-contiguous float32 array")
+        return OrtBinding(self.session, image, scalars, self.candidates, self.safe_head)
+
+
+class OrtBinding:
+    """ONNX Runtime's I/O binding of one ``OrtVfaNet`` session to fixed buffers: ``run()`` computes the
+    network on the current contents of ``image`` and ``scalars`` into ``logits`` (B, n*n) and ``safe_logits``
+    (B, n*n, None without the safe head), the same arrays at every run (overwritten by the next one).
+    Same outputs as ``OrtVfaNet.__call__``; saves the feed dictionary, the input checks and the output
+    allocations of ``InferenceSession.run`` (~10 us of a ~0.37 ms one-leg call)."""
+
+    def __init__(self, session: Any, image: NDArray[np.float32], scalars: NDArray[np.float32], candidates: int,
+                 safe_head: bool) -> None:  # fmt: skip
+        import onnxruntime as ort
+
+        batch = image.shape[0]
+        self.image, self.scalars = image, scalars  # referenced here so that the bound memory stays alive
+        self.logits = np.empty((batch, candidates), np.float32)
+        self.safe_logits = np.empty((batch, candidates), np.float32) if safe_head else None
+        self._binding = session.io_binding()
+        for name, array in (("image", image), ("scalars", scalars), ("logits", self.logits),
+                            ("safe_logits", self.safe_logits)):  # fmt: skip
+            if array is None:
+                continue
+            bind = self._binding.bind_input if name in ("image", "scalars") else self._binding.bind_output
+            bind(name, "cpu", 0, np.float32, list(array.shape), array.ctypes.data)
+        self._session = session
+        self._options = ort.RunOptions()
+
+    def run(self) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+        """(optimum logits, safe-mask logits or None) of the buffers' current inputs."""
+        self._session.run_with_iobinding(self._binding, self._options)
+        return self.logits, self.safe_logits
+
+
+__all__ = ["ONNX_OPSET", "OrtBinding", "OrtVfaNet", "available", "export_onnx", "session_options"]

@@ -131,9 +131,22 @@ def decode(
     probability = np.asarray(safe_probability)
     if probability.shape != logits.shape:
         raise PerceptionInputError(f"VFA decode: safe_probability must be {logits.shape}, got {probability.shape}")
-    known = ~unknown
+    return decode_unchecked(settings, logits, probability, unknown, cells)
+
+
+def decode_unchecked(
+    settings: VfaDecode, logits: NDArray[np.floating], probability: NDArray[np.floating] | None,
+    unknown: NDArray[np.bool_], cells: int,
+) -> NDArray[np.intp]:  # fmt: skip
+    """``decode`` without its checks and conversions, for arrays known to be right: float logits and
+    probabilities (B, cells * cells) (probabilities may be None for ``argmax``), a bool ``unknown`` of that
+    shape, ``cells`` odd. Why: the selector's calls of 1-4 legs decode its own network outputs, whose
+    checks cost ~6 us of a ~0.5 ms call."""
+    if settings.mode == "argmax":
+        return np.argmax(logits, axis=1).astype(np.intp)
     if settings.mode == "combined":
-        return _masked_argmax(combined_score(settings, logits, probability, cells), known)
+        return _combined_choice(settings, logits, probability, unknown, cells)
+    known = ~unknown
     passing = known & (probability >= np.float64(settings.tau))  # compared in float64 whatever the dtype
     if settings.mode == "masked_argmax":
         choice = _masked_argmax(logits, passing)
@@ -151,11 +164,29 @@ def combined_score(
     """The ``combined`` score per candidate (B, n*n), float64: optimum_logit + lambda * log(max(p_safe, 1e-30))
     - mu * d^2, d [cells] from the centre (unknown cells are not excluded here)."""
     score = logits.astype(np.float64)
-    if settings.safe_weight:
-        score += settings.safe_weight * np.log(np.maximum(probability, _MIN_PROBABILITY, dtype=np.float64))
+    if settings.safe_weight:  # lambda * log(max(p, 1e-30)) in place (the same operations, fewer temporaries)
+        term = np.maximum(probability, _MIN_PROBABILITY, dtype=np.float64)
+        np.log(term, out=term)
+        term *= settings.safe_weight
+        score += term
     if settings.distance_weight:
         score -= settings.distance_weight * _distance_sq(cells)[0][None, :]
     return score
+
+
+def _combined_choice(
+    settings: VfaDecode, logits: NDArray[np.floating], probability: NDArray[np.floating], unknown: NDArray[np.bool_],
+    cells: int,
+) -> NDArray[np.intp]:  # fmt: skip
+    """``_masked_argmax(combined_score(...), ~unknown)`` with the unknown cells' scores set to -inf in place
+    (the same argmax; no masked copy of the scores, ~5 us less for a call of 1-4 legs)."""
+    score = combined_score(settings, logits, probability, cells)
+    np.copyto(score, -np.inf, where=unknown)
+    choice = np.argmax(score, axis=1).astype(np.intp, copy=False)
+    if any(score[row, column] == -np.inf for row, column in enumerate(choice.tolist())):
+        # a row whose best is -inf (no known cell, or only -inf scores): redo it as _masked_argmax does
+        return _masked_argmax(combined_score(settings, logits, probability, cells), ~unknown)
+    return choice
 
 
 def _masked_argmax(logits: NDArray[np.floating], allowed: NDArray[np.bool_]) -> NDArray[np.intp]:
@@ -180,4 +211,4 @@ def _closest(
     return _masked_argmax(logits, near)
 
 
-__all__ = ["DECODE_MODES", "VfaDecode", "combined_score", "decode"]
+__all__ = ["DECODE_MODES", "VfaDecode", "combined_score", "decode", "decode_unchecked"]

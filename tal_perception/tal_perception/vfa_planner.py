@@ -35,6 +35,12 @@ decision keeps the gait's nominal in ``nominal`` (trigger "pair"). On ViTAL's st
 foot moved 6-8 cm back from a tread edge left the CoM 4-8 cm ahead of the line; the trunk pitched 10 deg
 past its reference and the front shin hit the edge above.
 
+Batching: the legs that need a decision at the same tick (a trot's diagonal pair usually starts its
+swing, or sees a new map, together) are selected in one ``select_legs`` call when the selector has one
+(the CNN's: one network pass instead of one per leg); each leg's trigger, hysteresis and level lock read
+only that leg's state, so the decisions are those of one ``select`` per leg (tested). The exact selector
+is called one leg at a time.
+
 A re-decision is reported only when it changes something (the selection by more than
 ``selection_tolerance_m``, or the status), so the consumer re-targets the swing only when needed.
 
@@ -71,7 +77,7 @@ from tal_core.robot_model import RobotModel
 from tal_perception.errors import FecConfigError, VfaInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import FecSettings, GaitTiming
-from tal_perception.vfa import FootholdSelector, VfaStatus
+from tal_perception.vfa import FootholdRequest, FootholdSelector, VfaStatus
 
 FloatArray = NDArray[np.float64]
 SELECTORS: tuple[str, ...] = ("exact", "cnn")
@@ -207,7 +213,8 @@ class FootholdDecision:
     safe_candidates: the number of safe candidates when the selector knows it (None: lazy search or not
     evaluated); score [-]: the selector's confidence (1 for the exact evaluation, 0 when nothing was
     evaluated: no map or a stale one); trigger: why it was decided ("swing_start", "new_map",
-    "nominal_moved"); elapsed_s [s] wall time of the selection.
+    "nominal_moved"); elapsed_s [s] wall time of the selection (in a batched selection of several legs: the
+    call's time / its legs, plus this leg's hysteresis check).
     """
 
     leg: Leg
@@ -309,14 +316,20 @@ class VfaPlanner:
         return cls(chosen, hips, float(model.description.foot_radius_m), settings)
 
     def warm_up(self) -> float:
-        """One selection per leg on a flat synthetic map under the standing robot, not counted: builds the
-        selector's caches so that the first real swing does not pay for them. Returns its wall time [s]."""
+        """One selection per leg on a flat synthetic map under the standing robot, not counted (and, for a
+        selector with ``select_legs``, one call of 2, 3 and 4 legs): builds the selector's caches so that the
+        first real swing does not pay for them. Returns its wall time [s]."""
         start = time.perf_counter()
         height = 0.5  # [m] a plausible hip height above the flat map (the result is not used)
         grid = HeightMapGrid(center_xy=(0.0, 0.0), yaw=0.0, resolution_m=0.02, heights=np.zeros((81, 81)))
         timing = GaitTiming(step_frequency_hz=1.5, duty_factor=0.6, swing_time_left_s=0.2, step_height_m=0.1)
         for leg in LEGS:
             self.selector.select(leg, np.zeros(3), grid, hip_height_m=height, twist=np.zeros(6), gait=timing)
+        select_legs = getattr(self.selector, "select_legs", None)
+        if select_legs is not None:  # the batched calls of 2-4 legs have their own buffers (CNN selector)
+            requests = [FootholdRequest(leg, np.zeros(3), height, np.zeros(6), timing) for leg in LEGS]
+            for count in range(2, len(LEGS) + 1):
+                select_legs(requests[:count], grid)
         return time.perf_counter() - start
 
     def reset(self) -> None:
@@ -382,15 +395,18 @@ class VfaPlanner:
                                     f"after the previous one's {last:.6f} s")
         self._gait_stamp_s = gait.stamp_s
         news: list[FootholdDecision] = []
+        pending: list[tuple[Leg, str]] = []  # the legs that need a decision this tick, in LEGS order
         for leg in LEGS:
             if not gait.swing[leg]:
                 self._decisions.pop(leg, None)
                 continue
             trigger = self._trigger(leg, gait)
-            if trigger is None:
-                continue
+            if trigger is not None:
+                pending.append((leg, trigger))
+        # Each leg's trigger and decision read only that leg's state, so deciding all of them first (one
+        # batched selection) and then committing them in LEGS order is the same as one leg at a time.
+        for (leg, _trigger), decision in zip(pending, self._decide_legs(gait, pending)):
             previous = self._decisions.get(leg)
-            decision = self._decide(leg, gait, trigger)
             if previous is not None and self._changes_level_late(leg, gait, previous, decision):
                 # Keep the selection, but as seen with this map and nominal (no re-trigger next tick).
                 self.counters.level_locked += 1
@@ -466,28 +482,71 @@ class VfaPlanner:
         return None
 
     def _decide(self, leg: Leg, gait: GaitSnapshot, trigger: str) -> FootholdDecision:
+        """The decision for ``leg`` at this tick (one selection, then the switch hysteresis)."""
+        return self._decide_legs(gait, [(leg, trigger)])[0]
+
+    def _decide_legs(self, gait: GaitSnapshot, pending: list[tuple[Leg, str]]) -> list[FootholdDecision]:
+        """The decisions for the (leg, trigger) pairs of ``pending`` at this tick, in its order.
+
+        Two or more legs with a selector that has ``select_legs`` (the CNN's): one batched selection (one
+        network pass; a trot's diagonal pair usually swings and is decided together), each decision's
+        ``elapsed_s`` its share of the call (call time / legs) plus its own hysteresis check. Otherwise
+        one ``select`` per leg. The selections are the same either way (each leg's result depends only on
+        its own request and the map; tested)."""
+        if not pending:
+            return []
+        yaw = self.hips.heading(gait.hip_position)
+        map_age = math.inf if self._map_stamp_s is None else abs(gait.stamp_s - self._map_stamp_s)
+        map_age_s = 0.0 if self._grid is None else map_age  # the selector's argument (no map: not read)
+        requests = [self._request(leg, gait, yaw) for leg, _ in pending]
+        select_legs = getattr(self.selector, "select_legs", None)
+        if len(requests) > 1 and select_legs is not None:
+            start = time.perf_counter()
+            results = select_legs(requests, self._grid, yaw=yaw, map_age_s=map_age_s)
+            shares = [(time.perf_counter() - start) / len(requests)] * len(requests)
+        else:
+            results, shares = [], []
+            for request in requests:
+                start = time.perf_counter()
+                results.append(self._select(request, yaw, map_age_s))
+                shares.append(time.perf_counter() - start)
+        return [self._conclude(gait, trigger, request, result, yaw, map_age_s, share)
+                for (_, trigger), request, result, share in zip(pending, requests, results, shares)]
+
+    def _request(self, leg: Leg, gait: GaitSnapshot, yaw: float) -> FootholdRequest:
+        """``leg``'s selector inputs at this tick: its nominal, hip height, the twist, the gait timing with
+        the time left [s], its lift-off foothold and its hip at touchdown (world frame, heading ``yaw`` [rad])."""
         timing = GaitTiming(
             step_frequency_hz=float(gait.step_frequency_hz), duty_factor=float(gait.duty_factor),
             swing_time_left_s=0.0, step_height_m=float(gait.step_height_m))
         # The scheduler's time to touchdown may exceed (1 - D) / f by rounding or during a gait switch.
         time_left = float(np.clip(gait.time_to_touchdown_s[leg], 0.0, timing.swing_duration_s))
         timing = GaitTiming(timing.step_frequency_hz, timing.duty_factor, time_left, timing.step_height_m)
-        yaw = self.hips.heading(gait.hip_position)
         liftoff = gait.liftoff_position[leg] - np.array([0.0, 0.0, self.foot_radius_m])
-        map_age = math.inf if self._map_stamp_s is None else abs(gait.stamp_s - self._map_stamp_s)
         hip_touchdown = self._hip_at_touchdown(leg, gait, yaw, time_left)
+        return FootholdRequest(leg, gait.nominal_foothold[leg], self._fec_hip_height(leg, gait, time_left),
+                               gait.base_twist, timing, liftoff, hip_touchdown)
+
+    def _select(self, request: FootholdRequest, yaw: float, map_age_s: float, nominal_world: ArrayLike | None = None
+                ) -> Any:
+        """The selector's result for ``request`` (around ``nominal_world`` [m] instead of its nominal if given)."""
+        return self.selector.select(
+            request.leg, request.nominal_world if nominal_world is None else nominal_world, self._grid,
+            hip_height_m=request.hip_height_m, twist=request.twist, gait=request.gait, yaw=yaw, map_age_s=map_age_s,
+            liftoff_world=request.liftoff_world, hip_touchdown_world=request.hip_touchdown_world)
+
+    def _conclude(self, gait: GaitSnapshot, trigger: str, request: FootholdRequest, result: Any, yaw: float,
+                  map_age_s: float, elapsed_s: float) -> FootholdDecision:
+        """The decision from the selector's ``result`` for ``request``: the switch hysteresis (a still-safe
+        previous selection of the same swing may be kept), then the record. elapsed_s [s]: the selection's
+        time so far (the hysteresis check's is added)."""
+        leg = request.leg
         start = time.perf_counter()
-        result = self.selector.select(
-            leg, gait.nominal_foothold[leg], self._grid, hip_height_m=self._fec_hip_height(leg, gait, time_left),
-            twist=gait.base_twist,
-            gait=timing, yaw=yaw, map_age_s=0.0 if self._grid is None else map_age, liftoff_world=liftoff,
-            hip_touchdown_world=hip_touchdown)
         previous = self._decisions.get(leg)
         if (previous is not None and previous.step_count == int(gait.step_count[leg])
                 and previous.status is VfaStatus.SELECTED and result.status is VfaStatus.SELECTED):
-            result = self._keep_if_still_safe(leg, gait, result, previous, timing, yaw, map_age, liftoff,
-                                              hip_touchdown)
-        elapsed = time.perf_counter() - start
+            result = self._keep_if_still_safe(request, gait, result, previous, yaw, map_age_s)
+        elapsed = elapsed_s + time.perf_counter() - start
         evaluated = result.status in (VfaStatus.SELECTED, VfaStatus.NO_SAFE_CANDIDATE)
         score = float(getattr(result, "score", 1.0)) if evaluated else 0.0
         count = result.safe_candidates
@@ -497,12 +556,12 @@ class VfaPlanner:
             safe_candidates=None if count is None else int(count), score=score, status=result.status,
             trigger=trigger, map_stamp_s=self._map_stamp_s, elapsed_s=elapsed)
 
-    def _keep_if_still_safe(self, leg: Leg, gait: GaitSnapshot, result: Any, previous: FootholdDecision,
-                            timing: GaitTiming, yaw: float, map_age: float, liftoff: FloatArray,
-                            hip_touchdown: FloatArray) -> Any:
+    def _keep_if_still_safe(self, request: FootholdRequest, gait: GaitSnapshot, result: Any,
+                            previous: FootholdDecision, yaw: float, map_age_s: float) -> Any:
         """``result``, or the previous selection when ``result`` would jump more than ``switch_hysteresis_m``
         away from it for less than ``switch_hysteresis_m`` of distance to the nominal, and the previous
         selection is still safe (the selector, searching around it, returns it)."""
+        leg = request.leg
         nominal = gait.nominal_foothold[leg]
         new_distance = float(np.linalg.norm(result.selected[:2] - nominal[:2]))
         old_distance = float(np.linalg.norm(previous.selected[:2] - nominal[:2]))
@@ -510,10 +569,7 @@ class VfaPlanner:
         jump = float(np.linalg.norm(result.selected[:2] - previous.selected[:2]))
         if jump <= hysteresis or old_distance - new_distance > hysteresis:
             return result  # a small move follows the nominal; a large gain is worth a jump
-        check = self.selector.select(
-            leg, previous.selected, self._grid, hip_height_m=self._fec_hip_height(leg, gait, timing.swing_time_left_s),
-            twist=gait.base_twist, gait=timing, yaw=yaw, map_age_s=0.0 if self._grid is None else map_age,
-            liftoff_world=liftoff, hip_touchdown_world=hip_touchdown)
+        check = self._select(request, yaw, map_age_s, nominal_world=previous.selected)
         if check.status is not VfaStatus.SELECTED or np.linalg.norm(check.selected[:2] - previous.selected[:2]) > 1e-6:
             return result
         self.counters.kept += 1

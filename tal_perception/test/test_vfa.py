@@ -11,7 +11,7 @@ from tal_core.terrain import Course, DefaultGround, FlatPatch, GapPatch, Region
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec_settings import GaitTiming
 from tal_perception.terrain_samples import terrain_samples
-from tal_perception.vfa import FootholdSelector, VfaStatus, extract_patch, select_foothold
+from tal_perception.vfa import FootholdSelector, VfaStatus, extract_patch, extract_patches, select_foothold
 
 TROT_SWING = GaitTiming(step_frequency_hz=1.5, duty_factor=0.6, swing_time_left_s=0.4 / 1.5, step_height_m=0.1)
 WALK_TWIST = np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
@@ -167,3 +167,20 @@ def test_given_hip_at_touchdown_is_rotated_into_the_patch_frame(
     assert given.safe_candidates == default.safe_candidates
     ahead = select(selector, grid, hip_height, yaw=yaw, lazy=False, hip_touchdown_world=NOMINAL[:2] + 0.1 * heading)
     assert ahead.safe_candidates != default.safe_candidates
+
+
+@pytest.mark.parametrize("yaw_offset", [0.0, 0.37])
+def test_extract_patches_equals_extract_patch_for_each_centre(yaw_offset: float) -> None:
+    """The batched extraction (the CNN selector's) gives extract_patch's heights bit for bit, for patches
+    inside the map, across its border and outside it, aligned with the map (slices) or not (nearest cell)."""
+    rng = np.random.default_rng(3)
+    heights = rng.normal(size=(61, 53)).astype(np.float32)
+    heights[rng.random(heights.shape) < 0.05] = np.nan
+    grid = HeightMapGrid(center_xy=(0.31, -0.2), yaw=0.4, resolution_m=0.02, heights=heights)
+    centres = np.array([[0.31, -0.2], [0.5, 0.1], [0.31 + 0.55, -0.2], [3.0, 3.0], [0.123456, -0.3456789]])
+    yaw = grid.yaw + yaw_offset
+    expected = np.stack([extract_patch(grid, c, yaw, 33, 0.02) for c in centres])
+    np.testing.assert_array_equal(extract_patches(grid, centres, yaw, 33, 0.02), expected)
+    out = np.full((len(centres), 33, 33), 7.0, np.float32)
+    assert extract_patches(grid, centres, yaw, 33, 0.02, out=out) is out
+    np.testing.assert_array_equal(out, expected.astype(np.float32))

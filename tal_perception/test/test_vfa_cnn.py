@@ -12,7 +12,7 @@ from tal_core.terrain import Course, DefaultGround, GapPatch, Region
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import FecInput, GaitTiming
-from tal_perception.vfa import FootholdSelector, VfaStatus
+from tal_perception.vfa import FootholdSelector, VfaStatus, extract_patch
 from tal_perception.vfa_cnn import (
     DEFAULT_WEIGHTS,
     CnnFootholdSelector,
@@ -481,3 +481,63 @@ def test_widening_computes_the_same_function_and_noise_separates_the_copies(fres
     assert not torch.equal(first, copy) and float((first - copy).abs().max()) < 0.1 * float(first.abs().max())
     with pytest.raises(ValueError, match="multiples"):
         widen_unet(net, (12, 16, 32), (32, 16, 8))
+
+
+def test_onnxruntime_binding_equals_the_session_call() -> None:
+    """OrtVfaNet.bind: runs on the buffers' current contents into the same output arrays, with the outputs of
+    the plain call bit for bit (with and without the safe head)."""
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from tal_perception.vfa_cnn_ort import OrtVfaNet
+
+    torch.manual_seed(6)
+    rng = np.random.default_rng(6)
+    for config in (NetConfig(architecture="unet"), NetConfig(architecture="unet", safe_head=False)):
+        ort_net = OrtVfaNet(build_net(config).eval())
+        image = np.empty((2, 4, 33, 33), np.float32)
+        scalars = np.empty((2, config.encoding.scalar_count), np.float32)
+        binding = ort_net.bind(image, scalars)
+        for _ in range(2):  # new contents, same buffers
+            image[...] = rng.normal(size=image.shape)
+            scalars[...] = rng.normal(size=scalars.shape)
+            logits, safe_logits = binding.run()
+            expected, expected_safe = ort_net(image.copy(), scalars.copy())
+            assert logits is binding.logits
+            np.testing.assert_array_equal(logits, expected)
+            if config.safe_head:
+                np.testing.assert_array_equal(safe_logits, expected_safe)
+            else:
+                assert safe_logits is None and expected_safe is None
+        with pytest.raises(ValueError, match="C-contiguous float32"):
+            ort_net.bind(image.astype(np.float64), scalars)
+
+
+@pytest.mark.parametrize("verify", [False, True])
+def test_select_legs_equals_predict_on_the_extracted_patches(
+    evaluator: FootholdEvaluator, hip_height: float, verify: bool
+) -> None:
+    """select_legs' own path (batched extraction into reused buffers, bound ONNX Runtime outputs, in-place
+    decode) chooses what ``predict`` chooses on FecInputs built with ``extract_patch``, for 1 to 5 legs per
+    call (5: no buffers), headings aligned with the map or not, patches partly off the map."""
+    selector = CnnFootholdSelector(evaluator, load_model(DEFAULT_WEIGHTS), verify=verify)
+    gap = GapPatch(name="gap", region=Region(0.35, 0.45, -2, 2), depth_m=0.3, start_height_m=0.0, **RIGID)
+    grid = extract_heightmap(Course("test", Region(-3, 3, -3, 3), DefaultGround(height_m=0.0, **RIGID), (gap,)),
+                             (0.0, 0.0), 0.1, 61, 61, 0.02)  # fmt: skip
+    rng = np.random.default_rng(7)
+    for yaw in (grid.yaw, grid.yaw + 0.37):
+        for count in range(1, 6):
+            nominals = [np.array([rng.uniform(0.2, 0.7), rng.uniform(-0.6, 0.6), 0.0]) for _ in range(count)]
+            legs = [LEGS[k % len(LEGS)] for k in range(count)]
+            requests = [FootholdRequest(leg, nominal, hip_height + rng.uniform(-0.03, 0.03), TWIST, TROT_SWING)
+                        for leg, nominal in zip(legs, nominals)]  # fmt: skip
+            results = selector.select_legs(requests, grid, yaw=yaw)
+            inputs = [FecInput(r.leg, extract_patch(grid, r.nominal_world[:2], yaw, 33, 0.02), r.hip_height_m, TWIST,
+                               TROT_SWING) for r in requests]  # fmt: skip
+            for inp, result, index in zip(inputs, results, selector.predict(inputs)):
+                if verify and not selector.is_safe(inp, int(index)):
+                    continue  # replaced by the exact search
+                if not np.isfinite(inp.heights.reshape(-1)[index]):
+                    assert result.status is VfaStatus.NO_SAFE_CANDIDATE
+                    continue
+                assert result.offset_cells == (int(index) // 33 - 16, int(index) % 33 - 16)
+                assert result.selected[2] == inp.heights.reshape(-1)[index]

@@ -13,9 +13,9 @@ from tal_core.errors import InputError
 from tal_core.heightmap import HeightMapGrid, extract_heightmap
 from tal_core.legs import Leg
 from tal_core.robot_model import RobotModel
-from tal_core.terrain import Course, DefaultGround, GapPatch, Region
-from tal_core.terrain_patches import StairsPatch
+from tal_core.terrain import Course, DefaultGround, GapPatch, Region, StairsPatch
 from tal_perception.errors import FecConfigError, VfaInputError
+from tal_perception.fec import FootholdEvaluator
 from tal_perception.vfa import FootholdSelector, VfaStatus
 from tal_perception.vfa_planner import GaitSnapshot, PlannerSettings, VfaPlanner, make_selector
 
@@ -394,3 +394,83 @@ def test_a_descending_hip_is_evaluated_at_its_height_at_touchdown(selector, hips
     np.testing.assert_allclose(lf(descending, predict=False), lf(level))
     np.testing.assert_allclose(lf(dataclasses.replace(level, hip_velocity=-sinking)), lf(level))
     assert np.all(level.hip_velocity == 0.0)  # a gait state without hip velocities: zeros
+
+
+class _OneLegAtATime:
+    """A selector seen through ``select`` alone (no ``select_legs``): the planner's one-leg-per-call path."""
+
+    def __init__(self, selector) -> None:
+        self.select = selector.select
+
+
+class _BatchSpy:
+    """A selector whose ``select_legs`` calls are recorded (number of legs per call)."""
+
+    def __init__(self, selector) -> None:
+        self.select = selector.select
+        self.batches: list[int] = []
+        self._select_legs = selector.select_legs
+
+    def select_legs(self, requests, grid, **kwargs):
+        self.batches.append(len(requests))
+        return self._select_legs(requests, grid, **kwargs)
+
+
+def _trot_ticks(hips_base: np.ndarray, hip_height: float, ticks: int, yaw: float) -> list[GaitSnapshot]:
+    """``ticks`` gait states 4 ms apart of the trot of ``snapshot`` heading ``yaw``: LF + RH swing, then RF +
+    LH (each pair 0.267 s of a 0.667 s cycle), the nominals swaying +-5 cm sideways at 3 Hz (re-decisions on
+    "nominal_moved")."""
+    period, swing_s = 1.0 / TROT["step_frequency_hz"], (1.0 - TROT["duty_factor"]) / TROT["step_frequency_hz"]
+    states = []
+    for k in range(ticks):
+        t = 1.0 + 0.004 * k
+        phase = (t - 1.0) % period
+        first_pair = phase < 0.5 * period
+        in_swing = phase if first_pair else phase - 0.5 * period
+        swinging = in_swing < swing_s
+        swing = (swinging and first_pair, swinging and not first_pair, swinging and not first_pair,
+                 swinging and first_pair)
+        cycle = int((t - 1.0) // period)
+        counts = (3 + cycle, 2 + cycle, 2 + cycle, 3 + cycle)
+        sway = 0.05 * math.sin(2.0 * math.pi * 3.0 * (t - 1.0))
+        c, s = math.cos(yaw), math.sin(yaw)
+        states.append(snapshot(hips_base, hip_height, stamp_s=t, swing=swing, step_count=counts, yaw=yaw,
+                               time_left_s=max(swing_s - in_swing, 0.0), nominal_shift_m=(-s * sway, c * sway)))
+    return states
+
+
+@pytest.mark.parametrize("pair_compensation_m", [0.0, 0.05])
+def test_batched_cnn_decisions_equal_one_leg_at_a_time(hyq: RobotModel, hips_base, hip_height,
+                                                      pair_compensation_m: float) -> None:
+    """The planner with the CNN selector decides the legs of one tick in one ``select_legs`` call; on a trot
+    over stairs and gaps, with maps (aligned with the heading and not) arriving every 40 ms, the decisions
+    and counters equal those of the same planner calling ``select`` one leg at a time."""
+    from tal_perception.vfa_cnn import CnnFootholdSelector
+
+    cnn = CnnFootholdSelector(FootholdEvaluator(hyq), verify=True)
+    settings = PlannerSettings(pair_compensation_m=pair_compensation_m)
+    spy = _BatchSpy(cnn)
+    planners = [VfaPlanner(selector, hips_base, hyq.description.foot_radius_m, settings)
+                for selector in (spy, _OneLegAtATime(cnn))]
+    yaw = 0.3
+    stairs = StairsPatch(name="stairs", region=Region(0.42, 3, -3, 3), rise_m=0.08, go_m=0.21, count=3,
+                         direction="up", start_height_m=0.0, **RIGID)
+    courses = [(stairs, gap_across_x(-0.25, 0.05)), (stairs, gap_across_x(-0.17, 0.04), gap_across_x(0.66, 0.03))]
+    outputs: list[list[list[tuple]]] = [[], []]
+    for k, gait in enumerate(_trot_ticks(hips_base, hip_height, 170, yaw)):
+        if k % 10 == 0:  # a new map every 40 ms, alternating terrain and map heading (aligned / interpolated)
+            grid = course_map(*courses[(k // 10) % 2], center=tuple(gait.hip_position.mean(axis=0)[:2]),
+                              yaw=yaw if (k // 20) % 2 == 0 else 0.0)
+        for planner, out in zip(planners, outputs):
+            if k % 10 == 0:
+                planner.set_map(grid, gait.stamp_s - 0.01)
+            out.append([(d.leg, d.step_count, d.trigger, d.status, d.safe_candidate_found, d.safe_candidates,
+                         d.score, d.map_stamp_s, tuple(d.nominal), tuple(d.selected)) for d in planner.update(gait)])
+    batched, single = outputs
+    assert batched == single
+    assert dataclasses.asdict(planners[0].counters) == dataclasses.asdict(planners[1].counters)
+    counters = planners[0].counters
+    assert counters.adapted > 0 and counters.by_trigger["new_map"] > 0 and counters.by_trigger["nominal_moved"] > 0
+    assert counters.kept > 0 and counters.level_locked > 0  # the hysteresis and the level lock were exercised
+    assert sum(len(news) for news in batched) > 20
+    assert spy.batches.count(2) > 10  # the swinging pair decided together
