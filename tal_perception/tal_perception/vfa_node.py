@@ -109,7 +109,10 @@ class VfaNode(Node):
             pair_compensation_m=declare(self, "pair_compensation_m", 0.0, "[m] largest shift of a swinging "
                                         "diagonal partner's nominal against the other leg's adaptation, so the "
                                         "trot's support line stays under the CoM (0: off, the thesis' VFA; "
-                                        "0.08 in ViTAL's stairs runs)", low=0.0, high=0.3, read_only=True))
+                                        "0.08 in ViTAL's stairs runs)", low=0.0, high=0.3, read_only=True),
+            predict_hip_descent=declare(self, "predict_hip_descent", False, "evaluate a swing at its hip's "
+                                        "predicted height at touchdown (gait_state hip_velocity) when that is "
+                                        "lower than now (the way down stairs)", read_only=True))
         self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
                                             "clock: sim time with use_sim_time)", low=0.05, high=60.0,
                                             read_only=True)

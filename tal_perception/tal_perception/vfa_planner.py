@@ -126,7 +126,7 @@ class PlannerSettings:
     pair_compensation_m: float = 0.0  # [m] largest shift of a diagonal partner's nominal (0: off)
     pair_min_adaptation_m: float = 0.02  # [m] smaller adaptations of the leading leg are not compensated
     # Evaluate at the hip's predicted height at touchdown when it is lower than now (see _fec_hip_height).
-    predict_hip_descent: bool = True
+    predict_hip_descent: bool = False
 
     def __post_init__(self) -> None:
         for name in ("max_map_age_s", "min_swing_time_left_s", "nominal_shift_threshold_m", "selection_tolerance_m",
@@ -589,12 +589,13 @@ class VfaPlanner:
 
     def _fec_hip_height(self, leg: Leg, gait: GaitSnapshot, time_left_s: float) -> float:
         """[m] world z of ``leg``'s HAA joint for the FEC: now, or, with ``predict_hip_descent``, at
-        touchdown (hip_velocity z over the time left) if that is lower. Why lower only: on the way down
-        the hip is lower at touchdown, the knee further back and the shin closer to the tread edge behind
-        the foot (the 0.2 m/s stairs runs' two front shin collisions: 6 mm into that edge at a level-base
-        evaluation with the lift-off's hip height; none with the prediction). The prediction of a rising
-        hip is optimistic for the hind shins before a riser (probe sweeps: 6 hind shin collisions in 9 runs
-        at 0.2 m/s when it was used both ways), so a rising hip keeps its current height."""
+        touchdown (hip_velocity z over the time left) if that is lower. Why: on the way down the hip is
+        lower at touchdown than at the decision, the knee further back and the shin closer to the tread
+        edge behind the foot; the two front shin collisions of the 0.2 m/s stairs runs over nine starts
+        (6 mm into that edge) were of this kind. Why lower only: using a rising hip's prediction too gave
+        6 hind shin collisions in 9 runs at 0.2 m/s (before a riser the hip had not risen as predicted).
+        Off by default: on the stairs it removed those front shin collisions but did not measurably improve
+        the runs at 0.3-0.5 m/s (README, ViTAL section, stop 24)."""
         height = float(gait.hip_position[leg, 2])
         if not self.settings.predict_hip_descent:
             return height

@@ -372,7 +372,7 @@ def test_a_descending_hip_is_evaluated_at_its_height_at_touchdown(selector, hips
     """LF's nominal 0.1 m past a tread edge going down 0.1 m. At touchdown a hip sinking at 0.3 m/s is
     0.06 m lower (0.2 s left): its knee sits further back over the edge, so the planner moves the foothold
     further from the edge than at the current hip height, exactly as for a hip already 0.06 m lower. A
-    rising hip keeps its current height, as does every hip with the prediction off."""
+    rising hip keeps its current height, as does every hip with the prediction off (the default)."""
     level = snapshot(hips_base, hip_height)
     edge_x = float(level.nominal_foothold[Leg.LF, 0]) - 0.1
     grid = course_map(StairsPatch(name="down", region=Region(edge_x, edge_x + 2.0, -3, 3), rise_m=0.1, go_m=0.25,
@@ -392,6 +392,7 @@ def test_a_descending_hip_is_evaluated_at_its_height_at_touchdown(selector, hips
     np.testing.assert_allclose(lf(descending), lf(snapshot(hips_base, hip_height - 0.06), predict=False))
     assert lf(descending)[0] > lf(level)[0] + 0.04
     np.testing.assert_allclose(lf(descending, predict=False), lf(level))
+    assert not PlannerSettings().predict_hip_descent
     np.testing.assert_allclose(lf(dataclasses.replace(level, hip_velocity=-sinking)), lf(level))
     assert np.all(level.hip_velocity == 0.0)  # a gait state without hip velocities: zeros
 
