@@ -60,6 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weights", type=Path, nargs="+", required=True)
     parser.add_argument("--data", type=Path, default=Path("data/vfa/tune_seed3_n2000.npz"))
     parser.add_argument("--safe-weight", type=float, default=2.0, help="lambda of the combined decode")
+    parser.add_argument(
+        "--sweep", type=float, nargs="*", default=[0.5, 1.0, 2.0, 3.0, 4.0],
+        help="lambdas of the combined decode for the sweep line (the best perfect match + safe over them)",
+    )  # fmt: skip
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -94,6 +98,16 @@ def main(argv: list[str] | None = None) -> int:
                   f"{overall['mean_distance_m']:.4f} | " +
                   " | ".join(f"{100 * v['perfect_match']:.1f} / {100 * v['safe']:.1f}" for v in kinds.values())
                   + " |")  # fmt: skip
+        sweep = {}
+        for value in args.sweep:
+            choices = decode(VfaDecode("combined", safe_weight=value), logits, prob, unknown)
+            sweep[value] = rates(data, choices, rows)
+        best = max(sweep, key=lambda v: sweep[v]["perfect_match"] + sweep[v]["safe"])
+        run["combined_sweep"] = {str(k): v for k, v in sweep.items()}
+        best_sum = 100 * (sweep[best]["perfect_match"] + sweep[best]["safe"])
+        print("  combined sweep (lambda: perfect match / safe): " + ", ".join(
+            f"{k:g}: {100 * v['perfect_match']:.1f} / {100 * v['safe']:.1f}" for k, v in sweep.items())
+            + f"; best sum at lambda {best:g}: {best_sum:.1f}")  # fmt: skip
         print(f"  safe mask at p >= 0.5: precision {100 * run['safe_mask_precision']:.1f} %, recall "
               f"{100 * run['safe_mask_recall']:.1f} %")  # fmt: skip
         report["runs"][str(weights)] = run  # type: ignore[index]
