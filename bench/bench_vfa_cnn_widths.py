@@ -29,9 +29,12 @@ from tal_perception.vfa_cnn import CnnFootholdSelector, FootholdRequest, NetConf
 DEFAULT_WIDTHS = ["8,16,32/32,16,8", "8,16,32/32,16,16", "16,32,64/64,32,16", "24,48,96/96,48,24"]
 
 
-def parse_width(text: str) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    encoder, decoder = text.split("/")
-    return tuple(int(c) for c in encoder.split(",")), tuple(int(c) for c in decoder.split(","))
+def parse_width(text: str) -> tuple[tuple[int, ...], tuple[int, ...], bool]:
+    """(encoder widths, decoder widths, roughness features) of "8,16,32/32,16,8[+r]" (+r: ``NetConfig``'s
+    ``roughness_features``)."""
+    roughness = text.endswith("+r")
+    encoder, decoder = text.removesuffix("+r").split("/")
+    return tuple(int(c) for c in encoder.split(",")), tuple(int(c) for c in decoder.split(",")), roughness
 
 
 def main() -> int:
@@ -40,7 +43,8 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seed", type=int, default=20240601)
     parser.add_argument("--backends", default="onnxruntime,torch")
-    parser.add_argument("--widths", nargs="+", default=DEFAULT_WIDTHS, help="encoder/decoder, e.g. 8,16,32/32,16,8")
+    parser.add_argument("--widths", nargs="+", default=DEFAULT_WIDTHS,
+                        help="encoder/decoder[+r], e.g. 8,16,32/32,16,8 (+r: with the roughness features)")  # fmt: skip
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -49,8 +53,8 @@ def main() -> int:
     encoding = load_model().config.encoding
     selectors = {}
     for text in args.widths:
-        channels, decoder = parse_width(text)
-        net = build_net(NetConfig(channels, 256, True, encoding, "unet", decoder)).eval()
+        channels, decoder, roughness = parse_width(text)
+        net = build_net(NetConfig(channels, 256, True, encoding, "unet", decoder, roughness)).eval()
         parameters = sum(p.numel() for p in net.parameters())
         for backend in args.backends.split(","):
             selector = CnnFootholdSelector(evaluator, net, verify=False, backend=backend)

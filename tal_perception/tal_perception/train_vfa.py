@@ -103,6 +103,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )  # fmt: skip
     parser.add_argument("--decoder-channels", type=int, nargs=3, default=[32, 16, 8],
                         help="unet: decoder widths at 9, 17 and 33 cells")  # fmt: skip
+    parser.add_argument(
+        "--roughness-features", action="store_true",
+        help="unet: the last decoder layer also reads the FEC's roughness statistics (vfa_cnn.RoughnessFeatures)",
+    )  # fmt: skip
     parser.add_argument("--no-mirror", action="store_true", help="do not add the y-mirrored samples")
     parser.add_argument(
         "--init-weights", type=Path, default=None,
@@ -255,7 +259,7 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     encoding = EncodingConfig(cells=s.patch_cells, resolution_m=s.resolution_m,
                               nominal_hip_height_m=round(float(model.nominal_base_height_m), 4))  # fmt: skip
     config = NetConfig(tuple(args.channels), args.hidden, args.safe_weight > 0.0, encoding, args.architecture,
-                       tuple(args.decoder_channels))  # fmt: skip
+                       tuple(args.decoder_channels), args.roughness_features)  # fmt: skip
     net, config = initial_net(args, config)
     net = net.to(memory_format=torch.channels_last)
     train_batches, val_batches = Batches(train_set, encoding), Batches(val_set, encoding)
@@ -340,6 +344,7 @@ def train(args: argparse.Namespace) -> dict[str, object]:
         "net": {
             "architecture": config.architecture,
             "decoder_channels": list(config.decoder_channels) if config.architecture == "unet" else None,
+            "roughness_features": config.roughness_features,
             "channels": list(config.channels),
             "hidden": config.hidden,
             "safe_head": config.safe_head,

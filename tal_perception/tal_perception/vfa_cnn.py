@@ -65,6 +65,10 @@ MODEL_DIR = Path(__file__).resolve().parent / "models"
 DEFAULT_WEIGHTS = MODEL_DIR / "vfa_cnn.pt"
 LEAKY_SLOPE = 0.01  # negative slope of the Leaky ReLUs (PyTorch's default)
 IMAGE_CHANNELS = 4  # relative height, unknown mask, row offset, column offset
+# NetConfig.roughness_features: RMS, std and mean of the slopes over the FEC's roughness disc, unknown nearby.
+# Four, so that the last decoder layer reads 16 + 8 + 4 + 4 = 32 channels: ONNX Runtime's blocked (NCHWc)
+# convolution needs a multiple of 4 (with 30 it fell back to a plain convolution, 0.73 instead of 0.38 ms).
+ROUGHNESS_CHANNELS = 4
 
 
 @dataclass(frozen=True)
@@ -100,10 +104,21 @@ class NetConfig:
     encoding: EncodingConfig = field(default_factory=EncodingConfig)
     architecture: str = "thesis"
     decoder_channels: tuple[int, int, int] = (32, 16, 8)  # unet: at 9 x 9, 17 x 17, 33 x 33
+    # unet only: a fixed (not learned) layer adds the FEC's roughness statistics of every cell
+    # (``RoughnessFeatures``) to the image that the full-resolution decoder layer reads. Off in the files
+    # before it (they load with False).
+    roughness_features: bool = False
 
     def __post_init__(self) -> None:
         if self.architecture not in ARCHITECTURES:
             raise FecConfigError(f"NetConfig.architecture must be one of {ARCHITECTURES}, got {self.architecture!r}")
+        if self.roughness_features and self.architecture != "unet":
+            raise FecConfigError("NetConfig.roughness_features needs the unet architecture")
+
+    @property
+    def image_channels(self) -> int:
+        """Image channels the full-resolution decoder layer reads: ``encode``'s 4 (+ 2 roughness features)."""
+        return IMAGE_CHANNELS + (ROUGHNESS_CHANNELS if self.roughness_features else 0)
 
 
 def encode(
@@ -237,6 +252,74 @@ class VfaNet(nn.Module):
         return nn.functional.linear(hidden, last.weight[: self.candidates], last.bias[: self.candidates])
 
 
+class RoughnessFeatures(nn.Module):
+    """Fixed preprocessing inside the network (no learned weights): from ``encode``'s image (channel 0 the
+    relative height [0.1 m], channel 1 the unknown mask), per cell two statistics of the slopes that the
+    FEC's roughness criterion (``fec_grid.terrain_roughness``) uses, s_j = (h_j - h_c) / d_j [-] to the
+    neighbours j within ``radius_m``: (B, 4, n, n) = the root mean square of s_j / scale[0] and the standard
+    deviation of s_j / scale[1] (the FEC's own second statistic), each clipped to [0, clip] (with the
+    default scales, the FEC's ``max_mean_slope`` 0.3 and ``max_slope_std`` 0.35, 1 is at the FEC's limit);
+    the mean of s_j / scale[0] clipped to [-clip, clip] (positive in a hollow, negative on a crest); 1 where
+    the cell is unknown or has an unknown neighbour (the FEC calls it rough; there the first two are
+    ``clip`` and the third 0). Neighbours outside the patch are ignored, as the FEC does.
+
+    The FEC's first statistic is the mean |s_j|; its root mean square (>= the mean |s_j|) is used instead
+    because it is a sum of squares: everything is then one fixed 3 -> 4 channel convolution of (h, h^2,
+    unknown) (sums of w_j h_j^q and the unknown neighbours over the disc, w_j = 1 / d_j) and a few per-cell
+    operations; the per-position neighbour counts and weight sums of a fully known patch are constants.
+    Computing the 12 |s_j| per cell took ~0.5 ms per 4-leg call on ONNX Runtime, over the time budget.
+    The heights are ``encode``'s clipped ones (+-0.5 m around the nominal ground): slopes differ from the
+    FEC's only next to such cells, unreachable anyway. Height differences only, so the network stays
+    invariant where ``encode`` is.
+
+    Why: the FEC's roughness statistics (and the erosion after them) are fine geometry that the thin
+    full-resolution decoder layer only approximates; on rocks half of the unsafe choices are cells eroded
+    by a rough neighbour (``bench/analyse_vfa_cnn_errors.py``)."""
+
+    def __init__(
+        self, cells: int, resolution_m: float, height_scale_m: float, radius_m: float = 0.04,
+        scale: tuple[float, float] = (0.3, 0.35), clip: float = 5.0,
+    ) -> None:  # fmt: skip
+        super().__init__()
+        offsets = disc_offsets(radius_m, resolution_m)
+        k = max(max(abs(di), abs(dj)) for di, dj in offsets)
+        # inputs (h, h^2, unknown), h in channel-0 units; outputs: sums over the disc of w_j h_j,
+        # w_j^2 h_j, w_j^2 h_j^2 and the unknown neighbours, w_j = height_scale_m / d_j [1/unit] (slope [-])
+        weight = torch.zeros(4, 3, 2 * k + 1, 2 * k + 1, dtype=torch.float64)
+        inside = torch.zeros(3, 1, 2 * k + 1, 2 * k + 1, dtype=torch.float64)  # count, sum w_j, sum w_j^2
+        for di, dj in offsets:  # output cell (r, c) reads (r + di, c + dj) (cross-correlation)
+            w = height_scale_m / (resolution_m * math.hypot(di, dj))
+            weight[0, 0, k + di, k + dj], weight[1, 0, k + di, k + dj], weight[2, 1, k + di, k + dj] = w, w * w, w * w
+            weight[3, 2, k + di, k + dj] = 1.0
+            inside[:, 0, k + di, k + dj] = torch.tensor([1.0, w, w * w], dtype=torch.float64)
+        # per-position sums over the neighbours inside the patch (constants: unknown cells are handled apart)
+        sums = nn.functional.conv2d(torch.ones(1, 1, cells, cells, dtype=torch.float64), inside, padding=k)[0]
+        count, w_sum, w2_sum = sums
+        self.padding = k
+        self.register_buffer("weight", weight.to(torch.float32), persistent=False)
+        self.register_buffer("inv_count", (1.0 / count).to(torch.float32)[None, None], persistent=False)
+        self.register_buffer("w_sum", w_sum.to(torch.float32)[None, None], persistent=False)
+        self.register_buffer("w2_sum", w2_sum.to(torch.float32)[None, None], persistent=False)
+        self.inv_scale = (1.0 / scale[0], 1.0 / scale[1])
+        self.clip = float(clip)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """(B, 4, n, n) roughness statistics of ``encode``'s image (B, >= 2, n, n)."""
+        height, unknown = image[:, 0:1], image[:, 1:2]  # encode sets unknown heights to 0
+        sums = nn.functional.conv2d(torch.cat([height, height * height, unknown], dim=1), self.weight,
+                                    padding=self.padding)  # (B, 4, n, n); cells outside the patch read 0
+        wh, w2h, w2h2, unknown_near = torch.split(sums, 1, dim=1)
+        mean = (wh - height * self.w_sum) * self.inv_count  # mean of s_j
+        mean_square = (w2h2 - height * (2.0 * w2h - height * self.w2_sum)) * self.inv_count  # mean of s_j^2
+        rms = torch.sqrt(torch.clamp(mean_square, min=0.0))
+        std = torch.sqrt(torch.clamp(mean_square - mean * mean, min=0.0))
+        stats = torch.cat([rms * self.inv_scale[0], std * self.inv_scale[1]], dim=1)
+        rough = (unknown_near + unknown) > 0.5  # an unknown cell or neighbour: rough for the FEC
+        stats = torch.where(rough, torch.full_like(stats, self.clip), torch.clamp(stats, 0.0, self.clip))
+        signed = torch.clamp(mean * self.inv_scale[0], -self.clip, self.clip) * (~rough)  # + = in a hollow
+        return torch.cat([stats, signed, rough.to(stats.dtype)], dim=1)
+
+
 class VfaUNet(nn.Module):
     """A localising variant: the thesis' convolutional trunk (3 x conv 5x5 + Leaky ReLU + max-pool 2x2,
     33 -> 17 -> 9 -> 5) and its fully connected layer (flattened features + scalars -> ``hidden``), whose
@@ -253,8 +336,13 @@ class VfaUNet(nn.Module):
         enc = config.encoding
         c1, c2, c3 = config.channels
         d3, d2, d1 = config.decoder_channels
+        image_channels = IMAGE_CHANNELS
+        full_resolution = config.image_channels  # the last decoder layer also reads the roughness features
+        self.roughness = (
+            RoughnessFeatures(enc.cells, enc.resolution_m, enc.height_scale_m) if config.roughness_features else None
+        )  # fmt: skip
         self.encoders = nn.ModuleList(
-            nn.Conv2d(i, o, kernel_size=5, padding=2) for i, o in ((IMAGE_CHANNELS, c1), (c1, c2), (c2, c3))
+            nn.Conv2d(i, o, kernel_size=5, padding=2) for i, o in ((image_channels, c1), (c1, c2), (c2, c3))
         )
         self.pool = nn.MaxPool2d(2, ceil_mode=True)
         self.sizes = [enc.cells]
@@ -268,7 +356,7 @@ class VfaUNet(nn.Module):
         self.decoders = nn.ModuleList([
             nn.Conv2d(2 * c3 + c3, d3, kernel_size=3, padding=1),
             nn.Conv2d(d3 + c2, d2, kernel_size=3, padding=1),
-            nn.Conv2d(d2 + c1 + IMAGE_CHANNELS, d1, kernel_size=3, padding=1),
+            nn.Conv2d(d2 + c1 + full_resolution, d1, kernel_size=3, padding=1),
         ])  # fmt: skip
         self.scalar_bias = nn.Linear(enc.scalar_count, d3 + d2 + d1)
         self.output = nn.Conv2d(d1, 2 if config.safe_head else 1, kernel_size=1)
@@ -290,7 +378,10 @@ class VfaUNet(nn.Module):
         context = self.context(torch.cat([x.flatten(1), scalars], dim=1)).view_as(x)
         x = torch.cat([x, context], dim=1)
         biases = torch.split(self.scalar_bias(scalars), [d.out_channels for d in self.decoders], dim=1)
-        inputs = [[skips[2]], [skips[1]], [skips[0], image]]
+        # full resolution: the image with the roughness features before its coordinate channels (those
+        # stay last, as vfa_cnn_fast expects of the image)
+        full = image if self.roughness is None else torch.cat([image[:, :2], self.roughness(image), image[:, 2:]], 1)
+        inputs = [[skips[2]], [skips[1]], [skips[0], full]]
         for level, (conv, bias, extra) in enumerate(zip(self.decoders, biases, inputs)):
             x = self._up(x, self.sizes[2 - level])
             x = self.act(conv(torch.cat([x, *extra], dim=1)) + bias[:, :, None, None])
@@ -319,6 +410,7 @@ def save_model(net: VfaNet | VfaUNet, path: Path, metadata: dict[str, object] | 
             "safe_head": cfg.safe_head,
             "architecture": cfg.architecture,
             "decoder_channels": list(cfg.decoder_channels),
+            "roughness_features": cfg.roughness_features,
         },  # fmt: skip
         "encoding": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg.encoding).items()},
         "state_dict": {k: v.detach().to(torch.float16).contiguous() for k, v in net.state_dict().items()},
@@ -340,7 +432,8 @@ def load_model(path: Path = DEFAULT_WEIGHTS) -> VfaNet | VfaUNet:
     net_cfg = document["net"]
     config = NetConfig(tuple(net_cfg["channels"]), int(net_cfg["hidden"]), bool(net_cfg["safe_head"]),
                        EncodingConfig(**enc), str(net_cfg.get("architecture", "thesis")),
-                       tuple(net_cfg.get("decoder_channels", NetConfig.decoder_channels)))  # fmt: skip
+                       tuple(net_cfg.get("decoder_channels", NetConfig.decoder_channels)),
+                       bool(net_cfg.get("roughness_features", False)))  # fmt: skip
     net = build_net(config)
     net.load_state_dict({k: v.to(torch.float32) for k, v in document["state_dict"].items()})
     net.eval()
@@ -438,7 +531,8 @@ class CnnFootholdSelector:
             elif backend == "onnxruntime":
                 warnings.warn("CnnFootholdSelector: onnxruntime / onnx not importable, the VFA CNN runs on torch",
                               RuntimeWarning, stacklevel=2)  # fmt: skip
-        use_fast = self._ort_net is None and fast and isinstance(self.net, VfaUNet) and self.net.config.safe_head
+        use_fast = (self._ort_net is None and fast and isinstance(self.net, VfaUNet) and self.net.config.safe_head
+                    and not self.net.config.roughness_features)  # the rearranged network has no roughness layer
         self._fast_net = compile_fast_unet(self.net, enc.cells) if use_fast else None
 
     @property
@@ -684,6 +778,6 @@ class _Workspace:
 
 __all__ = [
     "ARCHITECTURES", "BACKENDS", "DEFAULT_WEIGHTS", "CnnFootholdSelector", "CnnVfaCounters", "EncodingConfig",
-    "FootholdRequest", "NetConfig", "VfaNet", "VfaUNet", "build_net", "encode", "load_model", "save_model",
-    "store_decode", "stored_decode",
+    "FootholdRequest", "NetConfig", "RoughnessFeatures", "VfaNet", "VfaUNet", "build_net", "encode", "load_model",
+    "save_model", "store_decode", "stored_decode",
 ]  # fmt: skip

@@ -12,6 +12,10 @@ max-pooling and nearest upsampling act per channel, so the widened network's out
 (float32 rounding aside). Copies would receive equal gradients and stay equal; ``--noise`` s adds Gaussian
 noise of s x the layer's weight standard deviation to the incoming weights of every copy but the first
 (the function then changes by about that relative amount), which lets the copies diverge in training.
+
+``--roughness-features`` (``add_roughness_features``): the same network with ``NetConfig.roughness_features``
+on, i.e. the last decoder layer also reads the fixed roughness statistics (``vfa_cnn.RoughnessFeatures``);
+their incoming weights start at 0, so the function is unchanged until fine-tuning moves them.
 Plain torch, no ROS.
 """
 
@@ -20,11 +24,20 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 
-from tal_perception.vfa_cnn import IMAGE_CHANNELS, NetConfig, VfaUNet, build_net, load_model, save_model
+from tal_perception.vfa_cnn import (
+    IMAGE_CHANNELS,
+    ROUGHNESS_CHANNELS,
+    NetConfig,
+    VfaUNet,
+    build_net,
+    load_model,
+    save_model,
+)
 
 LOG = logging.getLogger("tal_perception.widen_vfa")
 
@@ -65,7 +78,7 @@ def widen_unet(
     f1, f2, f3 = _factors(cfg.channels, tuple(channels), "channels")
     g3, g2, g1 = _factors(cfg.decoder_channels, tuple(decoder_channels), "decoder_channels")
     wide = build_net(NetConfig(tuple(channels), cfg.hidden, cfg.safe_head, cfg.encoding, "unet",
-                               tuple(decoder_channels)))  # fmt: skip
+                               tuple(decoder_channels), cfg.roughness_features))  # fmt: skip
     assert isinstance(wide, VfaUNet)
     old = {k: v.detach().to(torch.float32) for k, v in net.state_dict().items()}
     new: dict[str, torch.Tensor] = {}
@@ -97,7 +110,7 @@ def widen_unet(
     new["context.2.weight"], new["context.2.bias"] = w[feature_index].contiguous(), b[feature_index].clone()
     conv("decoders.0", d3, g3, [(c3, f3), (c3, f3), (c3, f3)])
     conv("decoders.1", d2, g2, [(d3, g3), (c2, f2)])
-    conv("decoders.2", d1, g1, [(d2, g2), (c1, f1), (IMAGE_CHANNELS, 1)])
+    conv("decoders.2", d1, g1, [(d2, g2), (c1, f1), (cfg.image_channels, 1)])
     rows = torch.cat([_tile(d3, g3), d3 + _tile(d2, g2), d3 + d2 + _tile(d1, g1)])
     new["scalar_bias.weight"] = old["scalar_bias.weight"][rows].contiguous()
     new["scalar_bias.bias"] = old["scalar_bias.bias"][rows].clone()
@@ -105,6 +118,24 @@ def widen_unet(
     wide.load_state_dict(new)
     wide.eval()
     return wide
+
+
+def add_roughness_features(net: VfaUNet) -> VfaUNet:
+    """``net`` with ``roughness_features`` on and the same function: every weight copied, the last decoder
+    layer's weights from the new roughness channels zero (they sit between the image's unknown mask and its
+    coordinate channels, see ``VfaUNet.forward``)."""
+    if not isinstance(net, VfaUNet) or net.config.roughness_features:
+        raise ValueError("add_roughness_features needs a VfaUNet without the roughness features")
+    new_net = build_net(replace(net.config, roughness_features=True))
+    assert isinstance(new_net, VfaUNet)
+    state = {k: v.detach().to(torch.float32).clone() for k, v in net.state_dict().items()}
+    w = state["decoders.2.weight"]  # inputs: upsampled, skip, image (height, unknown, row, column)
+    split = w.shape[1] - (IMAGE_CHANNELS - 2)  # before the coordinate channels
+    zeros = torch.zeros(w.shape[0], ROUGHNESS_CHANNELS, *w.shape[2:])
+    state["decoders.2.weight"] = torch.cat([w[:, :split], zeros, w[:, split:]], dim=1).contiguous()
+    new_net.load_state_dict(state)
+    new_net.eval()
+    return new_net
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="decoder widths at 9, 17 and 33 cells (default: unchanged)")  # fmt: skip
     parser.add_argument("--noise", type=float, default=0.01, help="relative noise on the copies' incoming weights")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--roughness-features", action="store_true",
+                        help="also turn on the roughness features (zero weights: the same function)")  # fmt: skip
     args = parser.parse_args(argv)
     net = load_model(args.weights)
     if not isinstance(net, VfaUNet):
@@ -124,7 +157,10 @@ def main(argv: list[str] | None = None) -> int:
     channels = tuple(args.channels or net.config.channels)
     decoder_channels = tuple(args.decoder_channels or net.config.decoder_channels)
     wide = widen_unet(net, channels, decoder_channels, args.noise, args.seed)  # type: ignore[arg-type]
+    if args.roughness_features:
+        wide = add_roughness_features(wide)
     save_model(wide, args.out, {"widened_from": str(args.weights), "noise": args.noise, "seed": args.seed,
+                                "roughness_features_added": bool(args.roughness_features),
                                 "decode": net.decode.to_dict()})  # fmt: skip
     LOG.info("%s: channels %s, decoder %s -> %s, %s (%d parameters)", args.out, net.config.channels,
              net.config.decoder_channels, wide.config.channels, wide.config.decoder_channels,

@@ -19,7 +19,9 @@ from tal_perception.vfa_cnn import (
     EncodingConfig,
     FootholdRequest,
     NetConfig,
+    RoughnessFeatures,
     VfaNet,
+    VfaUNet,
     _row_medians,
     build_net,
     encode,
@@ -167,6 +169,112 @@ def test_encoding_marks_unknown_cells_and_depends_only_on_height_differences() -
     shifted, _ = encode(cfg, heights + 0.3, hip + 0.3, twist, gait, np.array([0, 3]))
     np.testing.assert_allclose(shifted, image, atol=1e-5)
     np.testing.assert_array_equal(scalars[:, -4:], [[1, 0, 0, 0], [0, 0, 0, 1]])
+
+
+# -- roughness features (NetConfig.roughness_features) ----------------------------------------------------
+def _slope_reference(heights: np.ndarray, radius_m: float = 0.04, res: float = 0.02) -> dict[str, np.ndarray]:
+    """Per cell in float64, over the slopes to the known in-patch neighbours within ``radius_m`` (the FEC's
+    definition, ``fec_grid.terrain_roughness``): mean |s|, RMS, std, mean; and whether a neighbour is unknown."""
+    from tal_perception.fec_grid import disc_offsets
+
+    n, k = heights.shape[0], 2
+    padded = np.pad(heights, k, constant_values=np.nan)
+    inside = np.pad(np.ones_like(heights, dtype=bool), k, constant_values=False)
+    slopes, near_unknown = [], np.isnan(heights)
+    for di, dj in disc_offsets(radius_m, res):
+        neighbour = padded[k + di : k + di + n, k + dj : k + dj + n]
+        valid = inside[k + di : k + di + n, k + dj : k + dj + n]
+        near_unknown = near_unknown | (valid & np.isnan(neighbour))
+        slopes.append(np.where(valid, (neighbour - heights) / (res * np.hypot(di, dj)), np.nan))
+    s = np.stack(slopes)
+    with np.errstate(invalid="ignore"):
+        mean, mean_sq = np.nanmean(s, axis=0), np.nanmean(s * s, axis=0)
+        return {"mean_abs": np.nanmean(np.abs(s), axis=0), "rms": np.sqrt(mean_sq), "mean": mean,
+                "std": np.sqrt(np.maximum(mean_sq - mean * mean, 0.0)), "near_unknown": near_unknown}  # fmt: skip
+
+
+def test_roughness_features_are_the_fec_slope_statistics_and_never_call_a_rough_cell_smooth() -> None:
+    """RoughnessFeatures on encoded random terrains (rocks, bars, stairs, gaps, with unknown cells): the std and
+    RMS of the slopes and their mean as the float64 reference; 1 exactly where a cell or a neighbour is
+    unknown; and "both features <= 1, nothing unknown nearby" implies the FEC's roughness criterion holds
+    (RMS >= mean |s|), while every cell the FEC calls smooth has std <= 1."""
+    from tal_perception.fec_grid import terrain_roughness
+    from tal_perception.terrain_samples import random_terrain
+
+    rng = np.random.default_rng(11)
+    cfg = EncodingConfig()
+    heights = np.stack([random_terrain(rng, kind).heights for kind in ("rocks", "bars", "stairs", "gaps") * 3])
+    heights[::3, 5:11, 20:24] = np.nan
+    heights += rng.uniform(-0.2, 0.2, size=(heights.shape[0], 1, 1))  # any ground level
+    hip = np.nanmedian(heights.reshape(len(heights), -1), axis=1) + 0.58
+    b = len(heights)
+    image, _ = encode(cfg, heights, hip, np.zeros((b, 6)), np.tile([1.5, 0.6, 0.1, 0.1], (b, 1)), np.zeros(b, int))
+    features = RoughnessFeatures(cfg.cells, cfg.resolution_m, cfg.height_scale_m)(torch.from_numpy(image)).numpy()
+    assert features.shape == (b, 4, 33, 33)
+    checked = 0
+    for i in range(b):
+        known = np.where(image[i, 1] > 0.5, np.nan, image[i, 0] * cfg.height_scale_m)  # encode's clipped heights
+        ref = _slope_reference(known)
+        rough = ref["near_unknown"]
+        np.testing.assert_array_equal(features[i, 3], rough.astype(np.float32))
+        assert (features[i, :2][:, rough] == 5.0).all() and (features[i, 2][rough] == 0.0).all()
+        free = ~rough
+        np.testing.assert_allclose(features[i, 0][free], np.clip(ref["rms"][free] / 0.3, 0, 5), atol=0.03)
+        np.testing.assert_allclose(features[i, 1][free], np.clip(ref["std"][free] / 0.35, 0, 5), atol=0.03)
+        np.testing.assert_allclose(features[i, 2][free], np.clip(ref["mean"][free] / 0.3, -5, 5), atol=0.03)
+        tr = terrain_roughness(heights[i], cfg.resolution_m, 0.04, 0.3, 0.35)  # the FEC's criterion
+        said_smooth = (features[i, 0] <= 1.0 - 0.03) & (features[i, 1] <= 1.0 - 0.03) & free
+        assert not (said_smooth & ~tr).any()
+        assert (features[i, 1][tr] <= 1.0 + 0.03).all() and not (tr & rough).any()
+        checked += int(said_smooth.sum())
+    assert checked > 1000  # the implication is not vacuous
+
+
+def test_roughness_features_depend_only_on_height_differences() -> None:
+    from tal_perception.terrain_samples import random_terrain
+
+    rng = np.random.default_rng(12)
+    cfg = EncodingConfig()
+    heights = np.stack([random_terrain(rng, "rocks").heights for _ in range(3)])
+    heights[1, 4:9, 10:20] = np.nan
+    hip, twist, gait, leg = np.full(3, 0.6), np.zeros((3, 6)), np.tile([1.5, 0.6, 0.1, 0.1], (3, 1)), np.arange(3)
+    layer = RoughnessFeatures(cfg.cells, cfg.resolution_m, cfg.height_scale_m)
+    image, _ = encode(cfg, heights, hip, twist, gait, leg)
+    shifted, _ = encode(cfg, heights + 0.25, hip + 0.25, twist, gait, leg)
+    # float32 rounding only: the sums of squares are expanded (h_j - h_c)^2 = h_j^2 - 2 h_j h_c + h_c^2 with h up
+    # to a few units, ~1e-2 of the limit at most (an absolute-height feature would differ by ~1 here)
+    torch.testing.assert_close(layer(torch.from_numpy(shifted)), layer(torch.from_numpy(image)), rtol=0.0, atol=0.04)
+    # the layer itself: the same terrain 0.15 m higher relative to the hip (channel 0 + 1.5 units where known)
+    raised = image.copy()
+    raised[:, 0] += 1.5 * (1.0 - raised[:, 1])
+    torch.testing.assert_close(layer(torch.from_numpy(raised)), layer(torch.from_numpy(image)), rtol=0.0, atol=0.04)
+    assert float(layer(torch.from_numpy(image))[:, 0].max()) > 1.0  # rocks: some cells rough
+
+
+def test_roughness_option_saves_loads_and_old_files_load_without_it(tmp_path) -> None:
+    """The option is recorded in the file; a file without the key (before the option) loads as a network
+    without it, as the committed weights do; the option needs the unet."""
+    torch.manual_seed(8)
+    net = build_net(NetConfig(architecture="unet", hidden=32, roughness_features=True)).eval()
+    assert isinstance(net, VfaUNet) and net.decoders[2].in_channels == 16 + 8 + 4 + 4
+    save_model(net, tmp_path / "rough.pt")
+    loaded = load_model(tmp_path / "rough.pt")
+    assert loaded.config == net.config and loaded.config.roughness_features
+    image = torch.zeros(2, 4, 33, 33)
+    image[:, 0] = torch.rand(2, 33, 33)
+    scalars = torch.zeros(2, EncodingConfig().scalar_count)
+    with torch.inference_mode():
+        torch.testing.assert_close(loaded(image, scalars)[0], net(image, scalars)[0], rtol=0.0, atol=1e-2)
+    plain = build_net(NetConfig(architecture="unet", hidden=32)).eval()
+    save_model(plain, tmp_path / "old.pt")
+    document = torch.load(tmp_path / "old.pt", weights_only=True)
+    del document["net"]["roughness_features"]  # as written before the option existed
+    torch.save(document, tmp_path / "old.pt")
+    assert load_model(tmp_path / "old.pt").config == plain.config
+    committed = load_model(DEFAULT_WEIGHTS)
+    assert isinstance(committed, VfaUNet) and (committed.roughness is not None) == committed.config.roughness_features
+    with pytest.raises(FecConfigError, match="unet"):
+        NetConfig(architecture="thesis", roughness_features=True)
 
 
 # -- selector interface --------------------------------------------------------------------------------
@@ -374,8 +482,10 @@ def test_fast_path_selects_what_the_plain_forward_selects(evaluator: FootholdEva
 def test_fast_path_is_used_only_for_a_unet_with_a_safe_head(evaluator: FootholdEvaluator) -> None:
     thesis = build_net(NetConfig(architecture="thesis")).eval()
     no_safe = build_net(NetConfig(architecture="unet", safe_head=False)).eval()
+    rough = build_net(NetConfig(architecture="unet", roughness_features=True)).eval()
     assert not CnnFootholdSelector(evaluator, thesis, verify=False, backend="torch").fast
     assert not CnnFootholdSelector(evaluator, no_safe, verify=False, backend="torch").fast
+    assert not CnnFootholdSelector(evaluator, rough, verify=False, backend="torch").fast  # no rearranged form
     with pytest.raises(ValueError, match="safe-mask head"):
         compile_fast_unet(no_safe, 33)
 
@@ -395,6 +505,7 @@ def test_onnxruntime_logits_equal_the_torch_forward_on_random_inputs() -> None:
         NetConfig(channels=(16, 32, 64), hidden=64, architecture="unet", decoder_channels=(64, 32, 16)),
         NetConfig(architecture="unet", safe_head=False),
         NetConfig(architecture="thesis", hidden=64),
+        NetConfig(architecture="unet", decoder_channels=(32, 16, 16), roughness_features=True),
     )
     for config in configs:
         net = build_net(config).eval()
@@ -541,3 +652,27 @@ def test_select_legs_equals_predict_on_the_extracted_patches(
                     continue
                 assert result.offset_cells == (int(index) // 33 - 16, int(index) % 33 - 16)
                 assert result.selected[2] == inp.heights.reshape(-1)[index]
+
+
+def test_adding_the_roughness_features_keeps_the_function_until_trained(fresh_set: VfaDataset) -> None:
+    from tal_perception.widen_vfa import add_roughness_features, widen_unet
+
+    torch.manual_seed(9)
+    net = build_net(NetConfig(architecture="unet", hidden=64)).eval()
+    image, scalars = _encoded([fresh_set.fec_input(i) for i in range(6)], net.config.encoding)
+    with torch.inference_mode():
+        expected, expected_safe = net(image, scalars)
+    scale = float(expected.abs().max())
+    rough = add_roughness_features(net)
+    wide = widen_unet(rough, (8, 16, 32), (32, 16, 16))  # widening keeps the option and the function
+    for candidate in (rough, wide):
+        assert candidate.config.roughness_features
+        with torch.inference_mode():
+            logits, safe_logits = candidate(image, scalars)
+        torch.testing.assert_close(logits, expected, rtol=0.0, atol=1e-5 * scale)
+        torch.testing.assert_close(safe_logits, expected_safe, rtol=0.0, atol=1e-5 * scale)
+    with torch.no_grad():  # the new inputs are live: weights on them change the output
+        rough.decoders[2].weight[:, 16 + 8 + 2] += 0.5
+        assert not torch.allclose(rough(image, scalars)[0], expected, atol=1e-3 * scale)
+    with pytest.raises(ValueError, match="without the roughness"):
+        add_roughness_features(rough)
