@@ -9,7 +9,9 @@ cache with more samples of the same seed is reused); (2) a seeded 9:1 split into
 (3) Adam with a cosine decay over ``--epochs``, mini-batches of 64; the loss is the cross-entropy of the
 optimum logits against the exact optimum (softened with ``--soft-target``, see ``optimum_target``) plus
 ``--safe-weight`` x the binary cross-entropy of the safe-mask logits against the exact safe mask;
-(4) the epoch with the best validation perfect-match rate is saved as ``<out>/vfa_cnn.pt`` (float16)
+(4) the epoch with the best validation perfect-match rate (``--select-on argmax``, the thesis' decode; or,
+with ``--select-on combined``, the best perfect match + safe rate of the combined decode with
+``--select-safe-weight``, the decode the shipped weights use) is saved as ``<out>/vfa_cnn.pt`` (float16)
 with ``<out>/vfa_cnn_training.json`` (settings, data statistics, history). One CPU thread by default.
 The decode (``vfa_decode``) is chosen afterwards on a separate tuning set: ``tune_vfa_decode --store``.
 
@@ -61,8 +63,10 @@ from tal_perception.vfa_cnn import (
     save_model,
 )
 from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate, mirrored, mix_description
+from tal_perception.vfa_decode import VfaDecode, decode
 
 LOG = logging.getLogger("tal_perception.train_vfa")
+SELECTIONS = ("argmax", "combined")  # --select-on: how the kept epoch is chosen (see selection_score)
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -116,8 +120,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--extra-seeds", type=int, nargs="+", default=[],
         help="more training sets of these seeds (same --samples-per-leg), each split 9:1 with its own seed",
     )  # fmt: skip
+    parser.add_argument(
+        "--select-on", choices=SELECTIONS, default="argmax",
+        help="which epoch is kept: argmax = best validation perfect match of the optimum head's argmax; combined "
+        "= best perfect match + safe rate of the combined decode (optimum logit + λ log p_safe, needs the safe head)",
+    )  # fmt: skip
+    parser.add_argument("--select-safe-weight", type=float, default=2.0,
+                        help="λ of the combined decode that --select-on combined scores")  # fmt: skip
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = parser.parse_args(argv)
+    if args.select_on == "combined" and (args.safe_weight <= 0.0 or not args.select_safe_weight >= 0.0):
+        parser.error("--select-on combined needs the safe head (--safe-weight > 0) and --select-safe-weight >= 0")
     if args.samples_per_leg < 10 or args.epochs < 1 or not 0.0 < args.val_fraction < 0.5:
         parser.error("need --samples-per-leg >= 10, --epochs >= 1 and 0 < --val-fraction < 0.5")
     if args.patience < 0 or not 0.0 <= args.warmup < args.epochs or not args.max_training_s >= 0.0:
@@ -224,25 +237,54 @@ def lr_schedule(
     return torch.optim.lr_scheduler.LambdaLR(optimiser, factor)
 
 
-def evaluate(net: VfaNet | VfaUNet, batches: Batches, batch_size: int = 1024) -> dict[str, float]:
-    """Perfect-match rate, safe rate and mean distance to the exact optimum [m] on ``batches``."""
+def evaluate(net: VfaNet | VfaUNet, batches: Batches, batch_size: int = 1024,
+             decode_settings: VfaDecode | None = None) -> dict[str, float]:
+    """Perfect-match rate, safe rate and mean distance to the exact optimum [m] on ``batches`` of the optimum
+    head's argmax; with ``decode_settings`` also the perfect-match and safe rates of that decode
+    (``decoded_perfect_match``, ``decoded_safe``)."""
     net.eval()
     n = batches.data.cells
     res = batches.encoding.resolution_m
-    match = safe = 0
+    match = safe = decoded_match = decoded_safe = 0
     distance = 0.0
     with torch.inference_mode():
         for start in range(0, len(batches), batch_size):
             index = np.arange(start, min(start + batch_size, len(batches)))
             image, scalars, label, safe_mask = batches.tensors(index)
-            choice = net.optimum_logits(image, scalars).argmax(dim=1)
+            if decode_settings is None:
+                logits, safe_logits = net.optimum_logits(image, scalars), None
+            else:
+                logits, safe_logits = net(image, scalars)
+            choice = logits.argmax(dim=1)
             match += int((choice == label).sum())
             safe += int(safe_mask.gather(1, choice[:, None]).sum())
             d_row = (choice // n - label // n).float()
             d_col = (choice % n - label % n).float()
             distance += float(torch.sqrt(d_row**2 + d_col**2).sum()) * res
+            if decode_settings is not None:
+                probability = None if safe_logits is None else torch.sigmoid(safe_logits).numpy()
+                unknown = image[:, 1].reshape(len(index), -1).numpy() > 0.5
+                decoded = torch.from_numpy(decode(decode_settings, logits.numpy(), probability, unknown))
+                decoded_match += int((decoded == label).sum())
+                decoded_safe += int(safe_mask.gather(1, decoded[:, None]).sum())
     count = max(len(batches), 1)
-    return {"perfect_match": match / count, "safe": safe / count, "mean_distance_m": distance / count}
+    metrics = {"perfect_match": match / count, "safe": safe / count, "mean_distance_m": distance / count}
+    if decode_settings is not None:
+        metrics.update(decoded_perfect_match=decoded_match / count, decoded_safe=decoded_safe / count)
+    return metrics
+
+
+def selection_settings(args: argparse.Namespace) -> VfaDecode | None:
+    """The decode that ``--select-on`` scores epochs with (None: the argmax, scored by ``evaluate`` anyway)."""
+    return VfaDecode(mode="combined", safe_weight=args.select_safe_weight) if args.select_on == "combined" else None
+
+
+def selection_score(metrics: dict[str, float], args: argparse.Namespace) -> float:
+    """The validation figure epochs are compared by: the argmax's perfect match, or the combined decode's
+    perfect match + safe rate (tune_vfa_decode's rule; the decode the shipped weights run)."""
+    if args.select_on == "combined":
+        return metrics["decoded_perfect_match"] + metrics["decoded_safe"]
+    return metrics["perfect_match"]
 
 
 def train(args: argparse.Namespace) -> dict[str, object]:
@@ -276,11 +318,12 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     distance_sq = torch.from_numpy((r**2 + c**2).reshape(-1).astype(np.float32))  # [cells^2] from the nominal
     rng = np.random.default_rng([args.seed, 11])
     history: list[dict[str, float]] = []
+    selecting = selection_settings(args)
     best: dict[str, float] | None = None
     best_state: dict[str, torch.Tensor] | None = None
     training_started = time.perf_counter()
     if args.init_weights is not None:  # epoch 0: the starting weights, kept unless an epoch beats them
-        best = {"epoch": 0, "loss": None, "lr_end": None, **evaluate(net, val_batches),
+        best = {"epoch": 0, "loss": None, "lr_end": None, **evaluate(net, val_batches, decode_settings=selecting),
                 "train_perfect_match": evaluate(net, train_probe)["perfect_match"],
                 "elapsed_s": time.perf_counter() - training_started}  # fmt: skip
         best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
@@ -307,7 +350,7 @@ def train(args: argparse.Namespace) -> dict[str, object]:
             total += loss.item()
             bar.set_postfix(loss=f"{total / (step + 1):.3f}")
         metrics = {"epoch": epoch, "loss": total / steps_per_epoch, "lr_end": schedule.get_last_lr()[0],
-                   **evaluate(net, val_batches),
+                   **evaluate(net, val_batches, decode_settings=selecting),
                    "train_perfect_match": evaluate(net, train_probe)["perfect_match"],
                    "elapsed_s": time.perf_counter() - training_started}  # fmt: skip
         history.append(metrics)
@@ -315,12 +358,16 @@ def train(args: argparse.Namespace) -> dict[str, object]:
                  "%.4f m; training-subset perfect match %.1f %%", epoch, metrics["elapsed_s"], metrics["loss"],
                  100 * metrics["perfect_match"], 100 * metrics["safe"], metrics["mean_distance_m"],
                  100 * metrics["train_perfect_match"])  # fmt: skip
-        if best is None or metrics["perfect_match"] > best["perfect_match"]:
+        if selecting is not None:
+            LOG.info("epoch %d: combined decode (λ %g) perfect match %.1f %%, safe %.1f %%", epoch,
+                     selecting.safe_weight, 100 * metrics["decoded_perfect_match"], 100 * metrics["decoded_safe"])
+        if best is None or selection_score(metrics, args) > selection_score(best, args):
             best = metrics
             best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
             save_model(net, args.out / "vfa_cnn.pt", {"seed": args.seed, "best_epoch": epoch, "partial": True})
         elif args.patience and epoch - int(best["epoch"]) >= args.patience:
-            LOG.info("early stop: no better validation perfect match since epoch %d", best["epoch"])
+            LOG.info("early stop: no better validation score (--select-on %s) since epoch %d", args.select_on,
+                     best["epoch"])
             break
         # this epoch's duration (after epoch 0's scoring when fine-tuning)
         epoch_s = metrics["elapsed_s"] - (history[-2]["elapsed_s"] if len(history) > 1 else 0.0)
@@ -362,6 +409,8 @@ def train(args: argparse.Namespace) -> dict[str, object]:
             "safe_weight": args.safe_weight,
             "soft_target": args.soft_target,
             "soft_cells2": args.soft_cells2,
+            "select_on": args.select_on,
+            "select_safe_weight": args.select_safe_weight if args.select_on == "combined" else None,
         },
         "best_epoch": best,
         "history": history,

@@ -40,6 +40,7 @@ from tal_perception.vfa_dataset import (
     mirrored,
 )
 from tal_perception.vfa_decode import VfaDecode
+from tal_perception.vfa_decode import decode as decode_choices
 
 TROT_SWING = GaitTiming(step_frequency_hz=1.5, duty_factor=0.6, swing_time_left_s=0.2, step_height_m=0.1)
 TWIST = np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.1])
@@ -414,6 +415,44 @@ def test_fine_tuning_starts_from_the_weights_and_keeps_each_seeds_validation_spl
         with pytest.raises(SystemExit):
             train_vfa.parse_args(["--out", "x", *bad])
 
+
+
+def test_select_on_combined_keeps_the_epoch_with_the_best_decoded_match_plus_safe(
+    evaluator: FootholdEvaluator, tmp_path
+) -> None:
+    """--select-on combined: every epoch's validation record has the combined decode's rates, the kept epoch
+    maximises their sum, and evaluate's decoded rates are those of vfa_decode.decode on the same outputs (with
+    the argmax decode they equal the argmax's). Without the safe head the option is refused."""
+    from tal_perception import train_vfa
+
+    torch.manual_seed(0)
+    init = tmp_path / "init.pt"
+    hyq = EncodingConfig(nominal_hip_height_m=0.5867)
+    save_model(build_net(NetConfig(architecture="unet", decoder_channels=(8, 8, 8), encoding=hyq)), init)
+    common = ["--data", str(tmp_path / "data"), "--samples-per-leg", "10", "--batch-size", "16"]
+    args = train_vfa.parse_args(["--out", str(tmp_path / "out"), "--init-weights", str(init), "--epochs", "2",
+                                 "--patience", "0", "--select-on", "combined", "--select-safe-weight", "2", *common])
+    report = train_vfa.train(args)
+    history = report["history"]
+    assert [h["epoch"] for h in history] == [0, 1, 2]
+    scores = [h["decoded_perfect_match"] + h["decoded_safe"] for h in history]
+    assert report["best_epoch"]["epoch"] == history[int(np.argmax(scores))]["epoch"]
+    assert report["optimiser"]["select_on"] == "combined" and report["optimiser"]["select_safe_weight"] == 2.0
+    net = load_model(tmp_path / "out" / "vfa_cnn.pt")
+    validation = train_vfa.training_sets(args, evaluator)[1]
+    batches = train_vfa.Batches(validation, net.config.encoding)
+    argmax = train_vfa.evaluate(net, batches, decode_settings=VfaDecode(mode="argmax"))
+    assert (argmax["decoded_perfect_match"], argmax["decoded_safe"]) == (argmax["perfect_match"], argmax["safe"])
+    combined = train_vfa.evaluate(net, batches, decode_settings=VfaDecode(mode="combined", safe_weight=2.0))
+    image, scalars, label, safe_mask = batches.tensors(np.arange(len(batches)))
+    with torch.inference_mode():
+        logits, safe_logits = net(image, scalars)
+    chosen = decode_choices(VfaDecode(mode="combined", safe_weight=2.0), logits.numpy(), torch.sigmoid(safe_logits).numpy(),
+                    image[:, 1].reshape(len(batches), -1).numpy() > 0.5)
+    assert combined["decoded_perfect_match"] == pytest.approx(float(np.mean(chosen == label.numpy())))
+    assert combined["decoded_safe"] == pytest.approx(float(safe_mask.numpy()[np.arange(len(chosen)), chosen].mean()))
+    with pytest.raises(SystemExit):
+        train_vfa.parse_args(["--out", "x", "--select-on", "combined", "--safe-weight", "0"])
 
 # -- the committed weights -----------------------------------------------------------------------------
 def test_committed_weights_approximate_the_exact_vfa(cnn_selector: CnnFootholdSelector, fresh_set: VfaDataset) -> None:
