@@ -94,45 +94,22 @@ def check_map_age(map_age_s: float, who: str) -> None:
 
 def extract_patch(grid: HeightMapGrid, center_xy: ArrayLike, yaw: float, cells: int, resolution_m: float) -> FloatArray:
     """Heights (cells, cells) [m] around ``center_xy`` [m] (world), rows along the heading ``yaw``
-    [rad]: nearest cell of ``grid`` at each patch cell centre; outside ``grid`` NaN (unknown)."""
-    if abs(math.remainder(yaw - grid.yaw, 2.0 * math.pi)) < 1e-9 and abs(resolution_m - grid.resolution_m) < 1e-12:
-        return _aligned_patch(grid, center_xy, cells)
-    offsets = (np.arange(cells) - 0.5 * (cells - 1)) * resolution_m
-    forward, left = np.meshgrid(offsets, offsets, indexing="ij")
-    c, s = math.cos(yaw), math.sin(yaw)
-    x = center_xy[0] + c * forward - s * left
-    y = center_xy[1] + s * forward + c * left
-    rows, cols = grid.cell_index(x, y)
-    inside = rows >= 0
-    heights = np.full((cells, cells), np.nan)
-    heights[inside] = grid.heights[rows[inside], cols[inside]]
-    return heights
-
-
-def _aligned_patch(grid: HeightMapGrid, center_xy: ArrayLike, cells: int) -> FloatArray:
-    """``extract_patch`` for a patch with the grid's heading and resolution: a shifted slice."""
-    rows, cols = grid.fractional_index(np.array([center_xy[0]]), np.array([center_xy[1]]))
-    half = cells // 2
-    r0, c0 = int(np.floor(rows[0] + 0.5)) - half, int(np.floor(cols[0] + 0.5)) - half
-    heights = np.full((cells, cells), np.nan)
-    src_r = slice(max(r0, 0), min(r0 + cells, grid.rows))
-    src_c = slice(max(c0, 0), min(c0 + cells, grid.cols))
-    if src_r.start < src_r.stop and src_c.start < src_c.stop:
-        heights[src_r.start - r0 : src_r.stop - r0, src_c.start - c0 : src_c.stop - c0] = grid.heights[src_r, src_c]
-    return heights
+    [rad]: nearest cell of ``grid`` at each patch cell centre; outside ``grid`` NaN (unknown).
+    ``extract_patches`` for one centre."""
+    return extract_patches(grid, np.asarray(center_xy, dtype=float)[:2], yaw, cells, resolution_m)[0]
 
 
 def extract_patches(
     grid: HeightMapGrid, centers_xy: ArrayLike, yaw: float, cells: int, resolution_m: float,
     out: NDArray[np.floating] | None = None,
 ) -> NDArray[np.floating]:
-    """``extract_patch`` for B centres at once: heights (B, cells, cells) [m] around each of ``centers_xy``
-    (B, 2) [m] (world), rows along ``yaw`` [rad], NaN outside ``grid``; the same values as B calls of
-    ``extract_patch`` (the same arithmetic, element by element). Written into ``out`` when given (float32
-    holds the grid's float32 heights exactly), else into a new float64 array.
+    """Heights (B, cells, cells) [m] around each of ``centers_xy`` (B, 2) [m] (world), rows along ``yaw``
+    [rad]: the nearest cell of ``grid`` at each patch cell centre, NaN outside ``grid``. A patch with the
+    grid's heading and resolution is a shifted slice of it. Written into ``out`` when given (float32 holds
+    the grid's float32 heights exactly), else into a new float64 array.
 
-    Why: the CNN selector extracts one patch per leg per call; one vectorised pass saves the per-call
-    meshgrid and index set-up of each leg (~10 us per leg)."""
+    Why batched: the CNN selector and the VPA extract one patch per leg per call; one pass saves the
+    meshgrid and index set-up of each (~10 us per patch)."""
     centers = np.asarray(centers_xy, dtype=float).reshape(-1, 2)
     b = centers.shape[0]
     if out is None:
@@ -144,7 +121,7 @@ def extract_patches(
         return out
     forward, left = _patch_offsets(cells, resolution_m)
     c, s = math.cos(yaw), math.sin(yaw)
-    x = centers[:, 0, None, None] + c * forward - s * left  # the order of extract_patch's sums (same rounding)
+    x = centers[:, 0, None, None] + c * forward - s * left
     y = centers[:, 1, None, None] + s * forward + c * left
     rows, cols = grid.cell_index(x, y)
     inside = rows >= 0
@@ -155,8 +132,8 @@ def extract_patches(
 
 def _nearest_cell(grid: HeightMapGrid, x: float, y: float) -> tuple[int, int]:
     """(row, col) of the cell whose centre is nearest to world (x, y) [m] (may lie outside ``grid``):
-    ``HeightMapGrid.fractional_index`` then floor(. + 0.5) as ``_aligned_patch`` does, in the same order of
-    double-precision operations on Python floats (the same result; ~8 us less than the array call)."""
+    ``HeightMapGrid.fractional_index`` then floor(. + 0.5), in the same order of double-precision operations
+    on Python floats (the same result as ``cell_index`` inside the grid; ~8 us less than the array call)."""
     cos_yaw, sin_yaw = math.cos(grid.yaw), math.sin(grid.yaw)
     offset_x, offset_y = x - grid.center_xy[0], y - grid.center_xy[1]
     forward = cos_yaw * offset_x + sin_yaw * offset_y
@@ -167,7 +144,8 @@ def _nearest_cell(grid: HeightMapGrid, x: float, y: float) -> tuple[int, int]:
 
 
 def _copy_aligned(grid: HeightMapGrid, r0: int, c0: int, out: NDArray[np.floating]) -> None:
-    """``_aligned_patch`` into ``out`` (cells, cells): the grid's cells from row ``r0``, column ``c0`` on."""
+    """The aligned patch into ``out`` (cells, cells): the grid's cells from row ``r0``, column ``c0`` on, NaN
+    off the grid."""
     cells = out.shape[0]
     src_r = slice(max(r0, 0), min(r0 + cells, grid.rows))
     src_c = slice(max(c0, 0), min(c0 + cells, grid.cols))

@@ -32,7 +32,7 @@ from tal_perception.errors import PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import GaitTiming
 from tal_perception.rbf import RbfBasis
-from tal_perception.vfa import check_map_age, extract_patch
+from tal_perception.vfa import check_map_age, extract_patches
 from tal_perception.vpa_evaluation import PoseEvaluator
 from tal_perception.vpa_optimizer import HipHeightModel, PoseOptimizer, PoseProblem, Solver
 from tal_perception.vpa_settings import VpaSettings
@@ -182,9 +182,8 @@ class PoseAdapter:
         started = time.perf_counter()
         centres, horizon_s = self.map_centres(base, yaw, twist)
         n_h = self.settings.horizon
-        maps = np.array(
-            [extract_patch(grid, centre, yaw, fec.patch_cells, fec.resolution_m) for centre in centres.reshape(-1, 2)]
-        ).reshape(n_h, 4, fec.patch_cells, fec.patch_cells)
+        maps = extract_patches(grid, centres.reshape(-1, 2), yaw, fec.patch_cells, fec.resolution_m).reshape(
+            n_h, 4, fec.patch_cells, fec.patch_cells)
         # Standing still: all stages see the same maps, evaluated once.
         distinct = 1 if np.allclose(centres, centres[:1]) else n_h
         weights, references, samples = self._evaluate(maps[:distinct], twist, gait)

@@ -184,3 +184,9 @@ def test_extract_patches_equals_extract_patch_for_each_centre(yaw_offset: float)
     out = np.full((len(centres), 33, 33), 7.0, np.float32)
     assert extract_patches(grid, centres, yaw, 33, 0.02, out=out) is out
     np.testing.assert_array_equal(out, expected.astype(np.float32))
+    # the definition: the nearest grid cell at every patch cell centre, NaN off the grid
+    forward, left = np.meshgrid((np.arange(33) - 16) * 0.02, (np.arange(33) - 16) * 0.02, indexing="ij")
+    for (x0, y0), patch in zip(centres, expected):
+        rows, cols = grid.cell_index(x0 + np.cos(yaw) * forward - np.sin(yaw) * left,
+                                     y0 + np.sin(yaw) * forward + np.cos(yaw) * left)  # fmt: skip
+        np.testing.assert_array_equal(patch, np.where(rows >= 0, grid.heights[rows, cols], np.nan))
