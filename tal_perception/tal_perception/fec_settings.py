@@ -174,15 +174,23 @@ class FecInput:
         if np.isinf(heights).any():
             raise PerceptionInputError("FecInput.heights must be finite or NaN (unknown), got +-inf")
         object.__setattr__(self, "heights", heights)
-        if not (isinstance(self.hip_height_m, (int, float, np.floating)) and math.isfinite(self.hip_height_m)):
-            raise PerceptionInputError(f"FecInput.hip_height_m must be a finite number [m], got {self.hip_height_m!r}")
-        object.__setattr__(self, "twist", _vector(self.twist, 6, "twist"))
-        if not isinstance(self.gait, GaitTiming):
-            raise PerceptionInputError(f"FecInput.gait must be a GaitTiming, got {type(self.gait).__name__}")
+        object.__setattr__(self, "twist", check_motion_inputs(self.hip_height_m, self.twist, self.gait))
         if self.hip_touchdown_xy is not None:
             object.__setattr__(self, "hip_touchdown_xy", _vector(self.hip_touchdown_xy, 2, "hip_touchdown_xy"))
         if self.liftoff_xyz is not None:
             object.__setattr__(self, "liftoff_xyz", _vector(self.liftoff_xyz, 3, "liftoff_xyz"))
+
+
+def check_motion_inputs(hip_height_m: object, twist: object, gait: object) -> FloatArray:
+    """``FecInput``'s checks of a tuple's hip height [m], twist (6,) [m/s, rad/s] and gait timing
+    (PerceptionInputError naming the field); returns the twist as a float64 array. Also used where the
+    tuple's arrays are checked without building a ``FecInput`` (the CNN selector's batched path)."""
+    if not (isinstance(hip_height_m, (int, float, np.floating)) and math.isfinite(hip_height_m)):
+        raise PerceptionInputError(f"FecInput.hip_height_m must be a finite number [m], got {hip_height_m!r}")
+    twist_array = _vector(twist, 6, "twist")
+    if not isinstance(gait, GaitTiming):
+        raise PerceptionInputError(f"FecInput.gait must be a GaitTiming, got {type(gait).__name__}")
+    return twist_array
 
 
 def _is_finite_number(value: object) -> bool:

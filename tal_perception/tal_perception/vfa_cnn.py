@@ -47,8 +47,7 @@ from tal_perception import vfa_cnn_ort
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
-from tal_perception.fec_settings import FecInput, GaitTiming
-from tal_perception.fec_settings import _vector as _fec_vector
+from tal_perception.fec_settings import FecInput, GaitTiming, check_motion_inputs
 from tal_perception.vfa import (
     FootholdRequest,
     FootholdSelector,
@@ -667,7 +666,7 @@ class CnnFootholdSelector:
             raise PerceptionInputError(f"VFA: yaw must be finite [rad], got {yaw!r}")
         if not requests:
             return []
-        twist = np.stack([_check_request(r) for r in requests])
+        twist = np.stack([check_motion_inputs(r.hip_height_m, r.twist, r.gait) for r in requests])
         s = self.evaluator.settings
         workspace = self._workspace(len(requests))
         patches = extract_patches(
@@ -743,18 +742,6 @@ def _vector(value: object, size: int, name: str) -> FloatArray:
 def _gait_row(gait: GaitTiming) -> tuple[float, float, float, float]:
     """The ``gait`` row of ``encode``: step frequency [Hz], duty factor [-], time left [s], step height [m]."""
     return (gait.step_frequency_hz, gait.duty_factor, gait.swing_time_left_s, gait.step_height_m)
-
-
-def _check_request(request: FootholdRequest) -> FloatArray:
-    """The checks ``FecInput`` makes of a request's hip height, twist and gait (same errors), without building
-    one (the CNN path needs only the arrays); returns the twist (6,) [m/s, rad/s] as float64."""
-    hip = request.hip_height_m
-    if not (isinstance(hip, (int, float, np.floating)) and math.isfinite(hip)):
-        raise PerceptionInputError(f"FecInput.hip_height_m must be a finite number [m], got {hip!r}")
-    twist = _fec_vector(request.twist, 6, "twist")
-    if not isinstance(request.gait, GaitTiming):
-        raise PerceptionInputError(f"FecInput.gait must be a GaitTiming, got {type(request.gait).__name__}")
-    return twist
 
 
 class _Workspace:
