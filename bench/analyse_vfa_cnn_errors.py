@@ -39,28 +39,14 @@ from tal_core.robot_model import RobotModel
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.terrain_samples import TERRAIN_KINDS
-from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, CnnFootholdSelector, encode, load_model
+from tal_perception.tune_vfa_decode import network_outputs
+from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, CnnFootholdSelector, load_model
 from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate
 from tal_perception.vfa_decode import VfaDecode, decode
 
 CRITERIA = ("terrain_roughness", "leg_collision", "kinematic_feasibility", "foot_trajectory_collision")
 SHORT = {"terrain_roughness": "TR", "leg_collision": "LC", "kinematic_feasibility": "KF",
          "foot_trajectory_collision": "FC"}  # fmt: skip
-
-
-def network_outputs(selector: CnnFootholdSelector, data: VfaDataset, batch: int = 512) -> tuple[np.ndarray, ...]:
-    """Optimum logits and safe probabilities (N, n*n) of the selector's network for every sample."""
-    logits, prob = [], []
-    enc = selector.net.config.encoding
-    for start in range(0, len(data), batch):
-        sl = slice(start, min(start + batch, len(data)))
-        image, scalars = encode(enc, data.heights[sl], data.hip_height_m[sl], data.twist[sl], data.gait[sl],
-                                data.leg[sl])  # fmt: skip
-        with torch.inference_mode():
-            out, safe = selector.net(torch.from_numpy(image), torch.from_numpy(scalars))
-        logits.append(out.numpy())
-        prob.append(torch.sigmoid(safe).numpy())
-    return np.concatenate(logits), np.concatenate(prob)
 
 
 def classify(
@@ -156,8 +142,8 @@ def main(argv: list[str] | None = None) -> int:
                             args.samples_per_leg)  # fmt: skip
     net = load_model(args.weights)
     selector = CnnFootholdSelector(evaluator, net, verify=False, backend="torch")
-    logits, p_safe = network_outputs(selector, data)
-    known = ~np.isnan(data.heights.reshape(len(data), -1))
+    logits, p_safe, unknown = network_outputs(net, data)
+    known = ~unknown
 
     report: dict[str, object] = {"weights": str(args.weights), "clipping": clipping(data, selector)}
     for name, settings in (("stored", selector.decode), ("argmax", VfaDecode("argmax"))):

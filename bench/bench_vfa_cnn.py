@@ -4,7 +4,7 @@
 Run after ``source scripts/env.sh``:  ``python bench/bench_vfa_cnn.py [--quick] [--samples N] [--seed S]``.
 Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/bench_vfa_cnn.json`` (``--json``).
 To time another commit's selector with this script (before / after, back to back): ``git worktree add
-/tmp/base <commit>`` and ``PYTHONPATH=/tmp/base/tal_perception:$PYTHONPATH python bench/bench_vfa_cnn.py --json
+<worktree> <commit>`` and ``PYTHONPATH=<worktree>/tal_perception:$PYTHONPATH python bench/bench_vfa_cnn.py --json
 ...``; the JSON's ``tal_perception`` says which code was timed.
 
 Inputs: the same cases as ``bench_vfa.py`` (``make_cases``: 65 x 65 maps of 0.02 m around the nominal

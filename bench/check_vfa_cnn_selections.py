@@ -7,8 +7,8 @@ Run after ``source scripts/env.sh``:
     python bench/check_vfa_cnn_selections.py --against bench/out/vfa_cnn_selections_ref.npz  # at the change
 
 To record the reference of another commit without checking it out here, run this file with that commit's
-``tal_perception`` first on the path (``git worktree add /tmp/base <commit>``, then
-``PYTHONPATH=/tmp/base/tal_perception:$PYTHONPATH python bench/check_vfa_cnn_selections.py --save ...``).
+``tal_perception`` first on the path (``git worktree add <worktree> <commit>``, then
+``PYTHONPATH=<worktree>/tal_perception:$PYTHONPATH python bench/check_vfa_cnn_selections.py --save ...``).
 
 What is compared, bit for bit (selected point [m], status, offset [cells], any_safe), with the default
 backend and the weights' stored decode:

@@ -22,37 +22,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tal_perception.eval_vfa import score
 from tal_perception.terrain_samples import TERRAIN_KINDS
-from tal_perception.vfa_cnn import encode, load_model
+from tal_perception.tune_vfa_decode import network_outputs, safe_head_quality
+from tal_perception.vfa_cnn import load_model
 from tal_perception.vfa_dataset import VfaDataset
 from tal_perception.vfa_decode import VfaDecode, decode
 
 
-def outputs(weights: Path, data: VfaDataset, batch: int = 512) -> tuple[np.ndarray, np.ndarray]:
-    """Optimum logits and safe probabilities (N, n*n) of the network in ``weights``."""
-    net = load_model(weights)
-    logits, prob = [], []
-    for start in range(0, len(data), batch):
-        sl = slice(start, min(start + batch, len(data)))
-        image, scalars = encode(net.config.encoding, data.heights[sl], data.hip_height_m[sl], data.twist[sl],
-                                data.gait[sl], data.leg[sl])  # fmt: skip
-        with torch.inference_mode():
-            out, safe = net(torch.from_numpy(image), torch.from_numpy(scalars))
-        logits.append(out.numpy())
-        prob.append(torch.sigmoid(safe).numpy())
-    return np.concatenate(logits), np.concatenate(prob)
-
-
-def rates(data: VfaDataset, choices: np.ndarray, rows: np.ndarray, resolution_m: float = 0.02) -> dict[str, float]:
-    """Perfect match, safe, mean distance [m] over ``rows`` (samples with a safe candidate)."""
-    n = data.cells
-    label, choice = data.label[rows].astype(np.intp), choices[rows]
-    return {
-        "count": int(rows.size),
-        "perfect_match": float((choice == label).mean()),
-        "safe": float(data.safe.reshape(len(data), -1)[rows, choice].mean()),
-        "mean_distance_m": float((np.hypot(choice // n - label // n, choice % n - label % n) * resolution_m).mean()),
-    }
+def rates(data: VfaDataset, choices: np.ndarray, mask: np.ndarray, resolution_m: float = 0.02) -> dict[str, float]:
+    """Perfect match, safe, mean distance [m] (``eval_vfa.score``) over the samples of ``mask`` that have a
+    safe candidate."""
+    scored = score(data.subset(mask), choices[mask], resolution_m)
+    return {"count": scored["scored"], **{k: scored[k] for k in ("perfect_match", "safe", "mean_distance_m")}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,30 +51,24 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     data = VfaDataset.load(args.data)
     has_safe = data.label >= 0
-    unknown = np.isnan(data.heights.reshape(len(data), -1))
+    everything = np.ones(len(data), dtype=bool)
     report: dict[str, object] = {"data": str(args.data), "scored": int(has_safe.sum()), "runs": {}}
     print(f"{args.data}: {int(has_safe.sum())} scored samples")
     print("| weights | decode | perfect match | safe | mean distance [m] | " +
           " | ".join(f"{k} match / safe" for k in TERRAIN_KINDS) + " |")  # fmt: skip
     print("| --- " * (4 + len(TERRAIN_KINDS)) + "| --- |")
     for weights in args.weights:
-        logits, prob = outputs(weights, data)
+        logits, prob, unknown = network_outputs(load_model(weights), data)
         run: dict[str, object] = {}
-        rows = np.flatnonzero(has_safe)
-        predicted = prob[rows] >= 0.5
-        truth = data.safe.reshape(len(data), -1)[rows]
-        run["safe_mask_precision"] = float((predicted & truth).sum() / max(predicted.sum(), 1))
-        run["safe_mask_recall"] = float((predicted & truth).sum() / max(truth.sum(), 1))
+        quality = safe_head_quality(data, prob, [0.5])[0]
+        run["safe_mask_precision"], run["safe_mask_recall"] = quality["precision"], quality["recall"]
         for name, settings in (
             ("argmax", VfaDecode("argmax")),
             (f"combined {args.safe_weight:g}", VfaDecode("combined", safe_weight=args.safe_weight)),
         ):
             choices = decode(settings, logits, prob, unknown)
-            overall = rates(data, choices, rows)
-            kinds = {
-                k: rates(data, choices, np.flatnonzero(has_safe & (data.kind == i)))
-                for i, k in enumerate(TERRAIN_KINDS)
-            }
+            overall = rates(data, choices, everything)
+            kinds = {k: rates(data, choices, data.kind == i) for i, k in enumerate(TERRAIN_KINDS)}
             run[name] = {"overall": overall, "per_kind": kinds}
             print(f"| {weights} | {name} | {100 * overall['perfect_match']:.1f} % | {100 * overall['safe']:.1f} % | "
                   f"{overall['mean_distance_m']:.4f} | " +
@@ -101,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         sweep = {}
         for value in args.sweep:
             choices = decode(VfaDecode("combined", safe_weight=value), logits, prob, unknown)
-            sweep[value] = rates(data, choices, rows)
+            sweep[value] = rates(data, choices, everything)
         best = max(sweep, key=lambda v: sweep[v]["perfect_match"] + sweep[v]["safe"])
         run["combined_sweep"] = {str(k): v for k, v in sweep.items()}
         best_sum = 100 * (sweep[best]["perfect_match"] + sweep[best]["safe"])
