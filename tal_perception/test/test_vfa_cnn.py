@@ -613,22 +613,37 @@ def test_backend_defaults_to_onnxruntime_and_falls_back_to_torch_without_it(
 
 
 # -- Net2Net widening (widen_vfa) -----------------------------------------------------------------------
-def test_widening_computes_the_same_function_and_noise_separates_the_copies(fresh_set: VfaDataset) -> None:
-    from tal_perception.widen_vfa import widen_unet
-
-    torch.manual_seed(6)
+def _small_unet_reference(
+    fresh_set: VfaDataset, seed: int
+) -> tuple[torch.nn.Module, tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """A random small VfaUNet and (image, scalars, logits, safe logits) of it on six encoded tuples: the
+    reference that a function-preserving edit of the network must reproduce."""
+    torch.manual_seed(seed)
     net = build_net(NetConfig(architecture="unet", hidden=64)).eval()
     image, scalars = _encoded([fresh_set.fec_input(i) for i in range(6)], net.config.encoding)
     with torch.inference_mode():
         expected, expected_safe = net(image, scalars)
+    return net, (image, scalars, expected, expected_safe)
+
+
+def _assert_same_function(candidate: torch.nn.Module, image: torch.Tensor, scalars: torch.Tensor, expected: torch.Tensor,
+                          expected_safe: torch.Tensor) -> None:  # fmt: skip
+    """``candidate`` gives the reference's logits and safe logits (to 1e-5 of their largest magnitude)."""
     scale = float(expected.abs().max())
+    with torch.inference_mode():
+        logits, safe_logits = candidate(image, scalars)
+    torch.testing.assert_close(logits, expected, rtol=0.0, atol=1e-5 * scale)
+    torch.testing.assert_close(safe_logits, expected_safe, rtol=0.0, atol=1e-5 * scale)
+
+
+def test_widening_computes_the_same_function_and_noise_separates_the_copies(fresh_set: VfaDataset) -> None:
+    from tal_perception.widen_vfa import widen_unet
+
+    net, reference = _small_unet_reference(fresh_set, seed=6)
     for channels, decoder in (((8, 16, 32), (32, 16, 16)), ((16, 32, 64), (64, 32, 16)), ((8, 32, 32), (32, 16, 24))):
         wide = widen_unet(net, channels, decoder)
         assert (wide.config.channels, wide.config.decoder_channels) == (channels, decoder)
-        with torch.inference_mode():
-            logits, safe_logits = wide(image, scalars)
-        torch.testing.assert_close(logits, expected, rtol=0.0, atol=1e-5 * scale)
-        torch.testing.assert_close(safe_logits, expected_safe, rtol=0.0, atol=1e-5 * scale)
+        _assert_same_function(wide, *reference)
     noisy = widen_unet(net, (8, 16, 32), (32, 16, 16), noise=0.01)
     first, copy = noisy.decoders[2].weight.detach()[:8], noisy.decoders[2].weight.detach()[8:]
     assert not torch.equal(first, copy) and float((first - copy).abs().max()) < 0.1 * float(first.abs().max())
@@ -699,20 +714,14 @@ def test_select_legs_equals_predict_on_the_extracted_patches(
 def test_adding_the_roughness_features_keeps_the_function_until_trained(fresh_set: VfaDataset) -> None:
     from tal_perception.widen_vfa import add_roughness_features, widen_unet
 
-    torch.manual_seed(9)
-    net = build_net(NetConfig(architecture="unet", hidden=64)).eval()
-    image, scalars = _encoded([fresh_set.fec_input(i) for i in range(6)], net.config.encoding)
-    with torch.inference_mode():
-        expected, expected_safe = net(image, scalars)
+    net, reference = _small_unet_reference(fresh_set, seed=9)
+    image, scalars, expected, _ = reference
     scale = float(expected.abs().max())
     rough = add_roughness_features(net)
     wide = widen_unet(rough, (8, 16, 32), (32, 16, 16))  # widening keeps the option and the function
     for candidate in (rough, wide):
         assert candidate.config.roughness_features
-        with torch.inference_mode():
-            logits, safe_logits = candidate(image, scalars)
-        torch.testing.assert_close(logits, expected, rtol=0.0, atol=1e-5 * scale)
-        torch.testing.assert_close(safe_logits, expected_safe, rtol=0.0, atol=1e-5 * scale)
+        _assert_same_function(candidate, *reference)
     with torch.no_grad():  # the new inputs are live: weights on them change the output
         rough.decoders[2].weight[:, 16 + 8 + 2] += 0.5
         assert not torch.allclose(rough(image, scalars)[0], expected, atol=1e-3 * scale)
