@@ -56,6 +56,14 @@ class FecResult:
         return int(self.safe.sum())
 
 
+def swing_hip_rise(rise_m: float, swing_times: FloatArray, swing_duration_s: float) -> FloatArray:
+    """(S,) [m] the hip's height above its touchdown height at ``swing_times`` [s] since lift-off, for a hip
+    ``rise_m`` [m] higher at lift-off moving linearly in time to its touchdown height (zeros when 0)."""
+    if not rise_m:
+        return np.zeros(np.shape(swing_times))
+    return rise_m * (1.0 - swing_times / swing_duration_s)
+
+
 def min_jerk(s: FloatArray) -> FloatArray:
     """Rest-to-rest quintic profile 10 s^3 - 15 s^4 + 6 s^5 (s in [0, 1]; not clipped, callers keep
     s in range)."""
@@ -79,6 +87,9 @@ class PreparedPatch:
     liftoff_centre: FloatArray  # (3,) [m] foot centre at lift-off
     swing_times: FloatArray  # (swing_samples,) [s] since lift-off, KF and LC
     trajectory_times: FloatArray  # (trajectory_samples - 1,) [s] since lift-off, FC
+    # (swing_samples,) [m] the hip's height above inp.hip_height_m at the swing samples (all 0 unless
+    # inp.hip_rise_at_liftoff_m is set)
+    swing_hip_dz: FloatArray
 
 
 class FootholdEvaluator:
@@ -144,6 +155,7 @@ class FootholdEvaluator:
         t_start = t_swing - gait.swing_time_left_s
         swing_times = t_start + (t_swing - t_start) * np.arange(s.swing_samples) / s.swing_samples
         trajectory_times = t_start + (t_swing - t_start) * np.arange(1, s.trajectory_samples) / s.trajectory_samples
+        swing_hip_dz = swing_hip_rise(inp.hip_rise_at_liftoff_m, swing_times, t_swing)
         return PreparedPatch(
             inp=inp,
             resolution_m=res,
@@ -158,6 +170,7 @@ class FootholdEvaluator:
             liftoff_centre=liftoff,
             swing_times=swing_times,
             trajectory_times=trajectory_times,
+            swing_hip_dz=swing_hip_dz,
         )
 
     # -- evaluation ---------------------------------------------------------------------------------
@@ -264,7 +277,11 @@ class FootholdEvaluator:
         hip = prep.hip_touchdown + prep.hip_velocity * dt[:, None]  # (C, 2)
         # patch frame -> base frame (level base): subtract the hip, add the HAA origin in the base frame
         b = ((g.haa_origin[0] - hip[:, 0])[:, None], (g.haa_origin[1] - hip[:, 1])[:, None])
-        b = (*b, float(g.haa_origin[2]) - inp.hip_height_m)
+        if inp.hip_rise_at_liftoff_m:  # the hip moves down (or up) during the swing: one height per instant
+            hip_z = np.concatenate([inp.hip_height_m + prep.swing_hip_dz, [inp.hip_height_m] * 2])
+            b = (*b, (float(g.haa_origin[2]) - hip_z)[:, None])
+        else:
+            b = (*b, float(g.haa_origin[2]) - inp.hip_height_m)
         ik = self.kinematics.inverse_xyz(leg, (fx + b[0]).ravel(), (fy + b[1]).ravel(), (fz + b[2]).ravel())
         shape = fx.shape
         kf = np.all(ik.within_limits.reshape(shape), axis=0)

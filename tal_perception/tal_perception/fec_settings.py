@@ -149,7 +149,11 @@ class FecInput:
     Optional: hip_touchdown_xy (2,) [m] where the hip is at touchdown (default: the Raibert rule puts
     the nominal foothold half a stance ahead of it, so -v_hip T_stance / 2); liftoff_xyz (3,) [m] where
     the swing started (default: one step length behind the nominal, at the height of the patch there,
-    or the median known height if that is off the patch or unknown).
+    or the median known height if that is off the patch or unknown); hip_rise_at_liftoff_m [m] how much
+    higher the hip was at lift-off than at touchdown (``hip_height_m``): the hip moves linearly in time
+    from one to the other during the swing; touchdown and the next lift-off are at ``hip_height_m``.
+    0 (default, the thesis): the hip stays at ``hip_height_m`` for the whole swing. Positive when the
+    trunk steps down with the leg (the VPA's terrain-following swing model, ``VpaSettings.swing_hip_model``).
     """
 
     leg: Leg
@@ -159,6 +163,7 @@ class FecInput:
     gait: GaitTiming
     hip_touchdown_xy: FloatArray | None = None
     liftoff_xyz: FloatArray | None = None
+    hip_rise_at_liftoff_m: float = 0.0
 
     def __post_init__(self) -> None:
         try:
@@ -179,6 +184,11 @@ class FecInput:
             object.__setattr__(self, "hip_touchdown_xy", _vector(self.hip_touchdown_xy, 2, "hip_touchdown_xy"))
         if self.liftoff_xyz is not None:
             object.__setattr__(self, "liftoff_xyz", _vector(self.liftoff_xyz, 3, "liftoff_xyz"))
+        if not _is_finite_number(self.hip_rise_at_liftoff_m):
+            raise PerceptionInputError(
+                f"FecInput.hip_rise_at_liftoff_m must be a finite number [m], got {self.hip_rise_at_liftoff_m!r}"
+            )
+        object.__setattr__(self, "hip_rise_at_liftoff_m", float(self.hip_rise_at_liftoff_m))
 
 
 def check_motion_inputs(hip_height_m: object, twist: object, gait: object) -> FloatArray:

@@ -28,7 +28,7 @@ from threadpoolctl import ThreadpoolController
 from tal_core.heightmap import HeightMapGrid
 from tal_core.legs import LEGS, Leg
 from tal_core.robot_model import RobotModel
-from tal_perception.errors import PerceptionInputError
+from tal_perception.errors import PerceptionInputError, VpaConfigError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import GaitTiming
 from tal_perception.rbf import RbfBasis
@@ -109,7 +109,7 @@ class PoseAdapter:
     ) -> None:
         self.settings = settings if settings is not None else VpaSettings()
         self.evaluator = evaluator if evaluator is not None else FootholdEvaluator(model)
-        self.pose_evaluator = PoseEvaluator(self.evaluator, self.settings.hip_heights)
+        self.pose_evaluator = PoseEvaluator(self.evaluator, self.settings.hip_heights, self.settings.swing_hip_model)
         self.basis = RbfBasis(self.settings.hip_heights, self.settings.rbf_count, self.settings.rbf_intersection)
         self.hips = HipHeightModel.from_model(model)
         self.optimizer = PoseOptimizer(self.settings, self.basis, self.hips)
@@ -119,6 +119,11 @@ class PoseAdapter:
         self.cells = fec.patch_cells * fec.patch_cells
         if nsf_model is not None and hasattr(nsf_model, "check"):
             nsf_model.check(self.settings.rbf_count, fec.patch_cells)
+        if nsf_model is not None and self.settings.swing_hip_model != "level":
+            raise VpaConfigError(
+                f"VpaSettings.swing_hip_model {self.settings.swing_hip_model!r} needs the exact evaluation: the VPA "
+                "CNN was trained on the thesis' level-hip curves"
+            )
         self.default_relative = np.array([model.nominal_base_height_m, 0.0, 0.0])
         # The update is single-threaded numpy; the optimiser's BLAS/LAPACK calls are tiny (6 variables)
         # and gain nothing from OpenBLAS threads, whose workers busy-wait after each call and so take
@@ -198,7 +203,7 @@ class PoseAdapter:
         body_reference = float(np.mean(known)) if known.size else float(self._reference_m)
         offsets = body_reference - np.where(np.isnan(references), body_reference, references)
         previous = self._previous_relative(body_reference)
-        problem = PoseProblem(weights, offsets, previous)
+        problem = PoseProblem(self._weighted(weights), offsets, previous)
         diagnostics = dict(
             weights=weights, map_references=references, body_reference_m=body_reference, map_centres=centres,
             nsf_samples=samples, evaluation_s=evaluated - started,
@@ -215,6 +220,15 @@ class PoseAdapter:
                               optimisation_s=time.perf_counter() - evaluated, **diagnostics)  # fmt: skip
         status, converged = VpaStatus.OK, solution.converged
         return self._result(status, solution.poses[0], body_reference, weights, horizon_s, converged, diag)
+
+    def _weighted(self, weights: FloatArray) -> FloatArray:
+        """The curves' weights (N_h, 4, E) as the optimiser sees them: unchanged (``leg_weighting`` "none"),
+        or each (stage, leg) curve divided by its peak over the sampled heights, at least
+        ``leg_weight_floor`` ("peak"; the RBF model is linear in its weights)."""
+        if self.settings.leg_weighting == "none":
+            return weights
+        curves = self.basis.evaluate(weights[:, :, None, :], self.settings.hip_heights[None, None, :])  # (N_h, 4, N)
+        return weights / np.maximum(curves.max(axis=-1), self.settings.leg_weight_floor)[..., None]
 
     def _evaluate(
         self, maps: FloatArray, twist: FloatArray, gait: GaitTiming

@@ -36,11 +36,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tal_core.legs import Leg
-from tal_perception.errors import PerceptionInputError
+from tal_perception.errors import PerceptionInputError, VpaConfigError
 from tal_perception.fec import FootholdEvaluator, PreparedPatch
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
 from tal_perception.leg_kinematics import CellTerms, JointOrigins
+from tal_perception.vpa_settings import SWING_HIP_MODELS
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -79,9 +80,12 @@ class PoseEvaluation:
 class PoseEvaluator:
     """Exact pose evaluation (FEC at every hip height) for the legs of the evaluator's robot."""
 
-    def __init__(self, evaluator: FootholdEvaluator, hip_heights: FloatArray) -> None:
+    def __init__(self, evaluator: FootholdEvaluator, hip_heights: FloatArray, swing_hip_model: str = "level") -> None:
+        if swing_hip_model not in SWING_HIP_MODELS:
+            raise VpaConfigError(f"swing_hip_model must be one of {SWING_HIP_MODELS}, got {swing_hip_model!r}")
         self.evaluator = evaluator
         self.hip_heights = np.asarray(hip_heights, dtype=float)
+        self.swing_hip_model = swing_hip_model
         settings = evaluator.settings
         n = settings.patch_cells
         offsets = disc_offsets(settings.uncertainty_margin_m, settings.resolution_m, include_centre=False)
@@ -119,6 +123,10 @@ class PoseEvaluator:
         ev = self.evaluator
         ev.check_patch(inp)
         prep = ev.prepare(inp)
+        rise = self.liftoff_rise(prep, reference)
+        if rise:
+            inp = dataclasses.replace(inp, hip_rise_at_liftoff_m=rise)
+            prep = ev.prepare(inp)
         known = np.flatnonzero(~np.isnan(prep.cand_z))
         base = np.zeros(heights.size, dtype=bool)
         base[known] = ev._foot_trajectory_ok(prep, known)  # noqa: SLF001 - same package, height independent
@@ -146,13 +154,30 @@ class PoseEvaluator:
         reference = map_reference_height(heights)
         if np.isnan(reference):
             return np.zeros(self.hip_heights.size, dtype=np.int64)
+        rise = self.liftoff_rise(self.evaluator.prepare(self._input(leg, heights, reference, twist, gait)), reference)
         return np.array(
             [
-                self.evaluator.evaluate(self._input(leg, heights, reference + h, twist, gait)).safe_count
+                self.evaluator.evaluate(
+                    dataclasses.replace(self._input(leg, heights, reference + h, twist, gait), hip_rise_at_liftoff_m=rise)
+                ).safe_count
                 for h in self.hip_heights
             ],
             dtype=np.int64,
         )
+
+    def liftoff_rise(self, prep: PreparedPatch, reference_m: float) -> float:
+        """[m] how much higher the hip is at lift-off than at touchdown under ``swing_hip_model``: 0 for
+        "level" (the thesis: the evaluated hip height for the whole swing); for "terrain" the lift-off
+        foot's terrain height minus the map reference ``reference_m`` [m] (the trunk follows the terrain:
+        the hip starts the swing as high above the lift-off terrain as it ends above the map reference).
+
+        Why: stepping down a stair, the lift-off foot is still on the upper tread behind the hip. With the
+        hip held at a height that reaches the lower tread, that leg would be folded past its joint limits
+        at lift-off, so (level model) the front legs' safe footholds only exist at hip heights from which
+        the lower tread is barely reachable, and the VPA kept the trunk high going down."""
+        if self.swing_hip_model == "level":
+            return 0.0
+        return float(prep.liftoff_centre[2] - self.evaluator.foot_radius_m - reference_m)
 
     def _input(self, leg: Leg, heights: FloatArray, height: float, twist: FloatArray, gait: GaitTiming) -> FecInput:
         if not isinstance(gait, GaitTiming):
@@ -187,7 +212,10 @@ class PoseEvaluator:
         )
         points = [(prep.cand_x, prep.cand_y, td_z), (prep.cand_x, prep.cand_y, td_z)]
         points += [(sx[i], sy[i], sz[i]) for i in range(sx.shape[0])]
-        instants = [_Instant(x, y, z, hip, _same_point(x, y, z)) for (x, y, z), hip in zip(points, hips)]
+        hip_dz = [0.0, 0.0, *prep.swing_hip_dz.tolist()]  # next lift-off, touchdown: at the evaluated height
+        instants = [
+            _Instant(x, y, z, hip, _same_point(x, y, z), dz) for (x, y, z), hip, dz in zip(points, hips, hip_dz)
+        ]
         instants = [instants[1], instants[0], *instants[:1:-1]]  # lift-off, touchdown, latest sample first
         # Instants with one foot point for all cells (the swing start) cost one IK per height and can
         # remove whole heights: they go first (stable sort keeps the order of the others).
@@ -213,7 +241,7 @@ class PoseEvaluator:
         # small per-cell / per-height arrays and gathered (the same sums, element by element).
         shift = (float(g.haa_origin[0] - instant.hip[0]), float(g.haa_origin[1] - instant.hip[1]))
         terms = self.evaluator.kinematics.cell_terms(prep.inp.leg, instant.x + shift[0], instant.y + shift[1])
-        bz_height = float(g.haa_origin[2]) - (prep.inp.hip_height_m + hip_heights)  # (H',)
+        bz_height = float(g.haa_origin[2]) - ((prep.inp.hip_height_m + hip_heights) + instant.hip_dz)  # (H',)
         if instant.uniform:  # same foot point for every cell (swing start): once per alive height
             alive = np.flatnonzero(flat.any(axis=1))
             cells = np.full(alive.size, int(np.flatnonzero(~np.isnan(instant.z))[0]))
@@ -302,14 +330,16 @@ class PoseEvaluator:
 
 @dataclass(frozen=True, eq=False)
 class _Instant:
-    """One KF/LC instant, patch frame: foot centres x, y, z (cells,) [m], hip xy (2,) [m], and whether
-    every known cell has the same foot point (the swing start: evaluated once per height)."""
+    """One KF/LC instant, patch frame: foot centres x, y, z (cells,) [m], hip xy (2,) [m], whether
+    every known cell has the same foot point (the swing start: evaluated once per height), and the hip's
+    height above the evaluated one at this instant, hip_dz [m] (``FecInput.hip_rise_at_liftoff_m``)."""
 
     x: FloatArray
     y: FloatArray
     z: FloatArray
     hip: FloatArray
     uniform: bool
+    hip_dz: float = 0.0
 
 
 def _lowest_end(start: FloatArray, end: FloatArray, fractions: FloatArray) -> FloatArray:

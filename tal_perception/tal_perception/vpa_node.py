@@ -34,7 +34,7 @@ from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
 from .errors import VfaInputError
 from .vfa_node import FRAME, gait_snapshot_from_message, grid_from_message
 from .vpa_planner import SOURCES, PosePlanner, PoseReference
-from .vpa_settings import CostKind, VpaSettings
+from .vpa_settings import LEG_WEIGHTINGS, SWING_HIP_MODELS, CostKind, VpaSettings
 
 TIMING_WINDOW = 1000  # updates kept for the timing statistics (the latest ones)
 
@@ -66,7 +66,12 @@ class VpaNode(Node):
                                   read_only=True),
             horizon=declare(self, "horizon", 2, "[-] receding horizon stages N_h", low=1, high=5, read_only=True),
             max_map_age_s=declare(self, "max_map_age_s", 0.5, "[s] a heightmap older than this (gait-state time) "
-                                  "is stale: default pose held", low=0.001, high=60.0, read_only=True))
+                                  "is stale: default pose held", low=0.001, high=60.0, read_only=True),
+            swing_hip_model=declare(self, "swing_hip_model", "level", "exact evaluation: the hip during the swing, "
+                                    "level (thesis) or terrain (follows the terrain from lift-off to touchdown)",
+                                    choices=SWING_HIP_MODELS, read_only=True),
+            leg_weighting=declare(self, "leg_weighting", "none", "optimiser: none (thesis) or peak (each leg's "
+                                  "curve divided by its peak)", choices=LEG_WEIGHTINGS, read_only=True))
         tbr_height = declare(self, "tbr_height_m", 0.0, "[m] TBR: base height above the footholds' plane "
                              "(0: the robot's nominal height)", low=0.0, high=2.0, read_only=True)
         self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "

@@ -32,6 +32,10 @@ class CostKind(Enum):
     INT = "int"  # C_int = sum_l (m (F_l(z_l - m) + F_l(z_l + m)))^2, margin m
 
 
+SWING_HIP_MODELS = ("level", "terrain")  # VpaSettings.swing_hip_model
+LEG_WEIGHTINGS = ("none", "peak")  # VpaSettings.leg_weighting
+
+
 @dataclass(frozen=True)
 class VpaSettings:
     """Pose evaluation grid, RBF model, optimiser bounds and horizon of the VPA (SI units)."""
@@ -57,6 +61,15 @@ class VpaSettings:
     switch_margin: float = 0.0
     max_map_age_s: float = 0.5  # [s] older heightmaps are stale: the default pose is held (ours)
     min_speed_for_shift_mps: float = 0.02  # [m/s] below this the future map equals the current one (ours)
+    # How the hip moves during the evaluated swing (``PoseEvaluator.liftoff_rise``): "level" (thesis, at the
+    # evaluated height throughout) or "terrain" (ours: from as high above the lift-off terrain to the
+    # evaluated height above the map reference, linearly in time).
+    swing_hip_model: str = "level"
+    # The thesis' Q in ||F_l||_Q: "none" (Q = 1, thesis) or "peak" (ours: each leg's curve divided by its own
+    # peak over the sampled heights, at least leg_weight_floor, so that a leg with few safe footholds, e.g. a
+    # front leg stepping down, weighs as much as one with many).
+    leg_weighting: str = "none"
+    leg_weight_floor: float = 0.05  # [-] normalised NSF; peaks below it are not scaled up further
 
     def __post_init__(self) -> None:
         for field in fields(self):
@@ -64,6 +77,11 @@ class VpaSettings:
             if field.name == "cost":
                 if not isinstance(value, CostKind):
                     raise VpaConfigError(f"VpaSettings.cost must be a CostKind, got {value!r}")
+                continue
+            if field.name in ("swing_hip_model", "leg_weighting"):
+                allowed = SWING_HIP_MODELS if field.name == "swing_hip_model" else LEG_WEIGHTINGS
+                if value not in allowed:
+                    raise VpaConfigError(f"VpaSettings.{field.name} must be one of {allowed}, got {value!r}")
                 continue
             if field.name in ("rbf_count", "horizon"):
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -88,6 +106,8 @@ class VpaSettings:
             raise VpaConfigError(f"VpaSettings: pose_lower {self.pose_lower} must be < pose_upper {self.pose_upper}")
         if not (np.array(self.max_change) > 0.0).all():
             raise VpaConfigError(f"VpaSettings.max_change must be > 0, got {self.max_change}")
+        if not 0.0 < self.leg_weight_floor <= 1.0:
+            raise VpaConfigError(f"VpaSettings.leg_weight_floor must be in (0, 1], got {self.leg_weight_floor}")
         for name in ("cost_margin_m", "smoothness_weight", "min_speed_for_shift_mps", "switch_margin"):
             if getattr(self, name) < 0.0:
                 raise VpaConfigError(f"VpaSettings.{name} must be >= 0, got {getattr(self, name)}")

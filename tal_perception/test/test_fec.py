@@ -89,6 +89,50 @@ def test_swing_model_matches_tal_control(evaluator: FootholdEvaluator, hip_heigh
     np.testing.assert_allclose(np.column_stack([x[:, 0], y[:, 0], z[:, 0]]), expected, atol=1e-12)
 
 
+def _step_down_patch() -> np.ndarray:
+    """The lift-off (one 0.2 m step behind the centre at 0.3 m/s and 1.5 Hz) on a tread 0.1 m above the
+    rest of the patch, whose edge is 0.12 m behind the nominal."""
+    heights = np.zeros((33, 33))
+    heights[:10] = 0.1
+    return heights
+
+
+def _maps(result) -> list[np.ndarray]:
+    return [result.terrain_roughness, result.kinematic_feasibility, result.leg_collision,
+            result.foot_trajectory_collision, result.raw, result.safe]
+
+
+def test_hip_rise_lets_the_leg_lift_off_above_the_lower_tread(evaluator: FootholdEvaluator) -> None:
+    """Stepping down with the hip at a height for the lower tread (0.54 m above it): held there for the whole
+    swing (the thesis), the leg lifting off the upper tread behind the hip is folded past its joint limits
+    and no lower-tread candidate is feasible; with the hip 0.1 m higher at lift-off, moving down during the
+    swing, 486 are."""
+    heights = _step_down_patch()
+    lower = np.zeros((33, 33), dtype=bool)
+    lower[12:] = True
+    level = evaluator.evaluate(fec_input(heights, 0.54))
+    following = evaluator.evaluate(fec_input(heights, 0.54, hip_rise_at_liftoff_m=0.1))
+    assert level.kinematic_feasibility[lower].sum() == 0 and level.safe_count == 0
+    assert following.kinematic_feasibility[lower].sum() == 486 and following.safe_count > 50
+
+
+def test_hip_rise_zero_or_no_swing_left_changes_nothing(evaluator: FootholdEvaluator) -> None:
+    """A zero rise is the thesis' model bit for bit; with no swing left every sample is at touchdown, where
+    the hip is at hip_height_m whatever the rise."""
+    heights = _step_down_patch()
+    default = evaluator.evaluate(fec_input(heights, 0.6))
+    zero = evaluator.evaluate(fec_input(heights, 0.6, hip_rise_at_liftoff_m=0.0))
+    for a, b in zip(_maps(default), _maps(zero)):
+        np.testing.assert_array_equal(a, b)
+    landed = GaitTiming(1.5, 0.6, 0.0, 0.1)
+    at_touchdown = evaluator.evaluate(fec_input(heights, 0.6, gait=landed))
+    risen = evaluator.evaluate(fec_input(heights, 0.6, gait=landed, hip_rise_at_liftoff_m=0.1))
+    for a, b in zip(_maps(at_touchdown), _maps(risen)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(PerceptionInputError, match=r"FecInput.hip_rise_at_liftoff_m must be a finite number \[m\], got nan"):
+        fec_input(heights, 0.6, hip_rise_at_liftoff_m=float("nan"))
+
+
 def test_roughness_thresholds_on_planes_and_small_steps() -> None:
     """The figures FecSettings' docstring and the README give for the default thresholds."""
     x = np.arange(33)[:, None] * 0.02 * np.ones((1, 33))

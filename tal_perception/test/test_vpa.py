@@ -65,6 +65,14 @@ def test_settings_give_the_thesis_grid_and_reject_bad_values() -> None:
         VpaSettings(pose_lower=(0.9, -0.35, -0.35))
     with pytest.raises(VpaConfigError, match="max_map_age_s"):
         VpaSettings(max_map_age_s=0.0)
+    assert (SETTINGS.swing_hip_model, SETTINGS.leg_weighting) == ("level", "none")  # the thesis' by default
+    with pytest.raises(VpaConfigError, match=r"VpaSettings.swing_hip_model must be one of \('level', 'terrain'\), "
+                       r"got 'flat'"):
+        VpaSettings(swing_hip_model="flat")
+    with pytest.raises(VpaConfigError, match=r"VpaSettings.leg_weighting must be one of \('none', 'peak'\)"):
+        VpaSettings(leg_weighting="max")
+    with pytest.raises(VpaConfigError, match=r"VpaSettings.leg_weight_floor must be in \(0, 1\], got 0.0"):
+        VpaSettings(leg_weight_floor=0.0)
 
 
 def test_rbf_fit_reproduces_a_curve_in_its_span_and_a_smooth_bump(basis: RbfBasis) -> None:
@@ -136,6 +144,80 @@ def test_shared_evaluation_equals_the_fec_on_whole_robot_scene_maps(
             np.testing.assert_array_equal(fast, pose_evaluator.reference_counts(leg, heights, scene.twist, TROT_GAIT))
             total += int(fast.sum())
     assert total > 0
+
+
+@pytest.mark.parametrize(("kind", "leg", "twist"), [
+    ("stairs", Leg.LF, [0.3, 0, 0, 0, 0, 0]), ("stairs", Leg.RH, [0.3, 0.05, 0, 0, 0, 0.2]),
+    ("bars", Leg.LH, [0.4, 0, 0, 0, 0, -0.3]), ("gaps", Leg.RF, [0.2, 0, 0, 0, 0, 0]),
+])  # fmt: skip
+def test_terrain_swing_model_evaluation_equals_the_fec_at_every_height(
+    evaluator: FootholdEvaluator, kind: str, leg: Leg, twist: list[float]
+) -> None:
+    """With the hip following the terrain during the swing, the shared evaluation still gives exactly the
+    FEC's count at every height (the FEC with ``hip_rise_at_liftoff_m``, ``reference_counts``), and it
+    differs from the level model on some of these maps (the lift-off lies on another level)."""
+    terrain = PoseEvaluator(evaluator, HEIGHTS, "terrain")
+    changed = 0
+    for seed in range(3):
+        heights = random_terrain(np.random.default_rng(seed), kind).heights.astype(float)
+        fast = terrain.evaluate(leg, heights, np.array(twist, dtype=float), TROT_GAIT).nsf
+        np.testing.assert_array_equal(fast, terrain.reference_counts(leg, heights, np.array(twist, dtype=float),
+                                                                     TROT_GAIT))
+        level = PoseEvaluator(evaluator, HEIGHTS).evaluate(leg, heights, np.array(twist, dtype=float), TROT_GAIT).nsf
+        changed += int(not np.array_equal(fast, level))
+    assert changed > 0
+    with pytest.raises(VpaConfigError, match=r"swing_hip_model must be one of \('level', 'terrain'\), got 'up'"):
+        PoseEvaluator(evaluator, HEIGHTS, "up")
+
+
+def test_terrain_swing_model_keeps_the_front_legs_footholds_at_the_top_of_the_flight(hyq: RobotModel) -> None:
+    """The stairs course at 0.5 m/s (1.8 Hz), base at x = 2.8 m on the top landing, the front hips over the
+    first tread down. The level model evaluates the front legs' lift-off (still on the landing, behind the
+    hips) at the touchdown height and finds their safe footholds only where the lower tread is barely in
+    reach: the VPA's pose leaves them 16 each (1089 cells). Following the terrain it finds 137 each, the hind
+    legs keep theirs."""
+    course = load_course("vital_stairs")
+    grid = extract_heightmap(course, (2.8, 0.0), 0.0, rows=81, cols=81, resolution_m=0.02)
+    found = {}
+    for model in ("level", "terrain"):
+        adapter = PoseAdapter(RobotModel(hyq.description), dataclasses.replace(SETTINGS, swing_hip_model=model))
+        for _ in range(6):  # from the default pose, within the change bound per update
+            result = adapter.update(grid, np.array([2.8, 0.0, 1.04]), 0.0, np.array([0.5, 0, 0, 0, 0, 0]),
+                                    GaitTiming(1.8, 0.6, 0.0, 0.1))
+        found[model] = result.safe_footholds
+    assert (found["level"][:2] < 20).all() and (found["terrain"][:2] > 100).all()
+    assert (found["terrain"][2:] >= 700).all()
+
+
+def test_peak_leg_weighting_scales_every_curve_to_its_peak(hyq: RobotModel, basis: RbfBasis) -> None:
+    """"peak": every (stage, leg) curve divided by its peak over the sampled heights (floored), so a leg with
+    few safe footholds weighs in the optimiser like one with many; the pose then serves it better."""
+    settings = dataclasses.replace(SETTINGS, leg_weighting="peak", leg_weight_floor=0.05)
+    adapter = PoseAdapter(RobotModel(hyq.description), settings)
+    bump = np.exp(-0.5 * ((HEIGHTS - 0.62) / 0.03) ** 2)
+    high = np.exp(-0.5 * ((HEIGHTS - 0.52) / 0.05) ** 2)
+    curves = np.stack([0.08 * bump, 0.08 * bump, 0.6 * high, 0.01 * high])[None]  # (1, 4, N): RH below the floor
+    weights = basis.fit(curves)
+    scaled = basis.evaluate(adapter._weighted(weights)[:, :, None, :], HEIGHTS[None, None, :])
+    np.testing.assert_allclose(scaled.max(axis=-1)[0, :3], 1.0, rtol=1e-12)
+    peak = basis.evaluate(weights[:, :, None, :], HEIGHTS[None, None, :]).max(axis=-1)[0, 3]
+    assert scaled.max(axis=-1)[0, 3] == pytest.approx(peak / 0.05, rel=1e-12)
+    symmetric = basis.fit(np.stack([0.08 * bump, 0.08 * bump, 0.6 * high, 0.6 * high])[None])  # front legs: few
+    problem = PoseProblem(symmetric, np.zeros((1, 4)), np.array([0.55, 0.0, 0.0]))
+    plain = adapter.optimizer.solve(problem)
+    weighted = adapter.optimizer.solve(PoseProblem(adapter._weighted(symmetric), problem.offsets, problem.previous))
+    front = [basis.evaluate(symmetric[0, :2], adapter.hips.heights(s.poses[0])[:2]) for s in (plain, weighted)]
+    assert (front[1] > 1.2 * front[0]).all(), front
+    unweighted = PoseAdapter(RobotModel(hyq.description), SETTINGS)
+    assert unweighted._weighted(weights) is weights
+
+
+def test_the_cnn_evaluation_refuses_the_terrain_swing_model(hyq: RobotModel) -> None:
+    from tal_perception.vpa_cnn import CnnNsfModel
+
+    with pytest.raises(VpaConfigError, match=r"swing_hip_model 'terrain' needs the exact evaluation"):
+        PoseAdapter(RobotModel(hyq.description), dataclasses.replace(SETTINGS, swing_hip_model="terrain"),
+                    nsf_model=CnnNsfModel.load())
 
 
 @pytest.mark.parametrize("block", [1, 37, 1089])
