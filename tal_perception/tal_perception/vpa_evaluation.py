@@ -155,15 +155,11 @@ class PoseEvaluator:
         if np.isnan(reference):
             return np.zeros(self.hip_heights.size, dtype=np.int64)
         rise = self.liftoff_rise(self.evaluator.prepare(self._input(leg, heights, reference, twist, gait)), reference)
-        return np.array(
-            [
-                self.evaluator.evaluate(
-                    dataclasses.replace(self._input(leg, heights, reference + h, twist, gait), hip_rise_at_liftoff_m=rise)
-                ).safe_count
-                for h in self.hip_heights
-            ],
-            dtype=np.int64,
-        )
+        counts = []
+        for h in self.hip_heights:
+            inp = dataclasses.replace(self._input(leg, heights, reference + h, twist, gait), hip_rise_at_liftoff_m=rise)
+            counts.append(self.evaluator.evaluate(inp).safe_count)
+        return np.array(counts, dtype=np.int64)
 
     def liftoff_rise(self, prep: PreparedPatch, reference_m: float) -> float:
         """[m] how much higher the hip is at lift-off than at touchdown under ``swing_hip_model``: 0 for
