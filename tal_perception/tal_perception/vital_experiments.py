@@ -38,6 +38,10 @@ would let the trunk fall 10-20 cm behind the VPA's height on the way up at 0.4 m
 * ``starts`` (ours): the speeds runs' configuration at all four speeds from the 9 starts, with the Wilson
   95 % interval of each success rate (the 0.4 and 0.5 m/s runs are those of ``pose_filter`` and
   ``step_frequency``; 12 runs of its own).
+* ``swing_model`` (ours): the starts runs against the same 36 with the VPA's terrain swing model
+  (``VpaSettings.swing_hip_model`` "terrain": the hip starts the evaluated swing as high above the lift-off
+  terrain as it ends above the map reference) and its legs weighted by their curves' peaks
+  (``leg_weighting`` "peak", the thesis' Q).
 
 The comparisons at 0.4 and 0.5 m/s run from 9 starts (``STARTS_M`` + ``EXTRA_STARTS_M``): single runs there
 could succeed or fall by chance.
@@ -81,7 +85,8 @@ POSE_BANDWIDTH_RAD_S = 6.0  # [rad/s]
 MAX_HEIGHT_RATE_M_S = 0.25  # [m/s]
 MAX_ATTITUDE_RATE_RAD_S = 0.5  # [rad/s]
 EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter", "step_frequency",
-               "starts")
+               "starts", "swing_model")
+SWING_MODEL_TAG = "terrain_swing"  # run-name tag of the swing_model experiment's VPA (terrain swing, peak weighting)
 # At 0.5 m/s the trot steps at 1.8 Hz instead of its preset 1.5 Hz: the preset's stride (0.33 m) is longer than
 # the stairs' go (0.25 m) and made the feet skip treads; at 1.8 Hz it is 0.28 m (probe sweeps from 9 starts: 5 of
 # 9 succeeded at 1.8 Hz, 1 of 9 at 1.5 Hz; experiment step_frequency).
@@ -218,6 +223,12 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
         runs["step_frequency"] = [_stairs(stairs_name(0.5, x0), 0.5, vital, x0) for x0 in starts_04] + preset
     if "starts" in only:  # the speeds runs from all 9 starts (shared with the speeds, pose_filter, step_frequency runs)
         runs["starts"] = [_stairs(stairs_name(v, x0), v, vital, x0) for v in (0.2, 0.3, 0.4, 0.5) for x0 in starts_04]
+    if "swing_model" in only:  # the starts runs against the same with the VPA's terrain swing and peak weighting
+        terrain = replace(vital, vpa=replace(vital.vpa, swing_hip_model="terrain", leg_weighting="peak"))
+        speeds = (0.2, 0.3, 0.4, 0.5)
+        runs["swing_model"] = ([_stairs(stairs_name(v, x0), v, vital, x0) for v in speeds for x0 in starts_04]
+                               + [_stairs(stairs_name(v, x0, SWING_MODEL_TAG), v, terrain, x0)
+                                  for v in speeds for x0 in starts_04])
     return runs
 
 
@@ -337,7 +348,9 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
               "centre": "Footholds under the CoM with diagonal-pair compensation vs about the hips (previous)",
               "pose_filter": "The body-pose filter of these runs vs the controller's default (stairs, 0.4 m/s)",
               "step_frequency": "Trot at 1.8 Hz vs the preset's 1.5 Hz (stairs, 0.5 m/s)",
-              "starts": "Stairs at four speeds from 9 starts each, VFA + VPA (the speeds runs' configuration)"}
+              "starts": "Stairs at four speeds from 9 starts each, VFA + VPA (the speeds runs' configuration)",
+              "swing_model": "The VPA's hip following the terrain during the swing and legs weighted by their peaks "
+                             "vs the thesis' level hip and equal weights (stairs, four speeds, 9 starts)"}
     for key, group in runs.items():
         lines += [f"## {titles[key]}", "", HEADER] + [_row(results[r.name]) for r in group] + [""]
         if key in SUMMARIES:
@@ -431,6 +444,16 @@ def per_config_summary(group: list[VitalRun], results: dict[str, VitalRunResult]
     return lines
 
 
+def swing_model_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
+    """Markdown lines: the speed summary of the thesis' pose evaluation and of the terrain swing model."""
+    thesis = [r for r in group if SWING_MODEL_TAG not in r.name]
+    terrain = [r for r in group if SWING_MODEL_TAG in r.name]
+    return (["Thesis' model (`swing_hip_model` level, `leg_weighting` none; the starts runs):", "",
+             *speed_summary(thesis, results),
+             "Terrain swing model and peak weighting (`swing_hip_model` terrain, `leg_weighting` peak):", "",
+             *speed_summary(terrain, results)])
+
+
 def speed_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
     """Markdown lines: per speed, successes of the repeated runs, collisions summed over them and the
     tracking errors averaged over the successful ones."""
@@ -470,12 +493,18 @@ SUMMARIES: dict[str, Callable[[list[VitalRun], dict[str, VitalRunResult]], list[
     "starts": speed_summary,
     "pose_filter": per_config_summary,
     "step_frequency": per_config_summary,
+    "swing_model": swing_model_summary,
 }
 NOTES: dict[str, list[str]] = {
     "centre": ["The runs under the CoM are the speeds runs above.", ""],
     "pose_filter": ["The default filter's rate limit (0.1 m/s) is below the 0.16-0.2 m/s at which the trunk rises on "
                     "these stairs at 0.4-0.5 m/s, and it lags a ramp by 2 rate / bandwidth.", ""],
     "step_frequency": ["At 1.5 Hz and 0.5 m/s the stride (0.33 m) is longer than the stairs' go (0.25 m).", ""],
+    "swing_model": ["Why: going down, the front legs lift off the upper tread behind their hips; the thesis' "
+                    "evaluation holds the hip at the touchdown height for the whole swing, so those legs were folded "
+                    "past their joint limits at lift-off unless the hip stayed high enough that the lower tread was "
+                    "barely in reach, and with few safe footholds they weighed little against the hind legs' many.",
+                    ""],
     "starts": ["The start x shifts where the gait's phase meets the first riser. The interval is the Wilson score "
                "interval (95 %) of the success rate over the 9 starts.", ""],
     "speeds": ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to 0.5 m/s, all "

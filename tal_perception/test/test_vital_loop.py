@@ -87,7 +87,7 @@ def test_settings_and_experiment_list_are_checked() -> None:
         VitalLoopSettings(heightmap_period_s=0.0)
     runs = experiment_runs()
     assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter",
-                         "step_frequency", "starts"}
+                         "step_frequency", "starts", "swing_model"}
     assert all(r.loop.vpa_use_cnn for r in runs["cnn"]) and not any(r.loop.vpa_use_cnn for r in runs["speeds"])
     names = [r.name for key in ("speeds", "cnn", "tbr", "gaps", "rough") for r in runs[key]]
     shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)}
@@ -126,8 +126,17 @@ def test_settings_and_experiment_list_are_checked() -> None:
     assert set(runs["speeds"]) <= set(starts)
     assert [r for r in starts if r.speed_mps == 0.4] == runs["pose_filter"][:9]
     assert [r for r in starts if r.speed_mps == 0.5] == runs["step_frequency"][:9]
-    everything = {r.name for group in runs.values() for r in group}
-    assert len(everything - {r.name for key, group in runs.items() if key != "starts" for r in group}) == 12
+    everything = {r.name for key, group in runs.items() if key != "swing_model" for r in group}
+    assert len(everything - {r.name for key, group in runs.items() if key not in ("starts", "swing_model")
+                             for r in group}) == 12
+    # swing_model: the starts runs, then the same 36 with the terrain swing model and peak weighting only.
+    swing = runs["swing_model"]
+    assert swing[:36] == starts and len(swing) == 72
+    for thesis, terrain in zip(swing[:36], swing[36:]):
+        assert terrain.name == thesis.name.replace("_x", "_terrain_swing_x")
+        assert (thesis.loop.vpa.swing_hip_model, thesis.loop.vpa.leg_weighting) == ("level", "none")
+        assert terrain.loop.vpa == replace(thesis.loop.vpa, swing_hip_model="terrain", leg_weighting="peak")
+        assert replace(terrain, name=thesis.name, loop=thesis.loop) == thesis
     # The forward command stops 0.6 m past the goal: no run walks off its course (stairs: x <= 8 m).
     for r in runs["speeds"]:
         assert r.initial_x_m + r.speed_mps * (r.stop_s - START_S) == pytest.approx(r.goal_x_m + r.past_goal_m)
