@@ -78,7 +78,75 @@ def export_onnx(net: nn.Module, example_batch: int = 4) -> bytes:
             )  # fmt: skip
     finally:
         module.train(state)
-    return buffer.getvalue()
+    return merge_data_movement(buffer.getvalue())
+
+
+def merge_data_movement(model_bytes: bytes) -> bytes:
+    """The ONNX model ``model_bytes`` with each Slice -> Slice and Unsqueeze -> Unsqueeze pair merged into one
+    node (the second node the first one's only consumer, both with constant parameters, Slices on different
+    axes, non-negative axes). Pure data movement: the outputs are bit-identical.
+
+    Why: the exporter writes ``x[:, :, :s, :s]`` (``VfaUNet._up``) as one Slice per axis and
+    ``bias[:, :, None, None]`` as one Unsqueeze per axis; each node is a kernel call for ONNX Runtime and each
+    Slice a copy: merged, a one-leg forward pass takes ~15 us less (of ~0.38 ms)."""
+    import onnx
+    from onnx import numpy_helper
+
+    model = onnx.load_from_string(model_bytes)
+    graph = model.graph
+    constants = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
+    constants |= {n.output[0]: numpy_helper.to_array(n.attribute[0].t) for n in graph.node
+                  if n.op_type == "Constant" and n.attribute and n.attribute[0].name == "value"}  # fmt: skip
+    nodes = list(graph.node)
+    consumers: dict[str, list[int]] = {}
+    for index, node in enumerate(nodes):
+        for name in node.input:
+            consumers.setdefault(name, []).append(index)
+    graph_outputs = {o.name for o in graph.output}
+
+    def constant(name: str) -> list[int] | None:
+        return constants[name].reshape(-1).tolist() if name in constants else None
+
+    def initializer(values: list[int]) -> str:
+        name = f"merged_{len(graph.initializer)}"
+        graph.initializer.append(numpy_helper.from_array(np.array(values, np.int64), name))
+        return name
+
+    dropped: set[int] = set()  # indices of the second nodes of merged pairs
+    for index, node in enumerate(nodes):
+        if node.op_type not in ("Slice", "Unsqueeze") or index in dropped or node.output[0] in graph_outputs:
+            continue
+        users = consumers.get(node.output[0], [])
+        if len(users) != 1 or nodes[users[0]].op_type != node.op_type:
+            continue
+        second = nodes[users[0]]
+        first_params = [constant(name) for name in node.input[1:]]
+        second_params = [constant(name) for name in second.input[1:]]
+        if not first_params or not second_params or any(p is None for p in first_params + second_params):
+            continue
+        if node.op_type == "Unsqueeze":  # axes index the output: the first one's moves up if the second is before
+            (first_axes,), (second_axes,) = first_params, second_params
+            if len(first_axes) != 1 or len(second_axes) != 1 or min(first_axes + second_axes) < 0:
+                continue
+            first_axis = first_axes[0] + (second_axes[0] <= first_axes[0])
+            inputs = [node.input[0], initializer([first_axis, second_axes[0]])]
+        else:  # Slice (data, starts, ends, axes[, steps]): the two slices on disjoint axes as one
+            if len(first_params) < 3 or len(second_params) < 3:
+                continue
+            for params in (first_params, second_params):
+                if len(params) == 3:
+                    params.append([1] * len(params[0]))  # steps default to 1
+            axes = first_params[2] + second_params[2]
+            if len(set(axes)) != len(axes) or min(axes) < 0:
+                continue
+            inputs = [node.input[0], *(initializer(a + b) for a, b in zip(first_params, second_params))]
+        name = f"{node.name}_merged"
+        nodes[index] = onnx.helper.make_node(node.op_type, inputs, [second.output[0]], name=name)
+        dropped.add(users[0])
+    del graph.node[:]
+    graph.node.extend(node for index, node in enumerate(nodes) if index not in dropped)
+    onnx.checker.check_model(model)
+    return model.SerializeToString()
 
 
 def session_options() -> Any:
@@ -158,4 +226,6 @@ class OrtBinding:
         return self.logits, self.safe_logits
 
 
-__all__ = ["ONNX_OPSET", "OrtBinding", "OrtVfaNet", "available", "export_onnx", "session_options"]
+__all__ = [
+    "ONNX_OPSET", "OrtBinding", "OrtVfaNet", "available", "export_onnx", "merge_data_movement", "session_options",
+]  # fmt: skip
