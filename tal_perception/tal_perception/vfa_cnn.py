@@ -154,7 +154,7 @@ def encode(
     np.subtract(heights, (hip - cfg.nominal_hip_height_m)[:, None, None], out=relative)
     np.minimum(np.maximum(relative, -cfg.height_clip_m, out=relative), cfg.height_clip_m, out=relative)
     relative /= cfg.height_scale_m
-    np.copyto(relative, 0.0, where=unknown)  # NaN -> 0 last: 0 is inside the clip and 0 / scale = 0
+    relative[unknown] = 0.0  # NaN -> 0 last: 0 is inside the clip and 0 / scale = 0
     image[:, 1] = unknown
     image[:, 2:] = coordinates
     median, has_known = _row_medians(heights.reshape(b, -1), unknown.reshape(b, -1))
@@ -204,7 +204,7 @@ def _row_medians(
     the middle positions of every row. Each median is ``np.median``'s in float32: the middle value, or
     0.5 * (sum of the two middle values) for an even count (~25 us for 4 rows of 1089, 4 x ~10 us before)."""
     rows, m = values.shape
-    if not unknown.any():  # the common case: every row's middle is at the same positions (no index arrays)
+    if not _any(unknown):  # the common case: every row's middle is at the same positions (no index arrays)
         ordered = np.partition(values, ((m - 1) // 2, m // 2), axis=1)
         high, low = ordered[:, m // 2], ordered[:, (m - 1) // 2]
         median = high if m % 2 == 1 else np.float32(0.5) * (low + high)
@@ -788,8 +788,14 @@ def _vector(value: object, size: int, name: str) -> FloatArray:
 def _check_finite_or_unknown(patches: NDArray[np.floating]) -> None:
     """FecInput's check of the heights [m]: finite or NaN (unknown); a map may hold +-inf (the planner rejects
     it earlier)."""
-    if np.isinf(patches).any():
+    if _any(np.isinf(patches)):
         raise PerceptionInputError("FecInput.heights must be finite or NaN (unknown), got +-inf")
+
+
+def _any(mask: NDArray[np.bool_]) -> bool:
+    """``mask.any()`` without the Python layer of ndarray.any: ~1-3 us less per call in a one-leg call, where
+    it runs on caches that the network's forward pass has just evicted."""
+    return bool(np.logical_or.reduce(mask, axis=None))
 
 
 def _gait_row(gait: GaitTiming) -> tuple[float, float, float, float]:

@@ -78,22 +78,34 @@ def export_onnx(net: nn.Module, example_batch: int = 4) -> bytes:
             )  # fmt: skip
     finally:
         module.train(state)
-    return merge_data_movement(buffer.getvalue())
+    return rewrite_graph(buffer.getvalue())
 
 
-def merge_data_movement(model_bytes: bytes) -> bytes:
-    """The ONNX model ``model_bytes`` with each Slice -> Slice and Unsqueeze -> Unsqueeze pair merged into one
-    node (the second node the first one's only consumer, both with constant parameters, Slices on different
-    axes, non-negative axes). Pure data movement: the outputs are bit-identical.
+def rewrite_graph(model_bytes: bytes) -> bytes:
+    """The ONNX model ``model_bytes`` with two rewrites that keep every output bit for bit and that ONNX Runtime
+    runs faster (a one-leg forward pass of the shipped VfaUNet: ~40 us less of ~0.39 ms):
+    ``_merge_pairs`` (Slice / Unsqueeze pairs) and ``_leaky_relus_as_max`` (the LeakyRelus not fused into a
+    convolution)."""
+    import onnx
+
+    model = onnx.load_from_string(model_bytes)
+    _merge_pairs(model.graph)
+    _leaky_relus_as_max(model.graph)
+    onnx.checker.check_model(model)
+    return model.SerializeToString()
+
+
+def _merge_pairs(graph: Any) -> None:
+    """Merge each Slice -> Slice and Unsqueeze -> Unsqueeze pair of ``graph`` (an onnx GraphProto, changed in
+    place) into one node (the second node the first one's only consumer, both with constant parameters, Slices
+    on different axes, non-negative axes). Pure data movement: the outputs are bit-identical.
 
     Why: the exporter writes ``x[:, :, :s, :s]`` (``VfaUNet._up``) as one Slice per axis and
     ``bias[:, :, None, None]`` as one Unsqueeze per axis; each node is a kernel call for ONNX Runtime and each
-    Slice a copy: merged, a one-leg forward pass takes ~15 us less (of ~0.38 ms)."""
+    Slice a copy (~15 us of a one-leg forward pass)."""
     import onnx
     from onnx import numpy_helper
 
-    model = onnx.load_from_string(model_bytes)
-    graph = model.graph
     constants = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
     constants |= {n.output[0]: numpy_helper.to_array(n.attribute[0].t) for n in graph.node
                   if n.op_type == "Constant" and n.attribute and n.attribute[0].name == "value"}  # fmt: skip
@@ -145,8 +157,34 @@ def merge_data_movement(model_bytes: bytes) -> bytes:
         dropped.add(users[0])
     del graph.node[:]
     graph.node.extend(node for index, node in enumerate(nodes) if index not in dropped)
-    onnx.checker.check_model(model)
-    return model.SerializeToString()
+
+
+def _leaky_relus_as_max(graph: Any) -> None:
+    """Replace each LeakyRelu of ``graph`` (changed in place) with 0 < alpha < 1 whose input is not a Conv's
+    output by Max(x, alpha * x): the same values bit for bit (x >= 0: alpha * x <= x; x < 0: alpha * x > x; the
+    same float32 product alpha * x that LeakyRelu returns there; -0, +-inf and NaN alike).
+
+    Why: ONNX Runtime fuses a LeakyRelu after a Conv into the convolution, but runs the others (after the
+    decoder's bias Add and the context's Gemm) with an element-wise select that is data dependent and not
+    vectorised (~19 us for the last decoder level's 8 x 33 x 33 values); Mul and Max are vectorised
+    (~25 us less per one-leg forward pass)."""
+    from onnx import helper, numpy_helper
+
+    producers = {output: node for node in graph.node for output in node.output}
+    nodes = []
+    for node in graph.node:
+        if node.op_type == "LeakyRelu":
+            alpha = next((a.f for a in node.attribute if a.name == "alpha"), 0.01)  # 0.01: the ONNX default
+            source = producers.get(node.input[0])
+            if (source is None or source.op_type != "Conv") and 0.0 < alpha < 1.0:
+                x, alpha_name, scaled = node.input[0], f"{node.output[0]}_alpha", f"{node.output[0]}_scaled"
+                graph.initializer.append(numpy_helper.from_array(np.array(alpha, np.float32), alpha_name))
+                nodes.append(helper.make_node("Mul", [x, alpha_name], [scaled], name=f"{node.name}_mul"))
+                nodes.append(helper.make_node("Max", [x, scaled], [node.output[0]], name=f"{node.name}_max"))
+                continue
+        nodes.append(node)
+    del graph.node[:]
+    graph.node.extend(nodes)
 
 
 def session_options() -> Any:
@@ -227,5 +265,5 @@ class OrtBinding:
 
 
 __all__ = [
-    "ONNX_OPSET", "OrtBinding", "OrtVfaNet", "available", "export_onnx", "merge_data_movement", "session_options",
+    "ONNX_OPSET", "OrtBinding", "OrtVfaNet", "available", "export_onnx", "rewrite_graph", "session_options",
 ]  # fmt: skip

@@ -681,9 +681,11 @@ def test_onnxruntime_binding_equals_the_session_call() -> None:
             ort_net.bind(image.astype(np.float64), scalars)
 
 
-def test_merging_the_exported_slices_and_unsqueezes_keeps_the_outputs_bit_for_bit() -> None:
-    """vfa_cnn_ort.merge_data_movement (applied by export_onnx): fewer Slice / Unsqueeze nodes in the exported
-    VfaUNet graph (its crops and bias broadcasts), the same outputs bit for bit, batch sizes 1 and 5."""
+def test_graph_rewrites_keep_the_outputs_bit_for_bit() -> None:
+    """vfa_cnn_ort.rewrite_graph (applied by export_onnx): fewer Slice / Unsqueeze nodes in the exported VfaUNet
+    graph (its crops and bias broadcasts), LeakyRelu only after a Conv (the others are Max(x, alpha * x)), and
+    the same outputs bit for bit, for both architectures, batch sizes 1 and 5, inputs with large negative and
+    positive values."""
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
     import onnx
@@ -693,24 +695,32 @@ def test_merging_the_exported_slices_and_unsqueezes_keeps_the_outputs_bit_for_bi
 
     torch.manual_seed(8)
     rng = np.random.default_rng(8)
-    for config in (NetConfig(architecture="unet"), NetConfig(architecture="unet", roughness_features=True)):
+    configs = (NetConfig(architecture="unet"), NetConfig(architecture="unet", roughness_features=True),
+               NetConfig(architecture="thesis", hidden=64))  # fmt: skip
+    for config in configs:
         net = build_net(config).eval()
-        merged = vfa_cnn_ort.export_onnx(net)
+        rewritten = vfa_cnn_ort.export_onnx(net)
         with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(vfa_cnn_ort, "merge_data_movement", lambda model: model)
+            patch.setattr(vfa_cnn_ort, "rewrite_graph", lambda model: model)
             plain = vfa_cnn_ort.export_onnx(net)
+        graph, plain_graph = onnx.load_from_string(rewritten).graph, onnx.load_from_string(plain).graph
 
-        def count(model: bytes, op: str) -> int:
-            return sum(node.op_type == op for node in onnx.load_from_string(model).graph.node)
+        def count(g: onnx.GraphProto, op: str) -> int:
+            return sum(node.op_type == op for node in g.node)
 
-        assert count(merged, "Slice") == count(plain, "Slice") - 3  # one per decoder level
-        assert count(merged, "Unsqueeze") == count(plain, "Unsqueeze") - 3
-        sessions = [ort.InferenceSession(m, vfa_cnn_ort.session_options()) for m in (plain, merged)]
+        producers = {output: node.op_type for node in graph.node for output in node.output}
+        assert {producers[node.input[0]] for node in graph.node if node.op_type == "LeakyRelu"} == {"Conv"}
+        assert count(graph, "Max") == count(plain_graph, "LeakyRelu") - count(graph, "LeakyRelu") > 0
+        if config.architecture == "unet":  # one pair each per decoder level
+            assert count(graph, "Slice") == count(plain_graph, "Slice") - 3
+            assert count(graph, "Unsqueeze") == count(plain_graph, "Unsqueeze") - 3
+        sessions = [ort.InferenceSession(m, vfa_cnn_ort.session_options()) for m in (plain, rewritten)]
         for size in (1, 5):
-            feed = {"image": rng.normal(size=(size, 4, 33, 33)).astype(np.float32),
-                    "scalars": rng.normal(size=(size, config.encoding.scalar_count)).astype(np.float32)}  # fmt: skip
+            feed = {"image": rng.normal(scale=10.0, size=(size, 4, 33, 33)).astype(np.float32),
+                    "scalars": rng.normal(scale=10.0, size=(size, config.encoding.scalar_count)).astype(np.float32)}  # fmt: skip
             for expected, actual in zip(*(session.run(None, feed) for session in sessions)):
                 np.testing.assert_array_equal(actual, expected)
+                assert actual.tobytes() == expected.tobytes()  # also the sign of zeros
 
 
 def _outcome(call: Callable[[], VfaResult]) -> tuple:
