@@ -7,11 +7,13 @@ runs the convolutions in its blocked channel layout (NCHWc), with less overhead 
 
 ``export_onnx(net)`` exports the module's own forward (``VfaUNet.forward`` / ``VfaNet.forward``, in
 float32) with PyTorch's TorchScript-based exporter (``dynamo=False``; needs the ``onnx`` package) into
-memory, with a symbolic batch dimension; nothing is written to disk and nothing is downloaded.
-``OrtVfaNet(net)`` is an ONNX Runtime session on it (one intra-op thread, sequential execution, all graph
-optimisations) that takes and returns numpy arrays: ``(image (B, 4, n, n), scalars (B, S)) -> (optimum
-logits (B, n*n), safe-mask logits (B, n*n) or None)``, like the network. Only float32 summation order
-differs from the torch forward (~1e-6 relative on the logits).
+memory, with a symbolic batch dimension; nothing is written to disk and nothing is downloaded. It then
+rewrites the graph where ONNX Runtime is slow and the outputs stay bit-identical (``rewrite_graph``: the
+exporter's per-axis Slice / Unsqueeze pairs merged, the LeakyRelus not fused into a convolution as
+Max(x, alpha * x)). ``OrtVfaNet(net)`` is an ONNX Runtime session on it (one intra-op thread, sequential
+execution, all graph optimisations) that takes and returns numpy arrays: ``(image (B, 4, n, n), scalars
+(B, S)) -> (optimum logits (B, n*n), safe-mask logits (B, n*n) or None)``, like the network. Only float32
+summation order differs from the torch forward (~1e-6 relative on the logits).
 
 ``available()`` says whether both ``onnxruntime`` and ``onnx`` import; ``CnnFootholdSelector`` falls back
 to its torch path when they do not. The rearranged ``vfa_cnn_fast.FastVfaUNet`` is not what is exported:
