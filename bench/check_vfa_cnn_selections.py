@@ -16,12 +16,15 @@ backend and the weights' stored decode:
 * ``test_*``: the protocol's test tuples (``--data``, 17,604 by default) through ``select_legs`` in calls of 4,
   2 and 1 legs, without verification: each call's map is its tuples' patches side by side (33 x 33k cells,
   yaw 0, so the aligned extraction returns each tuple's own patch), each request's nominal at its patch's
-  centre; and ``predict`` in batches of 256 (what ``eval_vfa`` does);
+  centre; ``test_select``: the same one-leg calls through ``select`` (its own one-leg path); and ``predict``
+  in batches of 256 (what ``eval_vfa`` does);
 * ``test_verified``: the first ``--verified`` tuples in calls of 4 legs with the verification on (the exact
-  check, and the exact search when the CNN's choice is unsafe);
+  check, and the exact search when the CNN's choice is unsafe); ``cases_verified*``: the first 50 bench
+  cases (below) verified, 4 legs per ``select_legs`` call and one leg per ``select`` call;
 * ``cases_*``: ``bench_vfa.make_cases`` (200 seeded terrains) for the 4 legs in one call, 2 legs and one leg
-  per call, at the map's heading and rotated by 0.37 rad (the interpolating extraction), the nominal also
-  moved 0.25 m off the map's centre (a patch partly off the map: unknown cells).
+  per call (``cases_select``: one leg per ``select`` call), at the map's heading and rotated by 0.37 rad (the
+  interpolating extraction), the nominal also moved 0.25 m off the map's centre (a patch partly off the map:
+  unknown cells).
 """
 
 from __future__ import annotations
@@ -60,8 +63,11 @@ def encode_results(results: list) -> np.ndarray:
     return np.array(rows, dtype=np.float64).reshape(-1, 7)
 
 
-def test_set_calls(selector: CnnFootholdSelector, data: VfaDataset, legs_per_call: int, count: int) -> np.ndarray:
-    """The first ``count`` test tuples through ``select_legs``, ``legs_per_call`` per call (see the docstring)."""
+def test_set_calls(
+    selector: CnnFootholdSelector, data: VfaDataset, legs_per_call: int, count: int, single: bool = False
+) -> np.ndarray:
+    """The first ``count`` test tuples through ``select_legs``, ``legs_per_call`` per call (see the docstring);
+    ``single``: one leg per ``select`` call instead."""
     n = data.cells
     out = []
     for start in range(0, count, legs_per_call):
@@ -75,11 +81,23 @@ def test_set_calls(selector: CnnFootholdSelector, data: VfaDataset, legs_per_cal
                 LEGS[int(data.leg[i])], np.array([0.0, y, 0.0]), float(data.hip_height_m[i]),
                 np.asarray(data.twist[i], float), data.gait_timing(i),
             ))  # fmt: skip
-        out.append(encode_results(selector.select_legs(requests, grid, yaw=0.0)))
+        out.append(encode_results(_select(selector, requests, grid, 0.0, single)))
     return np.concatenate(out)
 
 
-def case_calls(selector: CnnFootholdSelector, cases: list[dict], legs_per_call: int) -> np.ndarray:
+def _select(
+    selector: CnnFootholdSelector, requests: list[FootholdRequest], grid: HeightMapGrid, yaw: float, single: bool
+) -> list:
+    """``select_legs(requests)``, or with ``single`` one ``select`` call per request."""
+    if not single:
+        return selector.select_legs(requests, grid, yaw=yaw)
+    return [selector.select(r.leg, r.nominal_world, grid, hip_height_m=r.hip_height_m, twist=r.twist, gait=r.gait,
+                            yaw=yaw) for r in requests]  # fmt: skip
+
+
+def case_calls(
+    selector: CnnFootholdSelector, cases: list[dict], legs_per_call: int, single: bool = False
+) -> np.ndarray:
     """The bench cases at the map's heading, rotated, and with the nominal off the map's centre."""
     out = []
     for case in cases:
@@ -89,7 +107,7 @@ def case_calls(selector: CnnFootholdSelector, cases: list[dict], legs_per_call: 
             yaw = case["grid"].yaw + yaw_offset
             for start in range(0, len(LEGS), legs_per_call):
                 batch = requests[start : start + legs_per_call]
-                out.append(encode_results(selector.select_legs(batch, case["grid"], yaw=yaw)))
+                out.append(encode_results(_select(selector, batch, case["grid"], yaw, single)))
     return np.concatenate(out)
 
 
@@ -102,14 +120,18 @@ def collect(data_path: Path, verified: int) -> dict[str, np.ndarray]:
     for legs in (4, 2, 1):
         print(f"test set, {legs} legs per call", file=sys.stderr, flush=True)
         arrays[f"test_{legs}"] = test_set_calls(selector, data, legs, len(data))
+    print("test set, one leg per select call", file=sys.stderr, flush=True)
+    arrays["test_select"] = test_set_calls(selector, data, 1, len(data), single=True)
     arrays["test_predict"] = predict_all(selector, data).astype(np.int64)
     cases = make_cases(model, 200, 20240601)
     for legs in (4, 2, 1):
         arrays[f"cases_{legs}"] = case_calls(selector, cases, legs)
+    arrays["cases_select"] = case_calls(selector, cases, 1, single=True)
     selector.verify = True
     print(f"test set, verified, first {verified}", file=sys.stderr, flush=True)
     arrays["test_verified"] = test_set_calls(selector, data, 4, min(verified, len(data)))
     arrays["cases_verified"] = case_calls(selector, cases[:50], 4)
+    arrays["cases_verified_select"] = case_calls(selector, cases[:50], 1, single=True)
     arrays["rejected"] = np.array([selector.counters.rejected])
     return arrays
 

@@ -163,12 +163,15 @@ def combined_score(
 ) -> NDArray[np.float64]:
     """The ``combined`` score per candidate (B, n*n), float64: optimum_logit + lambda * log(max(p_safe, 1e-30))
     - mu * d^2, d [cells] from the centre (unknown cells are not excluded here)."""
-    score = logits.astype(np.float64)
-    if settings.safe_weight:  # lambda * log(max(p, 1e-30)) in place (the same operations, fewer temporaries)
-        term = np.maximum(probability, _MIN_PROBABILITY, dtype=np.float64)
-        np.log(term, out=term)
-        term *= settings.safe_weight
-        score += term
+    if settings.safe_weight:  # lambda * log(max(p, 1e-30)) + logit in place (one temporary)
+        # float64 copies first: operations on one dtype skip the ufuncs' buffered casting (~2 us of ~15)
+        score = probability.astype(np.float64)
+        np.maximum(score, _MIN_PROBABILITY, out=score)
+        np.log(score, out=score)
+        score *= settings.safe_weight
+        score += logits.astype(np.float64, copy=False)  # widening is exact; a + b == b + a in IEEE arithmetic
+    else:
+        score = logits.astype(np.float64)
     if settings.distance_weight:
         score -= settings.distance_weight * _distance_sq(cells)[0][None, :]
     return score

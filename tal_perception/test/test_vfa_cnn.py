@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from tal_core.terrain import Course, DefaultGround, GapPatch, Region
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import FecInput, GaitTiming
-from tal_perception.vfa import FootholdSelector, VfaStatus, extract_patch
+from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, extract_patch
 from tal_perception.vfa_cnn import (
     DEFAULT_WEIGHTS,
     CnnFootholdSelector,
@@ -678,6 +679,112 @@ def test_onnxruntime_binding_equals_the_session_call() -> None:
                 assert safe_logits is None and expected_safe is None
         with pytest.raises(ValueError, match="C-contiguous float32"):
             ort_net.bind(image.astype(np.float64), scalars)
+
+
+def test_graph_rewrites_keep_the_outputs_bit_for_bit() -> None:
+    """vfa_cnn_ort.rewrite_graph (applied by export_onnx): fewer Slice / Unsqueeze nodes in the exported VfaUNet
+    graph (its crops and bias broadcasts), LeakyRelu only after a Conv (the others are Max(x, alpha * x)), and
+    the same outputs bit for bit, for both architectures, batch sizes 1 and 5, inputs with large negative and
+    positive values."""
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    import onnx
+    import onnxruntime as ort
+
+    from tal_perception import vfa_cnn_ort
+
+    torch.manual_seed(8)
+    rng = np.random.default_rng(8)
+    configs = (NetConfig(architecture="unet"), NetConfig(architecture="unet", roughness_features=True),
+               NetConfig(architecture="thesis", hidden=64))  # fmt: skip
+    for config in configs:
+        net = build_net(config).eval()
+        rewritten = vfa_cnn_ort.export_onnx(net)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(vfa_cnn_ort, "rewrite_graph", lambda model: model)
+            plain = vfa_cnn_ort.export_onnx(net)
+        graph, plain_graph = onnx.load_from_string(rewritten).graph, onnx.load_from_string(plain).graph
+
+        def count(g: onnx.GraphProto, op: str) -> int:
+            return sum(node.op_type == op for node in g.node)
+
+        producers = {output: node.op_type for node in graph.node for output in node.output}
+        assert {producers[node.input[0]] for node in graph.node if node.op_type == "LeakyRelu"} == {"Conv"}
+        assert count(graph, "Max") == count(plain_graph, "LeakyRelu") - count(graph, "LeakyRelu") > 0
+        if config.architecture == "unet":  # one pair each per decoder level
+            assert count(graph, "Slice") == count(plain_graph, "Slice") - 3
+            assert count(graph, "Unsqueeze") == count(plain_graph, "Unsqueeze") - 3
+        sessions = [ort.InferenceSession(m, vfa_cnn_ort.session_options()) for m in (plain, rewritten)]
+        for size in (1, 5):
+            feed = {"image": rng.normal(scale=10.0, size=(size, 4, 33, 33)).astype(np.float32),
+                    "scalars": rng.normal(scale=10.0, size=(size, config.encoding.scalar_count)).astype(np.float32)}  # fmt: skip
+            for expected, actual in zip(*(session.run(None, feed) for session in sessions)):
+                np.testing.assert_array_equal(actual, expected)
+                assert actual.tobytes() == expected.tobytes()  # also the sign of zeros
+
+
+def _outcome(call: Callable[[], VfaResult]) -> tuple:
+    """(result fields, or the error's type and message) of ``call()``: what select and select_legs must share."""
+    try:
+        r = call()
+    except Exception as error:  # the comparison covers any error
+        return type(error), str(error)
+    return r.leg, r.nominal.tolist(), r.selected.tolist(), r.any_safe, r.status, r.safe_candidates, r.offset_cells
+
+
+@pytest.mark.parametrize("verify", [False, True])
+def test_select_is_select_legs_for_one_request(evaluator: FootholdEvaluator, hip_height: float, verify: bool) -> None:
+    """``select`` (its own one-leg path) returns what ``select_legs`` returns for the same single request, and
+    raises the same errors: selections on and off the map's heading, a gap, unknown cells around the nominal
+    (NO_SAFE_CANDIDATE with a network that picks the centre), no map, a stale map, and each bad input."""
+    selector = CnnFootholdSelector(evaluator, load_model(DEFAULT_WEIGHTS), verify=verify)
+    centre_net = VfaNet(NetConfig())
+    with torch.no_grad():  # always picks the centre cell
+        for p in centre_net.parameters():
+            p.zero_()
+        centre_net.head[2].bias[16 * 33 + 16] = 1.0
+    centre = CnnFootholdSelector(evaluator, centre_net, verify=verify)
+    gap = GapPatch(name="gap", region=Region(NOMINAL[0] - 0.05, NOMINAL[0] + 0.05, -2, 2), depth_m=0.3,
+                   start_height_m=0.0, **RIGID)  # fmt: skip
+    holes = np.array(course_map().heights)
+    holes[35:46, 35:46] = np.nan  # around the nominal (map centre 40, 40)
+    unknown = HeightMapGrid(center_xy=tuple(NOMINAL[:2]), yaw=0.0, resolution_m=0.02, heights=holes)
+    infinite = np.array(course_map().heights)
+    infinite[40, 40] = np.inf
+    kwargs = {"hip_height_m": hip_height, "twist": TWIST, "gait": TROT_SWING}
+    cases = [  # (selector, leg, nominal, grid, keyword arguments)
+        *((selector, leg, NOMINAL, grid, {**kwargs, "yaw": yaw}) for leg in LEGS for grid in (course_map(),
+          course_map(gap)) for yaw in (None, 0.37)),  # fmt: skip
+        (selector, Leg.LH, NOMINAL + [0.05, -0.03, 0.0], course_map(gap), {**kwargs, "twist": [0.5, 0.1, 0, 0, 0, 0]}),
+        (centre, Leg.LF, NOMINAL, unknown, kwargs),
+        (selector, Leg.RH, NOMINAL, None, kwargs),
+        (selector, Leg.RH, NOMINAL, course_map(), {**kwargs, "map_age_s": 1.0}),
+        (selector, Leg.RF, NOMINAL, course_map(), {**kwargs, "twist": [0.1, np.nan, 0, 0, 0, 0]}),
+        (selector, Leg.RF, NOMINAL, course_map(), {**kwargs, "twist": [0.1, 0.0]}),
+        (selector, Leg.RF, [0.0, np.inf, 0.0], course_map(), kwargs),
+        (selector, Leg.RF, [0.0, 0.0], None, kwargs),
+        (selector, Leg.RF, NOMINAL, course_map(), {**kwargs, "hip_height_m": float("nan")}),
+        (selector, Leg.RF, NOMINAL, course_map(), {**kwargs, "gait": (1.5, 0.6, 0.2, 0.1)}),
+        (selector, Leg.RF, NOMINAL, course_map(), {**kwargs, "map_age_s": -0.2}),
+        (selector, Leg.RF, NOMINAL, None, {**kwargs, "map_age_s": float("nan")}),
+        (selector, Leg.RF, NOMINAL, course_map(), {**kwargs, "yaw": float("inf")}),
+        (selector, 7, NOMINAL, course_map(), kwargs),
+        (selector, Leg.RF, NOMINAL, HeightMapGrid(center_xy=tuple(NOMINAL[:2]), yaw=0.0, resolution_m=0.02,
+                                                  heights=infinite), kwargs),  # fmt: skip
+    ]
+    for sel, leg, nominal, grid, options in cases:
+        options = dict(options)
+        yaw, map_age_s = options.pop("yaw", None), options.pop("map_age_s", 0.0)
+        request = FootholdRequest(leg, nominal, options["hip_height_m"], options["twist"], options["gait"])
+        batch = _outcome(lambda: sel.select_legs([request], grid, yaw=yaw, map_age_s=map_age_s)[0])  # noqa: B023
+        single = _outcome(lambda: sel.select(leg, nominal, grid, yaw=yaw, map_age_s=map_age_s, **options))  # noqa: B023
+        assert single == batch, (leg, grid is None, options)
+    # the cases above include each status (with the verification the exact search replaces the unknown cell)
+    expected = VfaStatus.SELECTED if verify else VfaStatus.NO_SAFE_CANDIDATE
+    assert centre.select(Leg.LF, NOMINAL, unknown, **kwargs).status is expected
+    assert selector.select(Leg.RH, NOMINAL, None, **kwargs).status is VfaStatus.NO_MAP
+    assert selector.select(Leg.RH, NOMINAL, course_map(), map_age_s=1.0, **kwargs).status is VfaStatus.STALE_MAP
+    assert selector.select(Leg.LF, NOMINAL, course_map(gap), **kwargs).status is VfaStatus.SELECTED
 
 
 @pytest.mark.parametrize("verify", [False, True])
