@@ -134,10 +134,11 @@ def encode(
 
     heights (B, n, n) [m] world z, NaN unknown; hip_height_m (B,) [m] world z of the HAA joint; twist
     (B, 6) [m/s, rad/s] horizontal frame; gait (B, 4): step frequency [Hz], duty factor [-], time left
-    until touchdown [s], step height [m]; leg (B,) index into LEGS (arrays or nested lists; rounded to
-    float32 as given). out: preallocated (image, scalars) of those shapes, float32, C-contiguous, written and
-    returned (the selector's per-call buffers). unknown: ``np.isnan(heights)`` (B, n, n) when the caller has
-    it (the selector's decode needs it too).
+    until touchdown [s], step height [m]; leg (B,) index 0-3 into LEGS, not checked here (the selector passes
+    ``Leg`` values, the datasets are written by ``vfa_dataset``; another index gives an all-zero one-hot).
+    Arrays or nested lists, rounded to float32 as given. out: preallocated (image, scalars) of those shapes,
+    float32, C-contiguous, written and returned (the selector's per-call buffers). unknown:
+    ``np.isnan(heights)`` (B, n, n) when the caller has it (the selector's decode needs it too).
     """
     heights = np.asarray(heights, dtype=np.float32)
     hip = np.asarray(hip_height_m, dtype=np.float32)
