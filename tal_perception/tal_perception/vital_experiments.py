@@ -504,7 +504,7 @@ NOTES: dict[str, list[str]] = {
                     "evaluation holds the hip at the touchdown height for the whole swing, so those legs were folded "
                     "past their joint limits at lift-off unless the hip stayed high enough that the lower tread was "
                     "barely in reach, and with few safe footholds they weighed little against the hind legs' many.",
-                    ""],
+                    "", "![swing model](vital_swing_model.png)", ""],
     "starts": ["The start x shifts where the gait's phase meets the first riser. The interval is the Wilson score "
                "interval (95 %) of the success rate over the 9 starts.", ""],
     "speeds": ["Thesis (HyQ, same stairs): pitch MAE 0.7-2.3 deg and height MAE 0.3-3.8 cm from 0.2 to 0.5 m/s, all "
@@ -557,6 +557,49 @@ def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRun
             s = results[run.name].series
             ax.plot(s["x"], np.nanmean(s["thickness"], axis=1), lw=0.9, label=run.name)
         _finish(plt, fig, ax, "|F(u*+m) - F(u*-m)| mean over legs", out / "vital_cost_envelope.png")
+
+
+    if "swing_model" in runs:
+        plot_swing_model(plt, out / "vital_swing_model.png", runs["swing_model"], results)
+
+
+def plot_swing_model(plt, path: Path, group: list[VitalRun], results: dict[str, VitalRunResult]) -> None:
+    """The swing_model experiment: base height and the front legs' safe footholds along the stairs at 0.5 m/s
+    from x = 0 under both models (series of those two runs), and per speed the successes and collisions over
+    the 9 starts of each model."""
+    fig, axes = plt.subplots(3, 1, figsize=(9, 10))
+    for run in group:
+        s = results[run.name].series
+        if run.speed_mps != 0.5 or run.initial_x_m != 0.0 or "x" not in s:
+            continue
+        terrain = SWING_MODEL_TAG in run.name
+        label = "terrain swing, peak weights" if terrain else "thesis (level hip)"
+        line = axes[0].plot(s["x"], s["z"], label=f"{label}: base z")[0]
+        axes[0].plot(s["x"], s["z_des"], ":", color=line.get_color(), lw=0.8, label=f"{label}: reference")
+        axes[1].plot(s["x"], np.nanmean(s["safe"][:, :2], axis=1), color=line.get_color(), lw=0.9, label=label)
+    axes[0].set_ylabel("base z [m], 0.5 m/s from x = 0")
+    axes[1].set_ylabel("front legs' safe footholds\nat the actual pose (mean)")
+    for ax in axes[:2]:
+        ax.set_xlabel("base x [m]")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    speeds = sorted({run.speed_mps for run in group})
+    width = 0.2
+    for k, terrain in enumerate((False, True)):
+        members = [run for run in group if (SWING_MODEL_TAG in run.name) == terrain]
+        rs = [[results[run.name] for run in members if run.speed_mps == v] for v in speeds]
+        x = np.arange(len(speeds)) + (k - 0.5) * 2 * width
+        tag = "terrain" if terrain else "thesis"
+        successes = [sum(r.success for r in at_speed) for at_speed in rs]
+        collisions = [sum(sum(r.leg_collisions) + sum(r.foot_collisions) for r in at_speed) for at_speed in rs]
+        axes[2].bar(x - width / 2, successes, width, label=f"{tag}: successes of 9", alpha=0.8)
+        axes[2].bar(x + width / 2, collisions, width, label=f"{tag}: leg + foot collisions", alpha=0.5, hatch="//")
+    axes[2].set_xticks(np.arange(len(speeds)), [f"{v:.1f} m/s" for v in speeds])
+    axes[2].legend(fontsize=7, ncol=2)
+    axes[2].grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _finish(plt, fig, ax, ylabel: str, path: Path) -> None:

@@ -167,9 +167,17 @@ def test_a_short_stairs_run_with_vfa_and_vpa_is_traced_reported_and_plotted(tmp_
     assert np.isfinite(series["safe"][-1]).all() and (series["safe"][-1] > 0).all()
     assert sum(result.leg_collisions) == 0 and sum(result.foot_collisions) == 0
     assert result.decisions > 0 and result.vpa_compute_median_ms > 0
-    runs = {"speeds": [run], "cost": [run, replace(run, name="smoke")]}
-    write_report(tmp_path, runs, {"smoke": result})
-    plot(tmp_path, runs, {"smoke": result})
-    assert "| smoke | 0.3 | yes |" in (tmp_path / "closed_loop.md").read_text()
+    # the swing_model report and figure: the same run under both names (the figure's trajectories need 0.5 m/s)
+    fast = replace(run, name="stairs_0.5_x+0.0", speed_mps=0.5)
+    tagged = replace(fast, name="stairs_0.5_terrain_swing_x+0.0")
+    results = {"smoke": result, fast.name: replace(result, name=fast.name),
+               tagged.name: replace(result, name=tagged.name, success=False)}
+    runs = {"speeds": [run], "cost": [run, replace(run, name="smoke")], "swing_model": [fast, tagged]}
+    write_report(tmp_path, runs, results)
+    plot(tmp_path, runs, results)
+    report = (tmp_path / "closed_loop.md").read_text()
+    assert "| smoke | 0.3 | yes |" in report
+    assert "| 0.5 | 1 of 1 |" in report and "| 0.5 | 0 of 1 |" in report  # thesis' model, then the terrain one
     assert (tmp_path / "vital_stairs_speeds.png").stat().st_size > 10_000
+    assert (tmp_path / "vital_swing_model.png").stat().st_size > 10_000
     assert (tmp_path / "closed_loop.json").exists()
