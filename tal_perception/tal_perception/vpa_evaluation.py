@@ -24,7 +24,9 @@ computed with the same floating-point operations as the FEC's, so the counts are
 close.
 
 The result equals ``FootholdEvaluator.evaluate(...).safe_count`` at each height (tested);
-``reference_counts`` is that slow loop.
+``reference_counts`` is that slow loop. With the swing model "terrain" (``VpaSettings.swing_hip_model``,
+ours) the hip at the swing samples is higher than the evaluated height by ``FecInput.hip_rise_at_liftoff_m``
+times the swing still to go (``liftoff_rise``); the equality holds for it too.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from numpy.typing import NDArray
 
 from tal_core.legs import Leg
 from tal_perception.errors import PerceptionInputError, VpaConfigError
-from tal_perception.fec import FootholdEvaluator, PreparedPatch
+from tal_perception.fec import FootholdEvaluator, PreparedPatch, swing_hip_rise
 from tal_perception.fec_grid import disc_offsets
 from tal_perception.fec_settings import FecInput, GaitTiming
 from tal_perception.leg_kinematics import CellTerms, JointOrigins
@@ -124,9 +126,10 @@ class PoseEvaluator:
         ev.check_patch(inp)
         prep = ev.prepare(inp)
         rise = self.liftoff_rise(prep, reference)
-        if rise:
+        if rise:  # what prepare would give with the rise (only the hip's heights at the swing samples change)
             inp = dataclasses.replace(inp, hip_rise_at_liftoff_m=rise)
-            prep = ev.prepare(inp)
+            prep = dataclasses.replace(prep, inp=inp, swing_hip_dz=swing_hip_rise(rise, prep.swing_times,
+                                                                                 inp.gait.swing_duration_s))
         known = np.flatnonzero(~np.isnan(prep.cand_z))
         base = np.zeros(heights.size, dtype=bool)
         base[known] = ev._foot_trajectory_ok(prep, known)  # noqa: SLF001 - same package, height independent
