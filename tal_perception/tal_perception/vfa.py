@@ -92,6 +92,22 @@ def check_map_age(map_age_s: float, who: str) -> None:
             f"{who}: the heightmap is stamped {-map_age_s:.4f} s in the future (out-of-order stamps)")
 
 
+def map_status(grid: HeightMapGrid | None, map_age_s: float, max_map_age_s: float) -> VfaStatus | None:
+    """NO_MAP / STALE_MAP when the nominal is to be passed through (``map_age_s`` [s], already checked by
+    ``check_map_age``, older than ``max_map_age_s``), else None."""
+    if grid is None:
+        return VfaStatus.NO_MAP
+    return VfaStatus.STALE_MAP if map_age_s > max_map_age_s else None
+
+
+def patch_heading(grid: HeightMapGrid, yaw: float | None) -> float:
+    """The patches' heading [rad] (world): ``yaw``, or the map's when None; PerceptionInputError if not finite."""
+    heading = grid.yaw if yaw is None else float(yaw)
+    if not math.isfinite(heading):
+        raise PerceptionInputError(f"VFA: yaw must be finite [rad], got {yaw!r}")
+    return heading
+
+
 def extract_patch(grid: HeightMapGrid, center_xy: ArrayLike, yaw: float, cells: int, resolution_m: float) -> FloatArray:
     """Heights (cells, cells) [m] around ``center_xy`` [m] (world), rows along the heading ``yaw``
     [rad]: nearest cell of ``grid`` at each patch cell centre; outside ``grid`` NaN (unknown).
@@ -214,14 +230,11 @@ class FootholdSelector:
         nominal = _vector(nominal_world, 3, "nominal_world")
         check_map_age(map_age_s, "VFA")
         leg = Leg(leg)
-        if grid is None:
-            return VfaResult(leg, nominal, nominal.copy(), False, VfaStatus.NO_MAP, None, None)
-        if map_age_s > self.max_map_age_s:
-            return VfaResult(leg, nominal, nominal.copy(), False, VfaStatus.STALE_MAP, None, None)
+        status = map_status(grid, map_age_s, self.max_map_age_s)
+        if status is not None:
+            return VfaResult(leg, nominal, nominal.copy(), False, status, None, None)
         settings = self.evaluator.settings
-        heading = grid.yaw if yaw is None else float(yaw)
-        if not math.isfinite(heading):
-            raise PerceptionInputError(f"VFA: yaw must be finite [rad], got {yaw!r}")
+        heading = patch_heading(grid, yaw)
         heights = extract_patch(grid, nominal[:2], heading, settings.patch_cells, settings.resolution_m)
         c, s = math.cos(heading), math.sin(heading)
         liftoff = None
@@ -313,6 +326,6 @@ def _vector(value: object, size: int, name: str) -> FloatArray:
 
 
 __all__ = [
-    "FootholdRequest", "FootholdSelector", "VfaResult", "VfaStatus", "extract_patch", "extract_patches",
-    "select_foothold",
+    "FootholdRequest", "FootholdSelector", "VfaResult", "VfaStatus", "extract_patch", "extract_patches", "map_status",
+    "patch_heading", "select_foothold",
 ]  # fmt: skip

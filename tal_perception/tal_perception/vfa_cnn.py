@@ -55,6 +55,8 @@ from tal_perception.vfa import (
     VfaStatus,
     check_map_age,
     extract_patches,
+    map_status,
+    patch_heading,
 )
 from tal_perception.vfa_cnn_fast import compile_fast_unet
 from tal_perception.vfa_decode import VfaDecode, decode, decode_unchecked
@@ -665,10 +667,10 @@ class CnnFootholdSelector:
         nominal = _vector(nominal_world, 3, "nominal_world")
         check_map_age(map_age_s, "VFA")
         leg = Leg(leg)
-        status = self._map_status(grid, map_age_s)
+        status = map_status(grid, map_age_s, self.max_map_age_s)
         if status is not None:
             return VfaResult(leg, nominal, nominal.copy(), False, status, None, None)
-        heading = self._heading(grid, yaw)
+        heading = patch_heading(grid, yaw)
         twist_array = check_motion_inputs(hip_height_m, twist, gait)
         s = self.evaluator.settings
         workspace = self._workspace(1)
@@ -692,10 +694,10 @@ class CnnFootholdSelector:
         nominals = [_vector(r.nominal_world, 3, "nominal_world") for r in requests]
         check_map_age(map_age_s, "VFA")
         legs = [Leg(r.leg) for r in requests]
-        status = self._map_status(grid, map_age_s)
+        status = map_status(grid, map_age_s, self.max_map_age_s)
         if status is not None:
             return [VfaResult(leg, nom, nom.copy(), False, status, None, None) for leg, nom in zip(legs, nominals)]
-        heading = self._heading(grid, yaw)
+        heading = patch_heading(grid, yaw)
         if not requests:
             return []
         twist = np.stack([check_motion_inputs(r.hip_height_m, r.twist, r.gait) for r in requests])
@@ -714,20 +716,6 @@ class CnnFootholdSelector:
             self.counters.selections += 1
             results.append(self._result(request, leg, patch, nominal, index, grid, heading, map_age_s))
         return results
-
-    def _map_status(self, grid: HeightMapGrid | None, map_age_s: float) -> VfaStatus | None:
-        """NO_MAP / STALE_MAP when the nominal is passed through (``map_age_s`` [s], already checked), else None."""
-        if grid is None:
-            return VfaStatus.NO_MAP
-        return VfaStatus.STALE_MAP if map_age_s > self.max_map_age_s else None
-
-    @staticmethod
-    def _heading(grid: HeightMapGrid, yaw: float | None) -> float:
-        """The patches' heading [rad] (world): ``yaw``, or the map's when None; PerceptionInputError if not finite."""
-        heading = grid.yaw if yaw is None else float(yaw)
-        if not math.isfinite(heading):
-            raise PerceptionInputError(f"VFA: yaw must be finite [rad], got {yaw!r}")
-        return heading
 
     def _result(
         self, request: FootholdRequest | None, leg: Leg, patch: NDArray[np.floating], nominal: FloatArray, index: int,
