@@ -157,7 +157,10 @@ class PoseEvaluator:
         reference = map_reference_height(heights)
         if np.isnan(reference):
             return np.zeros(self.hip_heights.size, dtype=np.int64)
-        rise = self.liftoff_rise(self.evaluator.prepare(self._input(leg, heights, reference, twist, gait)), reference)
+        rise = 0.0
+        if self.swing_hip_model != "level":  # the lift-off point, from a prepared patch
+            prep = self.evaluator.prepare(self._input(leg, heights, reference, twist, gait))
+            rise = self.liftoff_rise(prep, reference)
         counts = []
         for h in self.hip_heights:
             inp = dataclasses.replace(self._input(leg, heights, reference + h, twist, gait), hip_rise_at_liftoff_m=rise)
