@@ -42,6 +42,10 @@ would let the trunk fall 10-20 cm behind the VPA's height on the way up at 0.4 m
   (``VpaSettings.swing_hip_model`` "terrain": the hip starts the evaluated swing as high above the lift-off
   terrain as it ends above the map reference) and its legs weighted by their curves' peaks
   (``leg_weighting`` "peak", the thesis' Q).
+* ``learned``: both CNNs in the loop, as the thesis' ViTAL ran: the VFA's CNN (committed weights) with the
+  ``vfa`` node's default verification (the exact criteria on the chosen candidate, exact search when it
+  fails) and the VPA's CNN, on the stairs at 0.2, 0.3 and 0.4 m/s (3 starts each); and at 0.2 m/s the
+  VFA's CNN alone (``cnn_unverified``, the thesis' g_hat: its unsafe choices reach the robot).
 
 The comparisons at 0.4 and 0.5 m/s run from 9 starts (``STARTS_M`` + ``EXTRA_STARTS_M``): single runs there
 could succeed or fall by chance.
@@ -85,8 +89,10 @@ POSE_BANDWIDTH_RAD_S = 6.0  # [rad/s]
 MAX_HEIGHT_RATE_M_S = 0.25  # [m/s]
 MAX_ATTITUDE_RATE_RAD_S = 0.5  # [rad/s]
 EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter", "step_frequency",
-               "starts", "swing_model")
+               "starts", "swing_model", "learned")
 SWING_MODEL_TAG = "terrain_swing"  # run-name tag of the swing_model experiment's VPA (terrain swing, peak weighting)
+LEARNED_TAG = "cnns"  # run-name tag of the learned experiment (VFA CNN verified + VPA CNN)
+UNVERIFIED_TAG = "cnns_unverified"  # the same with the VFA CNN's choices unverified
 # At 0.5 m/s the trot steps at 1.8 Hz instead of its preset 1.5 Hz: the preset's stride (0.33 m) is longer than
 # the stairs' go (0.25 m) and made the feet skip treads; at 1.8 Hz it is 0.28 m (probe sweeps from 9 starts: 5 of
 # 9 succeeded at 1.8 Hz, 1 of 9 at 1.5 Hz; experiment step_frequency).
@@ -229,6 +235,12 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
         runs["swing_model"] = ([_stairs(stairs_name(v, x0), v, vital, x0) for v in speeds for x0 in starts_04]
                                + [_stairs(stairs_name(v, x0, SWING_MODEL_TAG), v, terrain, x0)
                                   for v in speeds for x0 in starts_04])
+    if "learned" in only:
+        verified = replace(vital, vpa_use_cnn=True, vfa_selector="cnn")
+        unverified = replace(vital, vpa_use_cnn=True, vfa_selector="cnn_unverified")
+        runs["learned"] = ([_stairs(stairs_name(v, x0, LEARNED_TAG), v, verified, x0)
+                            for v in (0.2, 0.3, 0.4) for x0 in STARTS_M]
+                           + [_stairs(stairs_name(0.2, x0, UNVERIFIED_TAG), 0.2, unverified, x0) for x0 in STARTS_M])
     return runs
 
 
@@ -349,6 +361,8 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
               "pose_filter": "The body-pose filter of these runs vs the controller's default (stairs, 0.4 m/s)",
               "step_frequency": "Trot at 1.8 Hz vs the preset's 1.5 Hz (stairs, 0.5 m/s)",
               "starts": "Stairs at four speeds from 9 starts each, VFA + VPA (the speeds runs' configuration)",
+              "learned": "Both CNNs in the loop: the VFA's CNN (verified, as the vfa node runs it; and alone) "
+                         "and the VPA's CNN",
               "swing_model": "The VPA's hip following the terrain during the swing and legs weighted by their peaks "
                              "vs the thesis' level hip and equal weights (stairs, four speeds, 9 starts)"}
     for key, group in runs.items():
@@ -454,6 +468,16 @@ def swing_model_summary(group: list[VitalRun], results: dict[str, VitalRunResult
              *speed_summary(terrain, results)])
 
 
+def learned_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
+    """Markdown lines: the speed summary of the verified VFA CNN and of the VFA CNN alone (both with the VPA's
+    CNN), with the selections the verification replaced."""
+    verified = [r for r in group if UNVERIFIED_TAG not in r.name]
+    alone = [r for r in group if UNVERIFIED_TAG in r.name]
+    return (["VFA CNN verified (`vfa` node `selector` cnn) + VPA CNN:", "", *speed_summary(verified, results),
+             "VFA CNN alone (`selector` cnn_unverified, the thesis' g_hat) + VPA CNN:", "",
+             *speed_summary(alone, results)])
+
+
 def speed_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
     """Markdown lines: per speed, successes of the repeated runs, collisions summed over them and the
     tracking errors averaged over the successful ones."""
@@ -494,6 +518,7 @@ SUMMARIES: dict[str, Callable[[list[VitalRun], dict[str, VitalRunResult]], list[
     "pose_filter": per_config_summary,
     "step_frequency": per_config_summary,
     "swing_model": swing_model_summary,
+    "learned": learned_summary,
 }
 NOTES: dict[str, list[str]] = {
     "centre": ["The runs under the CoM are the speeds runs above.", ""],

@@ -289,6 +289,13 @@ def test_the_cnn_selector_moves_the_foothold_off_a_gap_too(hyq: RobotModel, hips
     assert lf.status is VfaStatus.SELECTED and lf.safe_candidate_found and lf.adapted
     assert lf.selected[2] == pytest.approx(0.0)
     assert abs(lf.selected[0] - lf_nominal[0]) >= 0.06 + 0.03
+    # "cnn_unverified": the same network without the exact check of its choice (the thesis' g_hat)
+    alone = VfaPlanner.for_robot(hyq, "cnn_unverified", PlannerSettings())
+    assert planner.selector.verify and not alone.selector.verify
+    alone.set_map(course_map(gap_across_x(lf_nominal[0])), 1.0)
+    lf_alone = {d.leg: d for d in alone.update(gait)}[Leg.LF]
+    assert lf_alone.adapted and abs(lf_alone.selected[0] - lf_nominal[0]) >= 0.06 + 0.03
+    assert alone.selector.counters.verified == 0 < planner.selector.counters.verified
 
 
 @pytest.mark.parametrize("hysteresis_m, kept", [(0.05, True), (0.0, False)])

@@ -87,7 +87,7 @@ def test_settings_and_experiment_list_are_checked() -> None:
         VitalLoopSettings(heightmap_period_s=0.0)
     runs = experiment_runs()
     assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter",
-                         "step_frequency", "starts", "swing_model"}
+                         "step_frequency", "starts", "swing_model", "learned"}
     assert all(r.loop.vpa_use_cnn for r in runs["cnn"]) and not any(r.loop.vpa_use_cnn for r in runs["speeds"])
     names = [r.name for key in ("speeds", "cnn", "tbr", "gaps", "rough") for r in runs[key]]
     shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)}
@@ -126,9 +126,9 @@ def test_settings_and_experiment_list_are_checked() -> None:
     assert set(runs["speeds"]) <= set(starts)
     assert [r for r in starts if r.speed_mps == 0.4] == runs["pose_filter"][:9]
     assert [r for r in starts if r.speed_mps == 0.5] == runs["step_frequency"][:9]
-    everything = {r.name for key, group in runs.items() if key != "swing_model" for r in group}
-    assert len(everything - {r.name for key, group in runs.items() if key not in ("starts", "swing_model")
-                             for r in group}) == 12
+    everything = {r.name for key, group in runs.items() if key not in ("swing_model", "learned") for r in group}
+    assert len(everything - {r.name for key, group in runs.items()
+                             if key not in ("starts", "swing_model", "learned") for r in group}) == 12
     # swing_model: the starts runs, then the same 36 with the terrain swing model and peak weighting only.
     swing = runs["swing_model"]
     assert swing[:36] == starts and len(swing) == 72
@@ -137,6 +137,15 @@ def test_settings_and_experiment_list_are_checked() -> None:
         assert (thesis.loop.vpa.swing_hip_model, thesis.loop.vpa.leg_weighting) == ("level", "none")
         assert terrain.loop.vpa == replace(thesis.loop.vpa, swing_hip_model="terrain", leg_weighting="peak")
         assert replace(terrain, name=thesis.name, loop=thesis.loop) == thesis
+    # learned: the speeds runs' configuration with both CNNs, the VFA's verified (0.2-0.4 m/s) and alone (0.2).
+    learned = runs["learned"]
+    assert len(learned) == 12 and [r.speed_mps for r in learned] == [v for v in (0.2, 0.3, 0.4, 0.2) for _ in range(3)]
+    for run in learned:
+        alone = "cnns_unverified" in run.name
+        assert run.loop.vfa_selector == ("cnn_unverified" if alone else "cnn") and run.loop.vpa_use_cnn
+        same = next(r for r in runs["speeds"] if r.speed_mps == run.speed_mps and r.initial_x_m == run.initial_x_m)
+        assert replace(run, name=same.name, loop=same.loop) == same
+        assert replace(run.loop, vfa_selector="exact", vpa_use_cnn=False) == same.loop
     # The forward command stops 0.6 m past the goal: no run walks off its course (stairs: x <= 8 m).
     for r in runs["speeds"]:
         assert r.initial_x_m + r.speed_mps * (r.stop_s - START_S) == pytest.approx(r.goal_x_m + r.past_goal_m)
@@ -172,12 +181,18 @@ def test_a_short_stairs_run_with_vfa_and_vpa_is_traced_reported_and_plotted(tmp_
     tagged = replace(fast, name="stairs_0.5_terrain_swing_x+0.0")
     results = {"smoke": result, fast.name: replace(result, name=fast.name),
                tagged.name: replace(result, name=tagged.name, success=False)}
-    runs = {"speeds": [run], "cost": [run, replace(run, name="smoke")], "swing_model": [fast, tagged]}
+    alone = replace(run, name="stairs_0.3_cnns_unverified_x+0.0")
+    results[alone.name] = replace(result, name=alone.name, leg_collisions=[0, 2, 0, 0])
+    runs = {"speeds": [run], "cost": [run, replace(run, name="smoke")], "swing_model": [fast, tagged],
+            "learned": [run, alone]}
     write_report(tmp_path, runs, results)
     plot(tmp_path, runs, results)
     report = (tmp_path / "closed_loop.md").read_text()
     assert "| smoke | 0.3 | yes |" in report
     assert "| 0.5 | 1 of 1 |" in report and "| 0.5 | 0 of 1 |" in report  # thesis' model, then the terrain one
+    learned = report.split("## Both CNNs in the loop")[1]  # verified (the smoke run), then the CNN alone
+    assert learned.index("VFA CNN verified") < learned.index("| 0.3 | 1 of 1 | 21-100 % | 0 |")
+    assert learned.index("VFA CNN alone") < learned.index("| 0.3 | 1 of 1 | 21-100 % | 2 |")
     assert (tmp_path / "vital_stairs_speeds.png").stat().st_size > 10_000
     assert (tmp_path / "vital_swing_model.png").stat().st_size > 10_000
     assert (tmp_path / "closed_loop.json").exists()
