@@ -35,7 +35,14 @@ from tal_core.robot_model import RobotModel
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.terrain_samples import TERRAIN_KINDS
 from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, CnnFootholdSelector, load_model
-from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate, mix_description
+from tal_perception.vfa_dataset import (
+    HIP_RANGES,
+    VfaDataset,
+    cache_path,
+    load_or_generate,
+    mix_description,
+    set_prefix,
+)
 
 LOG = logging.getLogger("tal_perception.eval_vfa")
 THESIS = {"perfect_match": 0.740, "safe": 0.937, "mean_distance_m": 0.02}
@@ -54,6 +61,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=2, help="seed of the test tuples (training used 1)")
     parser.add_argument("--samples-per-leg", type=int, default=4401)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--hip-range", choices=sorted(HIP_RANGES), default="standard",
+                        help="sampling of the test tuples' hip heights (standard: the thesis' protocol as before)")
     args = parser.parse_args(argv)
     if args.samples_per_leg < 1:
         parser.error("--samples-per-leg must be >= 1")
@@ -209,8 +218,9 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     net = load_model(args.weights)
     selector = CnnFootholdSelector(evaluator, net, verify=False)
     started = time.perf_counter()
-    data = load_or_generate(evaluator, cache_path(args.data, "test", args.seed, args.samples_per_leg), args.seed,
-                            args.samples_per_leg, "labelling test set (exact FEC)")  # fmt: skip
+    path = cache_path(args.data, set_prefix("test", args.hip_range), args.seed, args.samples_per_leg)
+    data = load_or_generate(evaluator, path, args.seed, args.samples_per_leg, "labelling test set (exact FEC)",
+                            hip_range=args.hip_range)  # fmt: skip
     labelling_s = time.perf_counter() - started
     started = time.perf_counter()
     choices = predict_all(selector, data)
@@ -231,7 +241,8 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         "training_seed": training_seed,
         "extra_training_seeds": extra_seeds,
         "samples_per_leg": args.samples_per_leg,
-        "sampling": mix_description(),
+        "sampling": mix_description(args.hip_range),
+        "hip_range": args.hip_range,
         "labelling_or_cache_s": labelling_s,
         "inference_s": inference_s,
         "thesis": THESIS,

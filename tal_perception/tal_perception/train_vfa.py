@@ -62,7 +62,14 @@ from tal_perception.vfa_cnn import (
     load_model,
     save_model,
 )
-from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate, mirrored, mix_description
+from tal_perception.vfa_dataset import (
+    VfaDataset,
+    cache_path,
+    load_or_generate,
+    mirrored,
+    mix_description,
+    set_prefix,
+)
 from tal_perception.vfa_decode import VfaDecode, decode
 
 LOG = logging.getLogger("tal_perception.train_vfa")
@@ -121,6 +128,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="more training sets of these seeds (same --samples-per-leg), each split 9:1 with its own seed",
     )  # fmt: skip
     parser.add_argument(
+        "--wide-seeds", type=int, nargs="+", default=[],
+        help="more training sets of these seeds sampled with the wide hip range (vfa_dataset.HIP_RANGES, cached as "
+        "train_wide_seed<s>_n<count>.npz), each split 9:1 with its own seed",
+    )  # fmt: skip
+    parser.add_argument("--wide-samples-per-leg", type=int, default=32000, help="labelled tuples per leg of a wide set")
+    parser.add_argument(
         "--select-on", choices=SELECTIONS, default="argmax",
         help="which epoch is kept: argmax = best validation perfect match of the optimum head's argmax; combined "
         "= best perfect match + safe rate of the combined decode (optimum logit + λ log p_safe, needs the safe head)",
@@ -137,7 +150,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("need --patience >= 0, 0 <= --warmup < --epochs and --max-training-s >= 0")
     if args.seed in args.extra_seeds or len(set(args.extra_seeds)) != len(args.extra_seeds):
         parser.error("--extra-seeds must differ from --seed and from each other")
-    if {2, 3} & set(args.extra_seeds) or args.seed in (2, 3):
+    if len(set(args.wide_seeds)) != len(args.wide_seeds) or args.wide_samples_per_leg < 10:
+        parser.error("--wide-seeds must differ from each other and --wide-samples-per-leg be >= 10")
+    if {2, 3} & set(args.extra_seeds + args.wide_seeds) or args.seed in (2, 3):
         parser.error("seeds 2 (the protocol's test set) and 3 (the decode tuning set) must not be trained on")
     return args
 
@@ -176,13 +191,17 @@ def training_sets(
     args: argparse.Namespace, evaluator: FootholdEvaluator
 ) -> tuple[VfaDataset, VfaDataset, dict[str, object]]:
     """Training and validation sets (mirrored unless ``--no-mirror``) and the statistics of all tuples: the
-    ``--seed`` set and each ``--extra-seeds`` set (labelled or read from ``--data``) split 9:1 with its own
-    seed, the parts concatenated in that order."""
+    ``--seed`` set, each ``--extra-seeds`` set and each ``--wide-seeds`` set (hip range "wide"; labelled or
+    read from ``--data``) split 9:1 with its own seed, the parts concatenated in that order."""
     parts, sets = [], []
-    for seed in [args.seed, *args.extra_seeds]:
+    sources = [(seed, "standard", args.samples_per_leg) for seed in [args.seed, *args.extra_seeds]]
+    sources += [(seed, "wide", args.wide_samples_per_leg) for seed in args.wide_seeds]
+    for seed, hip_range, count in sources:
         description = "labelling (exact FEC)" if seed == args.seed else f"labelling seed {seed} (exact FEC)"
-        data = load_or_generate(evaluator, cache_path(args.data, "train", seed, args.samples_per_leg), seed,
-                                args.samples_per_leg, description)  # fmt: skip
+        if hip_range != "standard":
+            description = f"labelling {hip_range} seed {seed} (exact FEC)"
+        data = load_or_generate(evaluator, cache_path(args.data, set_prefix("train", hip_range), seed, count), seed,
+                                count, description, hip_range=hip_range)  # fmt: skip
         parts.append(split(data, args.val_fraction, seed, not args.no_mirror))
         sets.append(data)
     statistics = (sets[0] if len(sets) == 1 else VfaDataset.concatenate(sets)).statistics()
@@ -384,6 +403,9 @@ def train(args: argparse.Namespace) -> dict[str, object]:
         "init_weights": None if args.init_weights is None else str(args.init_weights),
         "samples_per_leg": args.samples_per_leg,
         "sampling": mix_description(),
+        "wide_seeds": args.wide_seeds,
+        "wide_samples_per_leg": args.wide_samples_per_leg if args.wide_seeds else None,
+        "wide_sampling": mix_description("wide") if args.wide_seeds else None,
         "dataset": statistics,
         "train_samples": len(train_batches),
         "validation_samples": len(val_batches),
@@ -428,6 +450,7 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     metadata = {
         "seed": args.seed,
         "extra_seeds": args.extra_seeds,
+        "wide_seeds": args.wide_seeds,
         "best_epoch": best["epoch"],
         "validation": validation,
     }

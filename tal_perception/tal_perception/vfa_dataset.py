@@ -48,6 +48,11 @@ LOG = logging.getLogger(__name__)
 # label would be trivially "the centre"); obstacles that cross the patch dominate.
 TERRAIN_MIX: dict[str, float] = {"flat": 0.05, "bars": 0.25, "gaps": 0.25, "stairs": 0.2, "rocks": 0.25}
 HIP_ABOVE_TERRAIN_M = (0.52, 0.66)  # [m] HAA joint above the median patch height (HyQ stands at 0.587)
+# The hip ranges a set can be sampled with ("standard": the accuracy protocol's and the first sets'). In the
+# closed loop on the stairs (0.4 m/s, VPA) the hips were 0.49-0.53 m above a front foot's patch on the way up
+# and above 0.7 m on the way down; under 0.52 m the committed weights chose footholds 0.2-0.5 m from the
+# exact ones (outside their training inputs), so sets sampled over "wide" teach the network those heights.
+HIP_RANGES: dict[str, tuple[float, float]] = {"standard": HIP_ABOVE_TERRAIN_M, "wide": (0.40, 0.80)}
 TWIST_RANGES = {"vx_mps": (-0.1, 0.5), "vy_mps": (-0.15, 0.15), "yaw_rate_radps": (-0.4, 0.4)}
 GAIT_RANGES = {"step_frequency_hz": (1.2, 1.8), "duty_factor": (0.55, 0.7), "step_height_m": (0.08, 0.14)}
 UNKNOWN_PROBABILITY = 0.15  # fraction of patches with a rectangle of unknown (NaN) cells
@@ -180,9 +185,10 @@ def closest_safe_index(safe: NDArray[np.bool_], order: NDArray[np.intp] | None =
 
 
 def random_tuple(
-    rng: np.random.Generator, cells: int, resolution_m: float
+    rng: np.random.Generator, cells: int, resolution_m: float, hip_range: str = "standard"
 ) -> tuple[str, NDArray[np.float32], float, NDArray[np.float64], GaitTiming]:
-    """One random VFA tuple (kind, heights float32 [m], hip height [m], twist (6,), gait); see the module doc."""
+    """One random VFA tuple (kind, heights float32 [m], hip height [m], twist (6,), gait); see the module doc.
+    ``hip_range``: a key of ``HIP_RANGES`` (the hip's height above the median patch height)."""
     kinds = tuple(TERRAIN_MIX)
     probabilities = np.array([TERRAIN_MIX[k] for k in kinds])
     kind = kinds[int(rng.choice(len(kinds), p=probabilities / probabilities.sum()))]
@@ -191,7 +197,7 @@ def random_tuple(
         edge_r, edge_c = rng.integers(UNKNOWN_EDGE_CELLS[0], UNKNOWN_EDGE_CELLS[1] + 1, size=2)
         r0, c0 = rng.integers(0, cells - edge_r + 1), rng.integers(0, cells - edge_c + 1)
         heights[r0 : r0 + edge_r, c0 : c0 + edge_c] = np.nan
-    hip = float(np.nanmedian(heights)) + float(rng.uniform(*HIP_ABOVE_TERRAIN_M))
+    hip = float(np.nanmedian(heights)) + float(rng.uniform(*HIP_RANGES[hip_range]))
     twist = np.zeros(6)
     twist[0], twist[1], twist[5] = (rng.uniform(*TWIST_RANGES[k]) for k in TWIST_RANGES)
     f, duty, step_height = (float(rng.uniform(*GAIT_RANGES[k])) for k in GAIT_RANGES)
@@ -208,6 +214,7 @@ def generate(
     progress: bool = True,
     description: str = "labelling",
     start: int = 0,
+    hip_range: str = "standard",
 ) -> VfaDataset:
     """``count`` samples per leg in ``legs``, each its own random tuple labelled by the full exact FEC
     (samples ``start`` .. ``count - 1`` of each leg: a set of ``count`` is the set of ``start``
@@ -215,7 +222,9 @@ def generate(
 
     Sample k of leg j uses ``default_rng([seed, j, k])`` (j = the leg's index in LEGS), so a sample does
     not depend on the count or on which other legs are generated. About 4-9 ms per sample on this machine.
+    ``hip_range``: a key of ``HIP_RANGES``.
     """
+    check_hip_range(hip_range)
     if isinstance(count, bool) or not isinstance(count, int) or count < 1:
         raise FecConfigError(f"count must be an integer >= 1, got {count!r}")
     if isinstance(start, bool) or not isinstance(start, int) or not 0 <= start < count:
@@ -235,7 +244,7 @@ def generate(
     label = np.empty(total, np.int16)
     for i, (leg, k) in enumerate(tqdm(jobs, desc=description, unit="sample", disable=not progress)):
         rng = np.random.default_rng([seed, LEGS.index(leg), k])
-        kind, h, z_hip, tw, timing = random_tuple(rng, n, s.resolution_m)
+        kind, h, z_hip, tw, timing = random_tuple(rng, n, s.resolution_m, hip_range)
         # Round the stored inputs to float32 first, so that the label is exactly that of the stored sample.
         heights[i], hip[i], twist[i] = h, z_hip, tw
         gait[i] = (timing.step_frequency_hz, timing.duty_factor, timing.swing_time_left_s, timing.step_height_m)
@@ -261,6 +270,19 @@ def mirrored(data: VfaDataset) -> VfaDataset:
     )  # fmt: skip
 
 
+def check_hip_range(hip_range: str) -> None:
+    """A precise error for a name that is not a key of ``HIP_RANGES``."""
+    if hip_range not in HIP_RANGES:
+        raise FecConfigError(f"hip_range must be one of {sorted(HIP_RANGES)}, got {hip_range!r}")
+
+
+def set_prefix(prefix: str, hip_range: str) -> str:
+    """The cache prefix of a set sampled with ``hip_range``: ``prefix`` for "standard" (the caches made before
+    the option), ``<prefix>_<hip_range>`` otherwise (e.g. ``train_wide``)."""
+    check_hip_range(hip_range)
+    return prefix if hip_range == "standard" else f"{prefix}_{hip_range}"
+
+
 def cache_path(folder: Path, prefix: str, seed: int, count: int) -> Path:
     """``<folder>/<prefix>_seed<seed>_n<count>.npz``, or an existing cache of that seed with more samples."""
     sizes = []
@@ -272,11 +294,13 @@ def cache_path(folder: Path, prefix: str, seed: int, count: int) -> Path:
 
 
 def load_or_generate(
-    evaluator: FootholdEvaluator, path: Path, seed: int, count: int, description: str = "labelling"
+    evaluator: FootholdEvaluator, path: Path, seed: int, count: int, description: str = "labelling",
+    hip_range: str = "standard",
 ) -> VfaDataset:
     """The cached set at ``path`` if it was made with ``seed`` and at least ``count`` samples per leg (its
     first ``count`` per leg are exactly the set of that size, see ``generate``), else a new one (saved); a
-    smaller cache of the same seed in the same folder is extended rather than relabelled."""
+    smaller cache of the same seed in the same folder is extended rather than relabelled. ``hip_range``
+    (``HIP_RANGES``) is how a new set is sampled; the cache's name tells it (``set_prefix``)."""
     if path.exists():
         data = VfaDataset.load(path)
         if data.seed == seed and len(data) >= count * len(LEGS):
@@ -289,9 +313,10 @@ def load_or_generate(
         part = VfaDataset.load(smaller)
         start = len(part) // len(LEGS)
         LOG.info("extending the cached dataset %s (%d per leg) to %d per leg", smaller, start, count)
-        data = VfaDataset.concatenate([part, generate(evaluator, seed, count, description=description, start=start)])
+        data = VfaDataset.concatenate([part, generate(evaluator, seed, count, description=description, start=start,
+                                                      hip_range=hip_range)])
     else:
-        data = generate(evaluator, seed, count, description=description)
+        data = generate(evaluator, seed, count, description=description, hip_range=hip_range)
     data.save(path)
     LOG.info("saved %s (%d samples, %.1f MB)", path, len(data), path.stat().st_size / 1e6)
     return data
@@ -310,19 +335,20 @@ def _smaller_cache(path: Path, seed: int, count: int) -> Path | None:
     return max(sizes)[1] if sizes else None
 
 
-def mix_description() -> str:
+def mix_description(hip_range: str = "standard") -> str:
     """One line describing the sampling ranges (for model cards and reports)."""
+    hip = HIP_RANGES[hip_range]
     mix = ", ".join(f"{k} {v:.0%}" for k, v in TERRAIN_MIX.items())
     twist = ", ".join(f"{k} {lo:+g}..{hi:+g}" for k, (lo, hi) in TWIST_RANGES.items())
     gait = ", ".join(f"{k} {lo:g}..{hi:g}" for k, (lo, hi) in GAIT_RANGES.items())
     return (
         f"terrain {mix}; unknown-cell rectangle ({UNKNOWN_EDGE_CELLS[0]}-{UNKNOWN_EDGE_CELLS[1]} cells) in "
-        f"{UNKNOWN_PROBABILITY:.0%} of patches; hip {HIP_ABOVE_TERRAIN_M[0]:g}..{HIP_ABOVE_TERRAIN_M[1]:g} m above "
+        f"{UNKNOWN_PROBABILITY:.0%} of patches; hip {hip[0]:g}..{hip[1]:g} m above "
         f"the median patch height; {twist}; {gait}; time left uniform in [0, swing duration]"
     )
 
 
 __all__ = [
-    "TERRAIN_MIX", "VfaDataset", "cache_path", "closest_safe_index", "generate", "load_or_generate", "mirrored",
-    "mix_description", "random_tuple", "search_order",
+    "HIP_RANGES", "TERRAIN_MIX", "VfaDataset", "cache_path", "check_hip_range", "closest_safe_index", "generate",
+    "load_or_generate", "mirrored", "mix_description", "random_tuple", "search_order", "set_prefix",
 ]  # fmt: skip

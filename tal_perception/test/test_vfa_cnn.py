@@ -33,12 +33,14 @@ from tal_perception.vfa_cnn import (
 )
 from tal_perception.vfa_cnn_fast import compile_fast_unet
 from tal_perception.vfa_dataset import (
+    HIP_RANGES,
     VfaDataset,
     cache_path,
     closest_safe_index,
     generate,
     load_or_generate,
     mirrored,
+    set_prefix,
 )
 from tal_perception.vfa_decode import VfaDecode
 from tal_perception.vfa_decode import decode as decode_choices
@@ -95,6 +97,27 @@ def test_a_smaller_cache_is_extended_to_the_set_of_the_larger_count(evaluator: F
     for name in ("heights", "hip_height_m", "twist", "gait", "leg", "kind", "safe", "label"):
         np.testing.assert_array_equal(getattr(extended, name), getattr(full, name))
     assert len(load_or_generate(evaluator, cache_path(tmp_path, "train", 5, 2), 5, 2)) == 8  # the smallest that fits
+
+
+def test_wide_hip_range_samples_its_heights_under_its_own_cache_name(evaluator: FootholdEvaluator, tmp_path) -> None:
+    """A "wide" set draws the hip over HIP_RANGES["wide"] above the patch's median (the same terrain, twist and
+    gait draws as the standard set of that seed: only the hip differs), caches as train_wide_seed<s>, and a bad
+    range name is a precise error."""
+    standard = generate(evaluator, seed=5, count=6, progress=False)
+    wide = load_or_generate(evaluator, cache_path(tmp_path, set_prefix("train", "wide"), 5, 6), 5, 6,
+                            hip_range="wide")
+    assert (tmp_path / "train_wide_seed5_n6.npz").exists() and set_prefix("train", "standard") == "train"
+    np.testing.assert_array_equal(np.nan_to_num(wide.heights), np.nan_to_num(standard.heights))
+    np.testing.assert_array_equal(wide.twist, standard.twist)
+    above = {name: d.hip_height_m - np.nanmedian(d.heights.reshape(len(d), -1), axis=1)
+             for name, d in (("standard", standard), ("wide", wide))}
+    for name, values in above.items():
+        low, high = HIP_RANGES[name]
+        assert (values >= low - 1e-4).all() and (values <= high + 1e-4).all()
+    assert not np.allclose(above["wide"], above["standard"])
+    for call in (lambda: set_prefix("test", "tall"), lambda: generate(evaluator, 5, 1, hip_range="tall")):
+        with pytest.raises(FecConfigError, match=r"hip_range must be one of \['standard', 'wide'\], got 'tall'"):
+            call()
 
 
 def test_labels_are_the_exact_vfa_and_survive_saving(evaluator: FootholdEvaluator, tmp_path) -> None:
@@ -412,7 +435,14 @@ def test_fine_tuning_starts_from_the_weights_and_keeps_each_seeds_validation_spl
     if report["best_epoch"]["epoch"] == 0:  # no epoch beat the start: the start is what is saved
         for key, value in torch.load(init, weights_only=True)["state_dict"].items():
             torch.testing.assert_close(saved["state_dict"][key], value)
-    for bad in (["--extra-seeds", "2"], ["--extra-seeds", "1"], ["--seed", "3"]):
+    # --wide-seeds: one more set sampled with the wide hip range, after the standard ones
+    wide = train_vfa.training_sets(train_vfa.parse_args(["--out", "x", "--wide-seeds", "6", "--wide-samples-per-leg",
+                                                         "10", *common]), evaluator)[1]  # fmt: skip
+    assert (tmp_path / "data" / "train_wide_seed6_n10.npz").exists()
+    np.testing.assert_array_equal(wide.heights[: len(alone)], alone.heights)
+    assert len(wide) > len(alone)
+    for bad in (["--extra-seeds", "2"], ["--extra-seeds", "1"], ["--seed", "3"], ["--wide-seeds", "2"],
+                ["--wide-seeds", "6", "6"]):
         with pytest.raises(SystemExit):
             train_vfa.parse_args(["--out", "x", *bad])
 
