@@ -46,6 +46,8 @@ from tal_perception.vfa_dataset import (
 
 LOG = logging.getLogger("tal_perception.eval_vfa")
 THESIS = {"perfect_match": 0.740, "safe": 0.937, "mean_distance_m": 0.02}
+# [m] bins of the hip's height above the median known patch height: below, within and above the standard range
+HIP_BINS_M = (0.40, *HIP_RANGES["standard"], 0.80)
 GOAL = {"perfect_match": 0.85, "safe": 0.98, "mean_distance_m": 0.01}
 
 
@@ -109,6 +111,22 @@ def score(data: VfaDataset, choices: np.ndarray, resolution_m: float) -> dict[st
     }
 
 
+def hip_above_median_m(data: VfaDataset) -> np.ndarray:
+    """[m] each sample's hip height above its patch's median known height (what the sampling draws)."""
+    return data.hip_height_m - np.nanmedian(data.heights.reshape(len(data), -1), axis=1)
+
+
+def per_hip_bin(data: VfaDataset, choices: np.ndarray, resolution_m: float) -> dict[str, object]:
+    """``score`` per bin of ``HIP_BINS_M`` (the bins that hold samples), keyed "low-high" [m]."""
+    above = hip_above_median_m(data)
+    bins = {}
+    for low, high in zip(HIP_BINS_M[:-1], HIP_BINS_M[1:]):
+        mask = (above >= low - 1e-4) & (above < high - 1e-4)
+        if mask.any():
+            bins[f"{low:.2f}-{high:.2f}"] = score(data.subset(mask), choices[mask], resolution_m)
+    return bins
+
+
 def markdown(summary: dict[str, object]) -> str:
     per_leg, overall = summary["per_leg"], summary["overall"]
 
@@ -154,6 +172,14 @@ def markdown(summary: dict[str, object]) -> str:
         + "; ".join(
             f"{kind} {pct(m['perfect_match'])} match / {pct(m['safe'])} safe (n = {m['scored']})"
             for kind, m in summary["per_kind"].items()
+        )
+        + ".",
+        "",
+        "By the hip's height above the median patch height [m] (the standard sampling draws 0.52-0.66): "
+        + "; ".join(
+            f"{name}: {pct(m['perfect_match'])} match / {pct(m['safe'])} safe / {m['mean_distance_m']:.4f} m "
+            f"(n = {m['scored']})"
+            for name, m in summary.get("per_hip_bin", {}).items() if m["scored"]
         )
         + ".",
         "",
@@ -256,6 +282,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             for i, kind in enumerate(TERRAIN_KINDS)
             if (data.kind == i).any()
         },
+        "per_hip_bin": per_hip_bin(data, choices, res),
         "dataset": data.statistics(),
     }
     args.out.mkdir(parents=True, exist_ok=True)

@@ -120,6 +120,20 @@ def test_wide_hip_range_samples_its_heights_under_its_own_cache_name(evaluator: 
             call()
 
 
+def test_accuracy_by_hip_bin_splits_the_scored_samples(evaluator: FootholdEvaluator) -> None:
+    """eval_vfa's per-bin scores cover every scored sample once, and a bin's perfect match is that of its own
+    samples (here: the exact labels as choices, so every bin matches perfectly)."""
+    from tal_perception.eval_vfa import hip_above_median_m, per_hip_bin, score
+
+    wide = generate(evaluator, seed=5, count=12, progress=False, hip_range="wide")
+    choices = np.where(wide.label >= 0, wide.label, 0).astype(np.intp)
+    bins = per_hip_bin(wide, choices, 0.02)
+    assert sum(m["scored"] for m in bins.values()) == score(wide, choices, 0.02)["scored"] == int((wide.label >= 0).sum())
+    assert all(m["perfect_match"] == 1.0 for m in bins.values() if m["scored"])
+    above = hip_above_median_m(wide)
+    assert set(bins) <= {"0.40-0.52", "0.52-0.66", "0.66-0.80"} and above.min() < 0.52 < 0.66 < above.max()
+
+
 def test_labels_are_the_exact_vfa_and_survive_saving(evaluator: FootholdEvaluator, tmp_path) -> None:
     data = generate(evaluator, seed=8, count=3, progress=False)
     selector = FootholdSelector(evaluator)
