@@ -101,7 +101,7 @@ def make_selector(name: str, model: RobotModel, *, max_map_age_s: float,
     """The foothold selector called ``name`` for ``model``: "exact" is the lazy exact FEC evaluation
     (``FootholdSelector``), "cnn" the thesis' CNN approximation with the committed weights, its choice
     verified by the exact criteria on that one candidate (exact search when it fails: the CNN alone picks
-    an unsafe foothold in 11.7 % of the accuracy protocol's tuples, ``results/vital/vfa_cnn_accuracy.md``),
+    an unsafe foothold in 12.2 % of the accuracy protocol's tuples, ``results/vital/vfa_cnn_accuracy.md``),
     "cnn_unverified" the CNN's choice as it is (the thesis' g_hat; for comparisons)."""
     if name == "exact":
         return FootholdSelector(FootholdEvaluator(model, fec_settings), max_map_age_s=max_map_age_s)
