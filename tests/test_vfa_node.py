@@ -120,7 +120,8 @@ def test_bad_messages_are_counted_and_the_node_keeps_running(context, spin_until
 
 
 def test_invalid_parameters_are_refused_at_start(context) -> None:
-    with pytest.raises(FecConfigError, match=r"selector must be one of \['exact', 'cnn'\], got 'learned'"):
+    with pytest.raises(FecConfigError, match=r"selector must be one of \['exact', 'cnn', 'cnn_unverified'\], "
+                                                r"got 'learned'"):
         VfaNode(context=context, parameter_overrides=[Parameter("selector", value="learned")])
     with pytest.raises(ValueError, match=r"parameter 'max_map_age_s'"):
         VfaNode(context=context, parameter_overrides=[Parameter("max_map_age_s", value=-1.0)])

@@ -265,7 +265,8 @@ def test_out_of_order_stamps_are_rejected_and_a_restarted_clock_restarts(planner
 
 
 def test_selector_and_settings_are_validated(hyq: RobotModel) -> None:
-    with pytest.raises(FecConfigError, match=r"selector must be one of \['exact', 'cnn'\], got 'learned'"):
+    with pytest.raises(FecConfigError, match=r"selector must be one of \['exact', 'cnn', 'cnn_unverified'\], "
+                                                r"got 'learned'"):
         make_selector("learned", hyq, max_map_age_s=0.5)
     with pytest.raises(FecConfigError, match=r"PlannerSettings.max_map_age_s must be > 0, got 0.0"):
         PlannerSettings(max_map_age_s=0.0)
