@@ -337,6 +337,7 @@ def _smaller_cache(path: Path, seed: int, count: int) -> Path | None:
 
 def mix_description(hip_range: str = "standard") -> str:
     """One line describing the sampling ranges (for model cards and reports)."""
+    check_hip_range(hip_range)
     hip = HIP_RANGES[hip_range]
     mix = ", ".join(f"{k} {v:.0%}" for k, v in TERRAIN_MIX.items())
     twist = ", ".join(f"{k} {lo:+g}..{hi:+g}" for k, (lo, hi) in TWIST_RANGES.items())

@@ -458,24 +458,17 @@ def per_config_summary(group: list[VitalRun], results: dict[str, VitalRunResult]
     return lines
 
 
-def swing_model_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
-    """Markdown lines: the speed summary of the thesis' pose evaluation and of the terrain swing model."""
-    thesis = [r for r in group if SWING_MODEL_TAG not in r.name]
-    terrain = [r for r in group if SWING_MODEL_TAG in r.name]
-    return (["Thesis' model (`swing_hip_model` level, `leg_weighting` none; the starts runs):", "",
-             *speed_summary(thesis, results),
-             "Terrain swing model and peak weighting (`swing_hip_model` terrain, `leg_weighting` peak):", "",
-             *speed_summary(terrain, results)])
+def tagged_summary(tag: str, untagged: str, tagged: str) -> Callable[[list[VitalRun], dict[str, VitalRunResult]],
+                                                                     list[str]]:
+    """A summary of a two-configuration experiment: the speed summary of the runs whose name lacks ``tag``
+    under the heading ``untagged``, then of those with it under ``tagged``."""
 
+    def summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
+        plain = [r for r in group if tag not in r.name]
+        marked = [r for r in group if tag in r.name]
+        return [f"{untagged}:", "", *speed_summary(plain, results), f"{tagged}:", "", *speed_summary(marked, results)]
 
-def learned_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
-    """Markdown lines: the speed summary of the verified VFA CNN and of the VFA CNN alone (both with the VPA's
-    CNN), with the selections the verification replaced."""
-    verified = [r for r in group if UNVERIFIED_TAG not in r.name]
-    alone = [r for r in group if UNVERIFIED_TAG in r.name]
-    return (["VFA CNN verified (`vfa` node `selector` cnn) + VPA CNN:", "", *speed_summary(verified, results),
-             "VFA CNN alone (`selector` cnn_unverified, the thesis' g_hat) + VPA CNN:", "",
-             *speed_summary(alone, results)])
+    return summary
 
 
 def speed_summary(group: list[VitalRun], results: dict[str, VitalRunResult]) -> list[str]:
@@ -517,8 +510,11 @@ SUMMARIES: dict[str, Callable[[list[VitalRun], dict[str, VitalRunResult]], list[
     "starts": speed_summary,
     "pose_filter": per_config_summary,
     "step_frequency": per_config_summary,
-    "swing_model": swing_model_summary,
-    "learned": learned_summary,
+    "swing_model": tagged_summary(SWING_MODEL_TAG, "Thesis' model (`swing_hip_model` level, `leg_weighting` none; "
+                                  "the starts runs)", "Terrain swing model and peak weighting (`swing_hip_model` "
+                                  "terrain, `leg_weighting` peak)"),
+    "learned": tagged_summary(UNVERIFIED_TAG, "VFA CNN verified (`vfa` node `selector` cnn) + VPA CNN",
+                              "VFA CNN alone (`selector` cnn_unverified, the thesis' g_hat) + VPA CNN"),
 }
 NOTES: dict[str, list[str]] = {
     "centre": ["The runs under the CoM are the speeds runs above.", ""],
@@ -582,8 +578,6 @@ def plot(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, VitalRun
             s = results[run.name].series
             ax.plot(s["x"], np.nanmean(s["thickness"], axis=1), lw=0.9, label=run.name)
         _finish(plt, fig, ax, "|F(u*+m) - F(u*-m)| mean over legs", out / "vital_cost_envelope.png")
-
-
     if "swing_model" in runs:
         plot_swing_model(plt, out / "vital_swing_model.png", runs["swing_model"], results)
 
