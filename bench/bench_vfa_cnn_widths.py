@@ -2,7 +2,7 @@
 """Inference time of the VFA CNN (``VfaUNet``) against its widths, with random weights (capacity planning).
 
 Run after ``source scripts/env.sh``:  ``python bench/bench_vfa_cnn_widths.py [--samples N] [--rounds R]
-[--backends onnxruntime,torch] [--widths 8,16,32/32,16,8 ...]``. Prints a markdown table on stdout.
+[--backends onnxruntime,torch] [--widths 8,16,32/32,16,8 8,16,32/32,16,16+h2 ...]``. Prints a markdown table on stdout.
 
 For each width (encoder channels / decoder channels; the fully connected layer 256 wide) an untrained
 network is built once and given to a ``CnnFootholdSelector`` per backend (no verification); on ``--samples``
@@ -29,12 +29,14 @@ from tal_perception.vfa_cnn import CnnFootholdSelector, FootholdRequest, NetConf
 DEFAULT_WIDTHS = ["8,16,32/32,16,8", "8,16,32/32,16,16", "16,32,64/64,32,16", "24,48,96/96,48,24"]
 
 
-def parse_width(text: str) -> tuple[tuple[int, ...], tuple[int, ...], bool]:
-    """(encoder widths, decoder widths, roughness features) of "8,16,32/32,16,8[+r]" (+r: ``NetConfig``'s
-    ``roughness_features``)."""
-    roughness = text.endswith("+r")
-    encoder, decoder = text.removesuffix("+r").split("/")
-    return tuple(int(c) for c in encoder.split(",")), tuple(int(c) for c in decoder.split(",")), roughness
+def parse_width(text: str) -> tuple[tuple[int, ...], tuple[int, ...], bool, int]:
+    """(encoder widths, decoder widths, roughness features, head blocks) of "8,16,32/32,16,8[+r][+hN]" (+r:
+    ``NetConfig``'s ``roughness_features``; +hN: N ``head_blocks``)."""
+    widths, *options = text.split("+")
+    encoder, decoder = widths.split("/")
+    roughness = "r" in options
+    blocks = next((int(o[1:]) for o in options if o.startswith("h")), 0)
+    return tuple(int(c) for c in encoder.split(",")), tuple(int(c) for c in decoder.split(",")), roughness, blocks
 
 
 def main() -> int:
@@ -44,7 +46,8 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=20240601)
     parser.add_argument("--backends", default="onnxruntime,torch")
     parser.add_argument("--widths", nargs="+", default=DEFAULT_WIDTHS,
-                        help="encoder/decoder[+r], e.g. 8,16,32/32,16,8 (+r: with the roughness features)")  # fmt: skip
+                        help="encoder/decoder[+r][+hN], e.g. 8,16,32/32,16,8 (+r: with the roughness features, "
+                        "+h2: 2 residual 1 x 1 head blocks)")  # fmt: skip
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -53,8 +56,8 @@ def main() -> int:
     encoding = load_model().config.encoding
     selectors = {}
     for text in args.widths:
-        channels, decoder, roughness = parse_width(text)
-        net = build_net(NetConfig(channels, 256, True, encoding, "unet", decoder, roughness)).eval()
+        channels, decoder, roughness, blocks = parse_width(text)
+        net = build_net(NetConfig(channels, 256, True, encoding, "unet", decoder, roughness, blocks)).eval()
         parameters = sum(p.numel() for p in net.parameters())
         for backend in args.backends.split(","):
             selector = CnnFootholdSelector(evaluator, net, verify=False, backend=backend)

@@ -118,6 +118,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--roughness-features", action="store_true",
         help="unet: the last decoder layer also reads the FEC's roughness statistics (vfa_cnn.RoughnessFeatures)",
     )  # fmt: skip
+    parser.add_argument("--head-blocks", type=int, default=0,
+                        help="unet: residual 1 x 1 blocks per candidate after the last decoder layer")  # fmt: skip
     parser.add_argument("--no-mirror", action="store_true", help="do not add the y-mirrored samples")
     parser.add_argument(
         "--init-weights", type=Path, default=None,
@@ -320,7 +322,7 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     encoding = EncodingConfig(cells=s.patch_cells, resolution_m=s.resolution_m,
                               nominal_hip_height_m=round(float(model.nominal_base_height_m), 4))  # fmt: skip
     config = NetConfig(tuple(args.channels), args.hidden, args.safe_weight > 0.0, encoding, args.architecture,
-                       tuple(args.decoder_channels), args.roughness_features)  # fmt: skip
+                       tuple(args.decoder_channels), args.roughness_features, args.head_blocks)  # fmt: skip
     net, config = initial_net(args, config)
     net = net.to(memory_format=torch.channels_last)
     train_batches, val_batches = Batches(train_set, encoding), Batches(val_set, encoding)
@@ -414,6 +416,7 @@ def train(args: argparse.Namespace) -> dict[str, object]:
             "architecture": config.architecture,
             "decoder_channels": list(config.decoder_channels) if config.architecture == "unet" else None,
             "roughness_features": config.roughness_features,
+            "head_blocks": config.head_blocks,
             "channels": list(config.channels),
             "hidden": config.hidden,
             "safe_head": config.safe_head,

@@ -36,6 +36,7 @@ class UNetLike(Protocol):
     decoders: nn.ModuleList
     context: nn.Sequential
     scalar_bias: nn.Linear
+    head: nn.ModuleList
     output: nn.Conv2d
     act: nn.LeakyReLU
     sizes: list[int]
@@ -107,6 +108,8 @@ class FastVfaUNet(nn.Module):
         w = sd["decoders.2.weight"]  # inputs: upsampled features, skip, image (coordinate channels last)
         self.dec2_weight = _channels_last(w[:, : w.shape[1] - COORD_CHANNELS])
         self.dec2_const = _channels_last(fn.conv2d(coords, w[:, w.shape[1] - COORD_CHANNELS :], padding=1))
+        self.head_weights = [_channels_last(sd[f"head.{i}.weight"]) for i in range(len(net.head))]
+        self.head_biases = [sd[f"head.{i}.bias"] for i in range(len(net.head))]
         self.out_weight = sd["output.weight"].reshape(sd["output.weight"].shape[0], -1).contiguous()  # (2, d1)
         self.out_bias = sd["output.bias"][:, None].contiguous()  # (2, 1)
         self.keep = keep
@@ -143,6 +146,8 @@ class FastVfaUNet(nn.Module):
         x = self._up(x, self.sizes[0])
         x = fn.conv2d(torch.cat([x, skip0, pixels], 1), self.dec2_weight, None, padding=1)
         x = fn.leaky_relu(x + (self.dec2_const + bias2[:, :, None, None]), slope)  # (B, d1, n, n)
+        for weight, bias in zip(self.head_weights, self.head_biases):
+            x = x + fn.leaky_relu(fn.conv2d(x, weight, bias), slope)
         out = torch.mm(self.out_weight, x.permute(0, 2, 3, 1).reshape(-1, x.shape[1]).t()) + self.out_bias
         out = out.reshape(out.shape[0], b, -1)  # (2, B, n*n)
         return out[0], out[1]

@@ -16,6 +16,10 @@ noise of s x the layer's weight standard deviation to the incoming weights of ev
 ``--roughness-features`` (``add_roughness_features``): the same network with ``NetConfig.roughness_features``
 on, i.e. the last decoder layer also reads the fixed roughness statistics (``vfa_cnn.RoughnessFeatures``);
 their incoming weights start at 0, so the function is unchanged until fine-tuning moves them.
+
+``--head-blocks`` n (``deepen_head``): n more residual 1 x 1 blocks at full resolution
+(``NetConfig.head_blocks``, x + LeakyReLU(W x + b) per candidate) with W = 0 and b = 0, so each block adds 0
+and the function is unchanged; the gradient through LeakyReLU at 0 (its slope 0.01) moves them in training.
 Plain torch, no ROS.
 """
 
@@ -77,8 +81,10 @@ def widen_unet(
     d3, d2, d1 = cfg.decoder_channels
     f1, f2, f3 = _factors(cfg.channels, tuple(channels), "channels")
     g3, g2, g1 = _factors(cfg.decoder_channels, tuple(decoder_channels), "decoder_channels")
+    if cfg.head_blocks and g1 != 1:
+        raise ValueError("widen_unet: the last decoder layer of a network with head blocks cannot be widened")
     wide = build_net(NetConfig(tuple(channels), cfg.hidden, cfg.safe_head, cfg.encoding, "unet",
-                               tuple(decoder_channels), cfg.roughness_features))  # fmt: skip
+                               tuple(decoder_channels), cfg.roughness_features, cfg.head_blocks))  # fmt: skip
     assert isinstance(wide, VfaUNet)
     old = {k: v.detach().to(torch.float32) for k, v in net.state_dict().items()}
     new: dict[str, torch.Tensor] = {}
@@ -114,6 +120,8 @@ def widen_unet(
     rows = torch.cat([_tile(d3, g3), d3 + _tile(d2, g2), d3 + d2 + _tile(d1, g1)])
     new["scalar_bias.weight"] = old["scalar_bias.weight"][rows].contiguous()
     new["scalar_bias.bias"] = old["scalar_bias.bias"][rows].clone()
+    for i in range(cfg.head_blocks):  # the last decoder layer keeps its width: copied unchanged
+        new[f"head.{i}.weight"], new[f"head.{i}.bias"] = old[f"head.{i}.weight"], old[f"head.{i}.bias"]
     conv("output", old["output.weight"].shape[0], 1, [(d1, g1)])
     wide.load_state_dict(new)
     wide.eval()
@@ -138,6 +146,22 @@ def add_roughness_features(net: VfaUNet) -> VfaUNet:
     return new_net
 
 
+def deepen_head(net: VfaUNet, blocks: int) -> VfaUNet:
+    """``net`` with ``blocks`` more residual 1 x 1 head blocks, zero-initialised (the same function)."""
+    if not isinstance(net, VfaUNet) or blocks < 1:
+        raise ValueError(f"deepen_head needs a VfaUNet and blocks >= 1, got {type(net).__name__} and {blocks}")
+    old_blocks = net.config.head_blocks
+    deep = build_net(replace(net.config, head_blocks=old_blocks + blocks))
+    assert isinstance(deep, VfaUNet)
+    state = {k: v.detach().to(torch.float32).clone() for k, v in net.state_dict().items()}
+    for i in range(old_blocks, old_blocks + blocks):
+        state[f"head.{i}.weight"] = torch.zeros_like(deep.head[i].weight)
+        state[f"head.{i}.bias"] = torch.zeros_like(deep.head[i].bias)
+    deep.load_state_dict(state)
+    deep.eval()
+    return deep
+
+
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="[widen_vfa] %(message)s")
     parser = argparse.ArgumentParser(prog="python -m tal_perception.widen_vfa", description=__doc__.split("\n\n")[0])
@@ -150,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--roughness-features", action="store_true",
                         help="also turn on the roughness features (zero weights: the same function)")  # fmt: skip
+    parser.add_argument("--head-blocks", type=int, default=0,
+                        help="add this many residual 1 x 1 head blocks (zero weights: the same function)")  # fmt: skip
     args = parser.parse_args(argv)
     net = load_model(args.weights)
     if not isinstance(net, VfaUNet):
@@ -159,12 +185,15 @@ def main(argv: list[str] | None = None) -> int:
     wide = widen_unet(net, channels, decoder_channels, args.noise, args.seed)  # type: ignore[arg-type]
     if args.roughness_features:
         wide = add_roughness_features(wide)
+    if args.head_blocks:
+        wide = deepen_head(wide, args.head_blocks)
     save_model(wide, args.out, {"widened_from": str(args.weights), "noise": args.noise, "seed": args.seed,
                                 "roughness_features_added": bool(args.roughness_features),
-                                "decode": net.decode.to_dict()})  # fmt: skip
-    LOG.info("%s: channels %s, decoder %s -> %s, %s (%d parameters)", args.out, net.config.channels,
-             net.config.decoder_channels, wide.config.channels, wide.config.decoder_channels,
-             sum(p.numel() for p in wide.parameters()))  # fmt: skip
+                                "head_blocks_added": args.head_blocks, "decode": net.decode.to_dict()})  # fmt: skip
+    before, after = net.config, wide.config
+    LOG.info("%s: channels %s, decoder %s, head blocks %d -> %s, %s, %d (%d parameters)", args.out,
+             before.channels, before.decoder_channels, before.head_blocks, after.channels, after.decoder_channels,
+             after.head_blocks, sum(p.numel() for p in wide.parameters()))  # fmt: skip
     return 0
 
 

@@ -543,8 +543,12 @@ def _encoded(inputs: list[FecInput], cfg: EncodingConfig) -> tuple[torch.Tensor,
 def test_fast_path_scores_equal_the_plain_forward_on_random_networks(fresh_set: VfaDataset) -> None:
     """FastVfaUNet = VfaUNet.forward (float32 rounding only) for untrained networks of other widths, any batch."""
     torch.manual_seed(4)
-    for channels, decoder in (((8, 16, 32), (32, 16, 8)), ((4, 8, 12), (6, 5, 3))):
-        net = build_net(NetConfig(channels=channels, hidden=64, architecture="unet", decoder_channels=decoder)).eval()
+    for channels, decoder, blocks in (((8, 16, 32), (32, 16, 8), 0), ((4, 8, 12), (6, 5, 3), 0),
+                                      ((8, 16, 32), (32, 16, 16), 2)):  # fmt: skip
+        net = build_net(NetConfig(channels=channels, hidden=64, architecture="unet", decoder_channels=decoder,
+                                  head_blocks=blocks)).eval()  # fmt: skip
+        for block in net.head:  # non-trivial blocks (default init is small): each must change the result
+            torch.nn.init.normal_(block.weight, std=0.3)
         fast = compile_fast_unet(net, 33)
         for start, size in ((0, 1), (1, 4), (5, 9)):
             image, scalars = _encoded([fresh_set.fec_input(i) for i in range(start, start + size)], net.config.encoding)
@@ -606,6 +610,7 @@ def test_onnxruntime_logits_equal_the_torch_forward_on_random_inputs() -> None:
         NetConfig(architecture="unet", safe_head=False),
         NetConfig(architecture="thesis", hidden=64),
         NetConfig(architecture="unet", decoder_channels=(32, 16, 16), roughness_features=True),
+        NetConfig(architecture="unet", decoder_channels=(32, 16, 16), head_blocks=2),
     )
     for config in configs:
         net = build_net(config).eval()
@@ -891,3 +896,42 @@ def test_adding_the_roughness_features_keeps_the_function_until_trained(fresh_se
         assert not torch.allclose(rough(image, scalars)[0], expected, atol=1e-3 * scale)
     with pytest.raises(ValueError, match="without the roughness"):
         add_roughness_features(rough)
+
+
+def test_head_blocks_start_as_the_same_function_save_load_and_widen(fresh_set: VfaDataset, tmp_path) -> None:
+    """``deepen_head`` adds zero residual 1 x 1 blocks: the function is unchanged until their weights move
+    (and then it changes); the block count is saved, files without the key load with 0; widening keeps the
+    blocks unless it would widen the layer they read; the option needs the unet."""
+    from tal_perception.widen_vfa import deepen_head, widen_unet
+
+    net, reference = _small_unet_reference(fresh_set, seed=10)
+    image, scalars, expected, _ = reference
+    deep = deepen_head(net, 2)
+    assert deep.config.head_blocks == 2 and len(deep.head) == 2
+    _assert_same_function(deep, *reference)
+    wide = widen_unet(deep, (16, 32, 64), (64, 32, 8))
+    assert wide.config.head_blocks == 2
+    _assert_same_function(wide, *reference)
+    with pytest.raises(ValueError, match="head blocks"):
+        widen_unet(deep, (8, 16, 32), (32, 16, 16))
+    with torch.no_grad():
+        deep.head[1].weight.normal_(std=0.3)
+        deep.head[1].bias.fill_(0.1)
+        changed = deep(image, scalars)[0]
+    assert not torch.allclose(changed, expected, atol=1e-3 * float(expected.abs().max()))
+    save_model(deep, tmp_path / "deep.pt")
+    loaded = load_model(tmp_path / "deep.pt")
+    assert loaded.config == deep.config
+    with torch.inference_mode():
+        torch.testing.assert_close(loaded(image, scalars)[0], changed, rtol=0.0, atol=1e-2 * float(changed.abs().max()))
+    save_model(net, tmp_path / "old.pt")
+    document = torch.load(tmp_path / "old.pt", weights_only=True)
+    del document["net"]["head_blocks"]  # as written before the option existed
+    torch.save(document, tmp_path / "old.pt")
+    assert load_model(tmp_path / "old.pt").config.head_blocks == 0
+    with pytest.raises(FecConfigError, match="head_blocks"):
+        NetConfig(architecture="thesis", head_blocks=1)
+    with pytest.raises(FecConfigError, match="head_blocks"):
+        NetConfig(architecture="unet", head_blocks=-1)
+    with pytest.raises(ValueError, match="blocks >= 1"):
+        deepen_head(net, 0)
