@@ -183,8 +183,8 @@ def markdown(summary: dict[str, object]) -> str:
         )
         + ".",
         "",
-        f"With the verification on (the node's default), the exact lazy search replaces the CNN's choice on "
-        f"{pct(1 - overall['safe'])} of these samples and on every sample without a safe candidate.",
+        f"With the verification on (the `vfa` node's `cnn` selector), the exact lazy search replaces the CNN's "
+        f"choice on {pct(1 - overall['safe'])} of these samples and on every sample without a safe candidate.",
         "",
         "![distances and examples](vfa_cnn_accuracy.png)",
         "",

@@ -137,9 +137,10 @@ def test_settings_and_experiment_list_are_checked() -> None:
         assert (thesis.loop.vpa.swing_hip_model, thesis.loop.vpa.leg_weighting) == ("level", "none")
         assert terrain.loop.vpa == replace(thesis.loop.vpa, swing_hip_model="terrain", leg_weighting="peak")
         assert replace(terrain, name=thesis.name, loop=thesis.loop) == thesis
-    # learned: the speeds runs' configuration with both CNNs, the VFA's verified (0.2-0.4 m/s) and alone (0.2).
+    # learned: the speeds runs' configuration with both CNNs, the VFA's verified (0.2-0.5 m/s) and alone (0.2).
     learned = runs["learned"]
-    assert len(learned) == 12 and [r.speed_mps for r in learned] == [v for v in (0.2, 0.3, 0.4, 0.2) for _ in range(3)]
+    assert len(learned) == 15
+    assert [r.speed_mps for r in learned] == [v for v in (0.2, 0.3, 0.4, 0.5, 0.2) for _ in range(3)]
     for run in learned:
         alone = "cnns_unverified" in run.name
         assert run.loop.vfa_selector == ("cnn_unverified" if alone else "cnn") and run.loop.vpa_use_cnn
