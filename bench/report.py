@@ -432,7 +432,7 @@ def rows_vfa_cnn(doc: dict) -> list[Row]:
     rows.append(
         Row(
             g,
-            "CNN VFA + exact verification (as the node runs it), median of the worst leg",
+            "CNN VFA + exact verification (the `vfa` node's `cnn` selector), median of the worst leg",
             median,
             "ms",
             goal,
