@@ -44,8 +44,9 @@ would let the trunk fall 10-20 cm behind the VPA's height on the way up at 0.4 m
   (``leg_weighting`` "peak", the thesis' Q).
 * ``learned``: both CNNs in the loop, as the thesis' ViTAL ran: the VFA's CNN (committed weights) with the
   verification of the ``vfa`` node's ``cnn`` selector (the exact criteria on the chosen candidate, exact search when it
-  fails) and the VPA's CNN, on the stairs at 0.2, 0.3, 0.4 and 0.5 m/s (3 starts each); and at 0.2 m/s the
-  VFA's CNN alone (``cnn_unverified``, the thesis' g_hat: its unsafe choices reach the robot).
+  fails) and the VPA's CNN, on the stairs at 0.2, 0.3, 0.4 and 0.5 m/s from the 9 starts (as ``starts``);
+  and at 0.2 m/s the VFA's CNN alone (``cnn_unverified``, the thesis' g_hat: its unsafe choices reach the
+  robot), 9 starts.
 
 The comparisons at 0.4 and 0.5 m/s run from 9 starts (``STARTS_M`` + ``EXTRA_STARTS_M``): single runs there
 could succeed or fall by chance.
@@ -239,8 +240,8 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
         verified = replace(vital, vpa_use_cnn=True, vfa_selector="cnn")
         unverified = replace(vital, vpa_use_cnn=True, vfa_selector="cnn_unverified")
         runs["learned"] = ([_stairs(stairs_name(v, x0, LEARNED_TAG), v, verified, x0)
-                            for v in (0.2, 0.3, 0.4, 0.5) for x0 in STARTS_M]
-                           + [_stairs(stairs_name(0.2, x0, UNVERIFIED_TAG), 0.2, unverified, x0) for x0 in STARTS_M])
+                            for v in (0.2, 0.3, 0.4, 0.5) for x0 in starts_04]
+                           + [_stairs(stairs_name(0.2, x0, UNVERIFIED_TAG), 0.2, unverified, x0) for x0 in starts_04])
     return runs
 
 

@@ -139,12 +139,13 @@ def test_settings_and_experiment_list_are_checked() -> None:
         assert replace(terrain, name=thesis.name, loop=thesis.loop) == thesis
     # learned: the speeds runs' configuration with both CNNs, the VFA's verified (0.2-0.5 m/s) and alone (0.2).
     learned = runs["learned"]
-    assert len(learned) == 15
-    assert [r.speed_mps for r in learned] == [v for v in (0.2, 0.3, 0.4, 0.5, 0.2) for _ in range(3)]
+    assert len(learned) == 45
+    assert [r.speed_mps for r in learned] == [v for v in (0.2, 0.3, 0.4, 0.5, 0.2) for _ in range(9)]
+    assert [r.initial_x_m for r in learned[:9]] == [r.initial_x_m for r in starts[:9]]
     for run in learned:
         alone = "cnns_unverified" in run.name
         assert run.loop.vfa_selector == ("cnn_unverified" if alone else "cnn") and run.loop.vpa_use_cnn
-        same = next(r for r in runs["speeds"] if r.speed_mps == run.speed_mps and r.initial_x_m == run.initial_x_m)
+        same = next(r for r in starts if r.speed_mps == run.speed_mps and r.initial_x_m == run.initial_x_m)
         assert replace(run, name=same.name, loop=same.loop) == same
         assert replace(run.loop, vfa_selector="exact", vpa_use_cnn=False) == same.loop
     # The forward command stops 0.6 m past the goal: no run walks off its course (stairs: x <= 8 m).
