@@ -33,6 +33,9 @@ def parse_width(text: str) -> tuple[tuple[int, ...], tuple[int, ...], bool, int]
     """(encoder widths, decoder widths, roughness features, head blocks) of "8,16,32/32,16,8[+r][+hN]" (+r:
     ``NetConfig``'s ``roughness_features``; +hN: N ``head_blocks``)."""
     widths, *options = text.split("+")
+    unknown = [o for o in options if o != "r" and not (o.startswith("h") and o[1:].isdigit())]
+    if unknown:
+        raise SystemExit(f"--widths {text!r}: unknown option(s) {unknown} (known: +r, +hN)")
     encoder, decoder = widths.split("/")
     roughness = "r" in options
     blocks = next((int(o[1:]) for o in options if o.startswith("h")), 0)

@@ -199,9 +199,8 @@ def training_sets(
     sources = [(seed, "standard", args.samples_per_leg) for seed in [args.seed, *args.extra_seeds]]
     sources += [(seed, "wide", args.wide_samples_per_leg) for seed in args.wide_seeds]
     for seed, hip_range, count in sources:
-        description = "labelling (exact FEC)" if seed == args.seed else f"labelling seed {seed} (exact FEC)"
-        if hip_range != "standard":
-            description = f"labelling {hip_range} seed {seed} (exact FEC)"
+        which = "" if seed == args.seed and hip_range == "standard" else f" {hip_range} seed {seed}"
+        description = f"labelling{which} (exact FEC)"
         data = load_or_generate(evaluator, cache_path(args.data, set_prefix("train", hip_range), seed, count), seed,
                                 count, description, hip_range=hip_range)  # fmt: skip
         parts.append(split(data, args.val_fraction, seed, not args.no_mirror))

@@ -362,8 +362,8 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
               "pose_filter": "The body-pose filter of these runs vs the controller's default (stairs, 0.4 m/s)",
               "step_frequency": "Trot at 1.8 Hz vs the preset's 1.5 Hz (stairs, 0.5 m/s)",
               "starts": "Stairs at four speeds from 9 starts each, VFA + VPA (the speeds runs' configuration)",
-              "learned": "Both CNNs in the loop: the VFA's CNN (verified, as the vfa node runs it; and alone) "
-                         "and the VPA's CNN",
+              "learned": ("Both CNNs in the loop: the VFA's CNN (verified, as the vfa node's cnn selector runs it; "
+                          "and alone) and the VPA's CNN"),
               "swing_model": "The VPA's hip following the terrain during the swing and legs weighted by their peaks "
                              "vs the thesis' level hip and equal weights (stairs, four speeds, 9 starts)"}
     for key, group in runs.items():

@@ -36,7 +36,6 @@ import torch
 from tal_perception.vfa_cnn import (
     IMAGE_CHANNELS,
     ROUGHNESS_CHANNELS,
-    NetConfig,
     VfaUNet,
     build_net,
     load_model,
@@ -83,8 +82,8 @@ def widen_unet(
     g3, g2, g1 = _factors(cfg.decoder_channels, tuple(decoder_channels), "decoder_channels")
     if cfg.head_blocks and g1 != 1:
         raise ValueError("widen_unet: the last decoder layer of a network with head blocks cannot be widened")
-    wide = build_net(NetConfig(tuple(channels), cfg.hidden, cfg.safe_head, cfg.encoding, "unet",
-                               tuple(decoder_channels), cfg.roughness_features, cfg.head_blocks))  # fmt: skip
+    # every other setting (hidden width, heads, feature options, head blocks) carries over
+    wide = build_net(replace(cfg, channels=tuple(channels), decoder_channels=tuple(decoder_channels)))
     assert isinstance(wide, VfaUNet)
     old = {k: v.detach().to(torch.float32) for k, v in net.state_dict().items()}
     new: dict[str, torch.Tensor] = {}
