@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tal_control.experiments.fall_analysis import first_wrench_miss
+from tal_control.experiments.fall_analysis import first_wrench_miss, wrench_miss_episodes
 from tal_control.wbc.swbc import joint_acceleration_bounds
 from tal_control.wbc.tasks import centroidal_wrench_map
 from tal_core.errors import InputError
@@ -106,3 +106,31 @@ def test_last_episode_is_the_onset_of_the_misses_that_last_to_the_end() -> None:
     assert onset is not None and onset.t_s == pytest.approx(2.2)
     arrays["wrench_wbc"][12:, 1] = 0.0  # nothing at the end: the run did not end in a miss
     assert analyse(arrays, after_s=1.0, last_episode=True) is None
+
+
+def test_miss_episodes_group_close_misses_and_say_which_ones_the_run_recovered_from() -> None:
+    t = 1.0 + 0.1 * np.arange(40)  # 1.0-4.9 s
+    des = np.tile([0.0, 0.0, 880.0, 0.0, 0.0, 0.0], (40, 1))
+    wbc = des.copy()
+    wbc[1, 2] = 2000.0  # before after_s: ignored
+    wbc[[6, 8], 1] = [400.0, 350.0]  # 1.6 and 1.8 s: 0.2 s apart, one episode
+    wbc[20, 0] = 500.0  # 3.0 s: a second one, recovered
+    wbc[36:, 1] = -310.0  # 4.6 s to the end: the fall
+    wbc[30, 3:] = 5000.0  # a moment error alone is no miss
+    episodes = wrench_miss_episodes(t, des, wbc, after_s=1.5)
+    assert [(e.start_s, e.end_s) for e in episodes] == [pytest.approx((1.6, 1.8)), pytest.approx((3.0, 3.0)),
+                                                        pytest.approx((4.6, 4.9))]
+    assert [e.peak_force_error_n for e in episodes] == pytest.approx([400.0, 500.0, 310.0])
+    assert [e.recovered for e in episodes] == [True, True, False]
+    assert wrench_miss_episodes(t, des, des, after_s=1.5) == []
+    # a threshold above every error: no episode; one below the smallest: the same three
+    assert wrench_miss_episodes(t, des, wbc, after_s=1.5, threshold_n=600.0) == []
+    assert len(wrench_miss_episodes(t, des, wbc, after_s=1.5, threshold_n=300.0)) == 3
+
+
+def test_miss_episodes_reject_bad_arrays() -> None:
+    t = np.arange(5.0)
+    with pytest.raises(InputError, match=r"wrench_wbc must have shape \(5, 6\)"):
+        wrench_miss_episodes(t, np.zeros((5, 6)), np.zeros((4, 6)))
+    with pytest.raises(InputError, match="strictly increasing"):
+        wrench_miss_episodes(t[::-1], np.zeros((5, 6)), np.zeros((5, 6)))

@@ -120,6 +120,50 @@ def first_wrench_miss(
     )
 
 
+@dataclass(frozen=True)
+class MissEpisode:
+    """One episode of wrench misses (misses less than ``EPISODE_GAP_S`` apart): first and last missing tick [s],
+    the largest force error [N] in it, and whether the run went on past it (False: it lasted to the end of
+    the log, i.e. a run that stopped at its fall)."""
+
+    start_s: float
+    end_s: float
+    peak_force_error_n: float
+    recovered: bool
+
+
+def wrench_miss_episodes(
+    t: FloatArray, wrench_des: FloatArray, wrench_wbc: FloatArray, after_s: float = 1.5,
+    threshold_n: float = WRENCH_MISS_N,
+) -> list[MissEpisode]:  # fmt: skip
+    """Every episode in which the force part of the QP's wrench error exceeded ``threshold_n`` [N], at or
+    after ``after_s`` [s]. A successful run's episodes are near falls the trot recovered from: a count that
+    moves with a change long before the success count does (9 starts give it a +-2 resolution).
+    Arrays per tick: t (N,) increasing [s]; wrenches (N, 6) [N, N m]."""
+    t = np.asarray(t, dtype=float)
+    n = len(t)
+    for name, value in (("wrench_des", wrench_des), ("wrench_wbc", wrench_wbc)):
+        if np.shape(value) != (n, 6):
+            raise InputError(f"wrench_miss_episodes: {name} must have shape {(n, 6)}, got {np.shape(value)}")
+    if n > 1 and not np.all(np.diff(t) > 0.0):
+        raise InputError("wrench_miss_episodes: t must be strictly increasing")
+    error = np.asarray(wrench_wbc, dtype=float) - np.asarray(wrench_des, dtype=float)
+    force_error = np.linalg.norm(error[:, :3], axis=1)
+    misses = np.flatnonzero((force_error > threshold_n) & (t >= after_s) & np.isfinite(force_error))
+    if misses.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(t[misses]) > EPISODE_GAP_S)
+    firsts = np.concatenate(([0], breaks + 1))
+    lasts = np.concatenate((breaks, [misses.size - 1]))
+    episodes = []
+    for a, b in zip(firsts.tolist(), lasts.tolist()):
+        ticks = misses[a : b + 1]
+        end = float(t[ticks[-1]])
+        episodes.append(MissEpisode(float(t[ticks[0]]), end, float(force_error[ticks].max()),
+                                    recovered=float(t[-1]) - end > EPISODE_GAP_S))  # fmt: skip
+    return episodes
+
+
 def first_wrench_miss_of_log(
     log, description, horizon_s: float, after_s: float = 1.5, last_episode: bool = False
 ) -> WrenchMiss | None:
