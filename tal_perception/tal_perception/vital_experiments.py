@@ -47,6 +47,11 @@ would let the trunk fall 10-20 cm behind the VPA's height on the way up at 0.4 m
   fails) and the VPA's CNN, on the stairs at 0.2, 0.3, 0.4 and 0.5 m/s from the 9 starts (as ``starts``);
   and at 0.2 m/s the VFA's CNN alone (``cnn_unverified``, the thesis' g_hat: its unsafe choices reach the
   robot), 9 starts.
+* ``moment_weight`` (ours, stop 28): the starts runs against the same 36 with the QP's weights on the trunk's
+  moment error 10 times those on its force error (``WbcSettings.wrench_weights`` (1, 1, 1, 10, 10, 10); the
+  thesis' Q weighs both 1 per N and per N m). In a trot's two-leg stance the QP buys the moment about the
+  support line with force; a lower weight on it made the falls more frequent (probe), so this tries a higher
+  one.
 
 The comparisons at 0.4 and 0.5 m/s run from 9 starts (``STARTS_M`` + ``EXTRA_STARTS_M``): single runs there
 could succeed or fall by chance.
@@ -90,7 +95,9 @@ POSE_BANDWIDTH_RAD_S = 6.0  # [rad/s]
 MAX_HEIGHT_RATE_M_S = 0.25  # [m/s]
 MAX_ATTITUDE_RATE_RAD_S = 0.5  # [rad/s]
 EXPERIMENTS = ("speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter", "step_frequency",
-               "starts", "swing_model", "learned")
+               "starts", "swing_model", "learned", "moment_weight")
+MOMENT_WEIGHT_TAG = "moment10"  # run-name tag of the moment_weight experiment (moment weights 10)
+MOMENT_WEIGHT = 10.0  # [-] the moment_weight experiment's weight of the moment error relative to the force error
 SWING_MODEL_TAG = "terrain_swing"  # run-name tag of the swing_model experiment's VPA (terrain swing, peak weighting)
 LEARNED_TAG = "cnns"  # run-name tag of the learned experiment (VFA CNN verified + VPA CNN)
 UNVERIFIED_TAG = "cnns_unverified"  # the same with the VFA CNN's choices unverified
@@ -122,6 +129,14 @@ class VitalRun:
     max_height_rate_m_s: float | None = MAX_HEIGHT_RATE_M_S
     max_attitude_rate_rad_s: float | None = MAX_ATTITUDE_RATE_RAD_S
     step_frequency_hz: float | None = None  # [Hz] None: the trot preset's (1.5 Hz)
+    # [-] the QP's weights on the trunk's moment error (Tx, Ty, Tz) relative to those on its force error (the
+    # thesis' Q: 1, i.e. 1 per N m as per N); WbcSettings.wrench_weights (1, 1, 1, w, w, w)
+    moment_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.moment_weight) and self.moment_weight > 0.0):
+            raise ValueError(f"VitalRun {self.name!r}: moment_weight must be finite and > 0, "
+                             f"got {self.moment_weight!r}")
 
     @property
     def stop_s(self) -> float:
@@ -239,6 +254,11 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
         runs["swing_model"] = ([_stairs(stairs_name(v, x0), v, vital, x0) for v in speeds for x0 in starts_04]
                                + [_stairs(stairs_name(v, x0, SWING_MODEL_TAG), v, terrain, x0)
                                   for v in speeds for x0 in starts_04])
+    if "moment_weight" in only:  # the starts runs against the same with the moment error weighted 10
+        speeds = (0.2, 0.3, 0.4, 0.5)
+        runs["moment_weight"] = ([_stairs(stairs_name(v, x0), v, vital, x0) for v in speeds for x0 in starts_04]
+                                 + [replace(_stairs(stairs_name(v, x0, MOMENT_WEIGHT_TAG), v, vital, x0),
+                                            moment_weight=MOMENT_WEIGHT) for v in speeds for x0 in starts_04])
     if "learned" in only:
         verified = replace(vital, vpa_use_cnn=True, vfa_selector="cnn")
         unverified = replace(vital, vpa_use_cnn=True, vfa_selector="cnn_unverified")
@@ -274,6 +294,8 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
                               duration_s=run.duration_s if max_sim_s is None else min(run.duration_s, max_sim_s),
                               initial_xy=(run.initial_x_m, 0.0), progress=progress,
                               contact_feedback=run.contact_feedback,
+                              settings=None if run.moment_weight == 1.0 else WbcSettings(
+                                  wrench_weights=(1.0, 1.0, 1.0) + (run.moment_weight,) * 3),
                               motion=MotionParameters(touchdown_depth_m=run.touchdown_depth_m,
                                                       k_feedback=run.k_feedback_s,
                                                       foothold_centre=run.foothold_centre,
@@ -376,6 +398,8 @@ def write_report(out: Path, runs: dict[str, list[VitalRun]], results: dict[str, 
               "starts": "Stairs at four speeds from 9 starts each, VFA + VPA (the speeds runs' configuration)",
               "learned": ("Both CNNs in the loop: the VFA's CNN (verified, as the vfa node's cnn selector runs it; "
                           "and alone) and the VPA's CNN"),
+              "moment_weight": "The QP's moment error weighted 10 times its force error vs the thesis' equal "
+                               "weights (stairs, four speeds, 9 starts)",
               "swing_model": "The VPA's hip following the terrain during the swing and legs weighted by their peaks "
                              "vs the thesis' level hip and equal weights (stairs, four speeds, 9 starts)"}
     for key, group in runs.items():
@@ -527,6 +551,9 @@ SUMMARIES: dict[str, Callable[[list[VitalRun], dict[str, VitalRunResult]], list[
     "swing_model": tagged_summary(SWING_MODEL_TAG, "Thesis' model (`swing_hip_model` level, `leg_weighting` none; "
                                   "the starts runs)", "Terrain swing model and peak weighting (`swing_hip_model` "
                                   "terrain, `leg_weighting` peak)"),
+    "moment_weight": tagged_summary(MOMENT_WEIGHT_TAG, "The thesis' wrench weights (the starts runs)",
+                                    f"Moment error weighted {MOMENT_WEIGHT:g} (`WbcSettings.wrench_weights` "
+                                    f"(1, 1, 1, {MOMENT_WEIGHT:g}, {MOMENT_WEIGHT:g}, {MOMENT_WEIGHT:g}))"),
     "learned": tagged_summary(UNVERIFIED_TAG, "VFA CNN verified (`vfa` node `selector` cnn) + VPA CNN",
                               "VFA CNN alone (`selector` cnn_unverified, the thesis' g_hat) + VPA CNN"),
 }

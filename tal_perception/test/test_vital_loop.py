@@ -87,7 +87,7 @@ def test_settings_and_experiment_list_are_checked() -> None:
         VitalLoopSettings(heightmap_period_s=0.0)
     runs = experiment_runs()
     assert set(runs) == {"speeds", "cnn", "tbr", "gaps", "rough", "horizon", "cost", "centre", "pose_filter",
-                         "step_frequency", "starts", "swing_model", "learned"}
+                         "step_frequency", "starts", "swing_model", "learned", "moment_weight"}
     assert all(r.loop.vpa_use_cnn for r in runs["cnn"]) and not any(r.loop.vpa_use_cnn for r in runs["speeds"])
     names = [r.name for key in ("speeds", "cnn", "tbr", "gaps", "rough") for r in runs[key]]
     shared = {f"stairs_0.2_x{x0:+.1f}" for x0 in (-0.1, 0.0, 0.1)}
@@ -126,9 +126,10 @@ def test_settings_and_experiment_list_are_checked() -> None:
     assert set(runs["speeds"]) <= set(starts)
     assert [r for r in starts if r.speed_mps == 0.4] == runs["pose_filter"][:9]
     assert [r for r in starts if r.speed_mps == 0.5] == runs["step_frequency"][:9]
-    everything = {r.name for key, group in runs.items() if key not in ("swing_model", "learned") for r in group}
+    variants = ("swing_model", "learned", "moment_weight")
+    everything = {r.name for key, group in runs.items() if key not in variants for r in group}
     assert len(everything - {r.name for key, group in runs.items()
-                             if key not in ("starts", "swing_model", "learned") for r in group}) == 12
+                             if key not in ("starts", *variants) for r in group}) == 12
     # swing_model: the starts runs, then the same 36 with the terrain swing model and peak weighting only.
     swing = runs["swing_model"]
     assert swing[:36] == starts and len(swing) == 72
@@ -137,6 +138,14 @@ def test_settings_and_experiment_list_are_checked() -> None:
         assert (thesis.loop.vpa.swing_hip_model, thesis.loop.vpa.leg_weighting) == ("level", "none")
         assert terrain.loop.vpa == replace(thesis.loop.vpa, swing_hip_model="terrain", leg_weighting="peak")
         assert replace(terrain, name=thesis.name, loop=thesis.loop) == thesis
+    # moment_weight: the starts runs, then the same 36 with the moment error weighted 10 only.
+    moment = runs["moment_weight"]
+    assert moment[:36] == starts and len(moment) == 72 and all(r.moment_weight == 1.0 for r in starts)
+    for thesis, weighted in zip(moment[:36], moment[36:]):
+        assert weighted.name == thesis.name.replace("_x", "_moment10_x") and weighted.moment_weight == 10.0
+        assert replace(weighted, name=thesis.name, moment_weight=1.0) == thesis
+    with pytest.raises(ValueError, match="moment_weight must be finite and > 0"):
+        replace(starts[0], moment_weight=0.0)
     # learned: the speeds runs' configuration with both CNNs, the VFA's verified (0.2-0.5 m/s) and alone (0.2).
     learned = runs["learned"]
     assert len(learned) == 45
