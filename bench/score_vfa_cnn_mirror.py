@@ -22,18 +22,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.special import log_softmax
 
 from tal_perception.eval_vfa import score
 from tal_perception.tune_vfa_decode import network_outputs
 from tal_perception.vfa_cnn import load_model
 from tal_perception.vfa_dataset import VfaDataset, mirrored
 from tal_perception.vfa_decode import VfaDecode, decode
-
-
-def log_softmax(logits: np.ndarray) -> np.ndarray:
-    """Row-wise log-softmax of (B, K) logits (the optimum head's scores as log-probabilities)."""
-    shifted = logits - logits.max(axis=1, keepdims=True)
-    return shifted - np.log(np.exp(shifted).sum(axis=1, keepdims=True))
 
 
 def unmirror(values: np.ndarray, cells: int) -> np.ndarray:
@@ -60,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     cells, resolution = data.cells, net.config.encoding.resolution_m
     logits, probability, unknown = network_outputs(net, data)
     mirror_logits, mirror_probability, _ = network_outputs(net, mirrored(data))
-    averaged_logits = 0.5 * (log_softmax(logits) + unmirror(log_softmax(mirror_logits), cells))
+    averaged_logits = 0.5 * (log_softmax(logits, axis=1) + unmirror(log_softmax(mirror_logits, axis=1), cells))
     averaged_probability = 0.5 * (probability + unmirror(mirror_probability, cells))
     rows = []
     for weight in args.safe_weights:

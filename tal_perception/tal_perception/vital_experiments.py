@@ -246,24 +246,24 @@ def experiment_runs(only: tuple[str, ...] = EXPERIMENTS) -> dict[str, list[Vital
         preset = [replace(_stairs(stairs_name(0.5, x0, "1.5hz"), 0.5, vital, x0), step_frequency_hz=None)
                   for x0 in starts_04]
         runs["step_frequency"] = [_stairs(stairs_name(0.5, x0), 0.5, vital, x0) for x0 in starts_04] + preset
-    if "starts" in only:  # the speeds runs from all 9 starts (shared with the speeds, pose_filter, step_frequency runs)
-        runs["starts"] = [_stairs(stairs_name(v, x0), v, vital, x0) for v in (0.2, 0.3, 0.4, 0.5) for x0 in starts_04]
+    four_speeds = (0.2, 0.3, 0.4, 0.5)
+    # the speeds runs from all 9 starts (shared with the speeds, pose_filter, step_frequency runs); the baseline
+    # of the swing_model and moment_weight comparisons
+    starts = [_stairs(stairs_name(v, x0), v, vital, x0) for v in four_speeds for x0 in starts_04]
+    if "starts" in only:
+        runs["starts"] = starts
     if "swing_model" in only:  # the starts runs against the same with the VPA's terrain swing and peak weighting
         terrain = replace(vital, vpa=replace(vital.vpa, swing_hip_model="terrain", leg_weighting="peak"))
-        speeds = (0.2, 0.3, 0.4, 0.5)
-        runs["swing_model"] = ([_stairs(stairs_name(v, x0), v, vital, x0) for v in speeds for x0 in starts_04]
-                               + [_stairs(stairs_name(v, x0, SWING_MODEL_TAG), v, terrain, x0)
-                                  for v in speeds for x0 in starts_04])
+        runs["swing_model"] = starts + [_stairs(stairs_name(v, x0, SWING_MODEL_TAG), v, terrain, x0)
+                                        for v in four_speeds for x0 in starts_04]
     if "moment_weight" in only:  # the starts runs against the same with the moment error weighted 10
-        speeds = (0.2, 0.3, 0.4, 0.5)
-        runs["moment_weight"] = ([_stairs(stairs_name(v, x0), v, vital, x0) for v in speeds for x0 in starts_04]
-                                 + [replace(_stairs(stairs_name(v, x0, MOMENT_WEIGHT_TAG), v, vital, x0),
-                                            moment_weight=MOMENT_WEIGHT) for v in speeds for x0 in starts_04])
+        runs["moment_weight"] = starts + [replace(_stairs(stairs_name(v, x0, MOMENT_WEIGHT_TAG), v, vital, x0),
+                                                  moment_weight=MOMENT_WEIGHT) for v in four_speeds for x0 in starts_04]
     if "learned" in only:
         verified = replace(vital, vpa_use_cnn=True, vfa_selector="cnn")
         unverified = replace(vital, vpa_use_cnn=True, vfa_selector="cnn_unverified")
         runs["learned"] = ([_stairs(stairs_name(v, x0, LEARNED_TAG), v, verified, x0)
-                            for v in (0.2, 0.3, 0.4, 0.5) for x0 in starts_04]
+                            for v in four_speeds for x0 in starts_04]
                            + [_stairs(stairs_name(0.2, x0, UNVERIFIED_TAG), 0.2, unverified, x0) for x0 in starts_04])
     return runs
 
@@ -315,9 +315,9 @@ def run_vital(run: VitalRun, progress: bool = True, max_sim_s: float | None = No
     # For a fall, the onset of the episode of misses that ended in it (not a transient at the gait start).
     miss = first_wrench_miss_of_log(log, description, WbcSettings().joint_limit_horizon_s, after_s=SETTLE_S,
                                     last_episode=bool(log.fell))
+    episodes = wrench_miss_episodes(log.t[:n], log.wrench_des[:n], log.wrench_wbc[:n], after_s=SETTLE_S)
     recovered_misses = [[e.start_s, e.end_s, e.peak_force_error_n, float(np.interp(e.start_s, log.t[:n], x))]
-                  for e in wrench_miss_episodes(log.t[:n], log.wrench_des[:n], log.wrench_wbc[:n], after_s=SETTLE_S)
-                  if e.recovered]  # fmt: skip
+                        for e in episodes if e.recovered]
     pose = trace["pose_reference"][:n]
     dz, dpitch = _variation_per_metre(x, pose[:, 0], np.degrees(pose[:, 2]))
     safe = trace["actual_safe_footholds"][:n]

@@ -93,15 +93,14 @@ def first_wrench_miss(
         raise InputError(f"first_wrench_miss: need 12 joint names, got {len(joint_names)}")
     error = np.asarray(wrench_wbc, dtype=float) - np.asarray(wrench_des, dtype=float)
     force_error = np.linalg.norm(error[:, :3], axis=1)
-    misses = np.flatnonzero((force_error > threshold_n) & (t >= after_s) & np.isfinite(force_error))
-    if misses.size == 0:
+    episodes = _miss_episode_ticks(t, force_error, after_s, threshold_n)
+    if not episodes:
         return None
-    k = int(misses[0])
+    k = int(episodes[0][0])
     if last_episode:
-        if t[-1] - t[misses[-1]] > EPISODE_GAP_S:
+        if t[-1] - t[episodes[-1][-1]] > EPISODE_GAP_S:
             return None  # the misses ended before the log did
-        gaps = np.flatnonzero(np.diff(t[misses]) > EPISODE_GAP_S)
-        k = int(misses[gaps[-1] + 1]) if gaps.size else k
+        k = int(episodes[-1][0])
     tau_min, tau_max = torque_limits(q[k])
     saturated = (tau[k] >= SATURATION_FRACTION * tau_max) | (tau[k] <= SATURATION_FRACTION * tau_min)
     qdd_min, qdd_max = joint_acceleration_bounds(q[k], qd[k], *position_limits, horizon_s)
@@ -150,19 +149,23 @@ def wrench_miss_episodes(
         raise InputError("wrench_miss_episodes: t must be strictly increasing")
     error = np.asarray(wrench_wbc, dtype=float) - np.asarray(wrench_des, dtype=float)
     force_error = np.linalg.norm(error[:, :3], axis=1)
-    misses = np.flatnonzero((force_error > threshold_n) & (t >= after_s) & np.isfinite(force_error))
-    if misses.size == 0:
-        return []
-    breaks = np.flatnonzero(np.diff(t[misses]) > EPISODE_GAP_S)
-    firsts = np.concatenate(([0], breaks + 1))
-    lasts = np.concatenate((breaks, [misses.size - 1]))
     episodes = []
-    for a, b in zip(firsts.tolist(), lasts.tolist()):
-        ticks = misses[a : b + 1]
+    for ticks in _miss_episode_ticks(t, force_error, after_s, threshold_n):
         end = float(t[ticks[-1]])
         episodes.append(MissEpisode(float(t[ticks[0]]), end, float(force_error[ticks].max()),
                                     recovered=float(t[-1]) - end > EPISODE_GAP_S))  # fmt: skip
     return episodes
+
+
+def _miss_episode_ticks(t: FloatArray, force_error: FloatArray, after_s: float, threshold_n: float
+                        ) -> list[NDArray[np.intp]]:  # fmt: skip
+    """The tick indices of each episode of misses (force error [N] above ``threshold_n`` at or after ``after_s``
+    [s]; misses less than ``EPISODE_GAP_S`` apart are one episode), in time order."""
+    misses = np.flatnonzero((force_error > threshold_n) & (t >= after_s) & np.isfinite(force_error))
+    if misses.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(t[misses]) > EPISODE_GAP_S)
+    return np.split(misses, breaks + 1)
 
 
 def first_wrench_miss_of_log(
