@@ -26,6 +26,10 @@ class Leg(IntEnum):
 LEGS: tuple[Leg, ...] = (Leg.LF, Leg.RF, Leg.LH, Leg.RH)
 LEG_NAMES: tuple[str, ...] = tuple(leg.name for leg in LEGS)
 JOINT_KINDS: tuple[str, ...] = ("HAA", "HFE", "KFE")
+# Each leg's y-mirror (left <-> right at the same end): a robot symmetric about its base's x-z plane does on a
+# y-mirrored terrain with the mirrored leg what it does on the terrain with the leg.
+MIRROR_LEG: dict[Leg, Leg] = {Leg.LF: Leg.RF, Leg.RF: Leg.LF, Leg.LH: Leg.RH, Leg.RH: Leg.LH}
+RIGHT_LEGS: tuple[Leg, ...] = (Leg.RF, Leg.RH)
 NUM_LEGS = len(LEGS)
 JOINTS_PER_LEG = len(JOINT_KINDS)
 

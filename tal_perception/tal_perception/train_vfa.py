@@ -42,6 +42,7 @@ import math
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,7 @@ from tal_perception.vfa_cnn import (
 from tal_perception.vfa_dataset import (
     VfaDataset,
     cache_path,
+    canonical_legs,
     load_or_generate,
     mirrored,
     mix_description,
@@ -122,6 +124,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="unet: residual 1 x 1 blocks per candidate after the last decoder layer")  # fmt: skip
     parser.add_argument("--no-mirror", action="store_true", help="do not add the y-mirrored samples")
     parser.add_argument(
+        "--canonical-legs", action="store_true",
+        help="train on left legs only, each right-leg tuple replaced by its y-mirror (NetConfig.canonical_legs: "
+        "the selector mirrors right legs in and out); instead of adding the mirrors",
+    )  # fmt: skip
+    parser.add_argument(
         "--init-weights", type=Path, default=None,
         help="start from these weights (fine-tuning; their architecture is used, epoch 0 = them on validation)",
     )  # fmt: skip
@@ -154,6 +161,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("--extra-seeds must differ from --seed and from each other")
     if len(set(args.wide_seeds)) != len(args.wide_seeds) or args.wide_samples_per_leg < 10:
         parser.error("--wide-seeds must differ from each other and --wide-samples-per-leg be >= 10")
+    if args.canonical_legs and args.no_mirror:
+        parser.error("--canonical-legs replaces the mirrored samples: it cannot be combined with --no-mirror")
     if {2, 3} & set(args.extra_seeds + args.wide_seeds) or args.seed in (2, 3):
         parser.error("seeds 2 (the protocol's test set) and 3 (the decode tuning set) must not be trained on")
     return args
@@ -179,12 +188,17 @@ class Batches:
         return image, torch.from_numpy(scalars), label, safe
 
 
-def split(data: VfaDataset, val_fraction: float, seed: int, mirror: bool) -> tuple[VfaDataset, VfaDataset]:
-    """Seeded train / validation split of the tuples, then each part completed with its mirror."""
+def split(
+    data: VfaDataset, val_fraction: float, seed: int, mirror: bool, canonical: bool = False
+) -> tuple[VfaDataset, VfaDataset]:
+    """Seeded train / validation split of the tuples, then each part completed with its mirror, or with
+    ``canonical`` put in the frame of the left legs (``canonical_legs``: the same tuples, each once)."""
     order = np.random.default_rng([seed, 7]).permutation(len(data))
     n_val = int(round(val_fraction * len(data)))
     parts = [data.subset(np.sort(order[n_val:])), data.subset(np.sort(order[:n_val]))]
-    if mirror:
+    if canonical:
+        parts = [canonical_legs(p) for p in parts]
+    elif mirror:
         parts = [VfaDataset.concatenate([p, mirrored(p)]) for p in parts]
     return parts[0], parts[1]
 
@@ -203,7 +217,7 @@ def training_sets(
         description = f"labelling{which} (exact FEC)"
         data = load_or_generate(evaluator, cache_path(args.data, set_prefix("train", hip_range), seed, count), seed,
                                 count, description, hip_range=hip_range)  # fmt: skip
-        parts.append(split(data, args.val_fraction, seed, not args.no_mirror))
+        parts.append(split(data, args.val_fraction, seed, not args.no_mirror, args.canonical_legs))
         sets.append(data)
     statistics = (sets[0] if len(sets) == 1 else VfaDataset.concatenate(sets)).statistics()
     if len(parts) == 1:
@@ -225,6 +239,8 @@ def initial_net(args: argparse.Namespace, config: NetConfig) -> tuple[VfaNet | V
         raise SystemExit(f"--init-weights {args.init_weights}: safe head {net.config.safe_head}, --safe-weight "
                          f"{args.safe_weight} asks for {config.safe_head}")  # fmt: skip
     LOG.info("starting from %s (%s)", args.init_weights, net.config.architecture)
+    # The data's frame decides (``--canonical-legs``): trained weights of either kind are a starting point.
+    net.config = replace(net.config, canonical_legs=config.canonical_legs)
     net.train()
     return net, net.config
 
@@ -321,15 +337,17 @@ def train(args: argparse.Namespace) -> dict[str, object]:
     encoding = EncodingConfig(cells=s.patch_cells, resolution_m=s.resolution_m,
                               nominal_hip_height_m=round(float(model.nominal_base_height_m), 4))  # fmt: skip
     config = NetConfig(tuple(args.channels), args.hidden, args.safe_weight > 0.0, encoding, args.architecture,
-                       tuple(args.decoder_channels), args.roughness_features, args.head_blocks)  # fmt: skip
+                       tuple(args.decoder_channels), args.roughness_features, args.head_blocks,
+                       args.canonical_legs)  # fmt: skip
     net, config = initial_net(args, config)
     net = net.to(memory_format=torch.channels_last)
     train_batches, val_batches = Batches(train_set, encoding), Batches(val_set, encoding)
     # A fixed training subset as large as the validation set, scored like it each epoch (over-fitting check).
     train_probe = Batches(train_batches.data.subset(np.arange(min(len(val_batches), len(train_batches)))), encoding)
     parameters = sum(p.numel() for p in net.parameters())
-    LOG.info("training on %d samples, validating on %d (mirrored: %s); %d parameters",
-             len(train_batches), len(val_batches), not args.no_mirror, parameters)  # fmt: skip
+    LOG.info("training on %d samples, validating on %d (mirrored: %s, canonical legs: %s); %d parameters",
+             len(train_batches), len(val_batches), not args.no_mirror and not args.canonical_legs,
+             args.canonical_legs, parameters)  # fmt: skip
     optimiser = torch.optim.Adam(net.parameters(), lr=args.lr)
     steps_per_epoch = math.ceil(len(train_batches) / args.batch_size)
     schedule = lr_schedule(optimiser, args.epochs * steps_per_epoch, round(args.warmup * steps_per_epoch))
@@ -410,12 +428,14 @@ def train(args: argparse.Namespace) -> dict[str, object]:
         "dataset": statistics,
         "train_samples": len(train_batches),
         "validation_samples": len(val_batches),
-        "mirrored": not args.no_mirror,
+        "mirrored": not args.no_mirror and not args.canonical_legs,
+        "canonical_legs": args.canonical_legs,
         "net": {
             "architecture": config.architecture,
             "decoder_channels": list(config.decoder_channels) if config.architecture == "unet" else None,
             "roughness_features": config.roughness_features,
             "head_blocks": config.head_blocks,
+            "canonical_legs": config.canonical_legs,
             "channels": list(config.channels),
             "hidden": config.hidden,
             "safe_head": config.safe_head,

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tal_core.legs import Leg
+from tal_core.legs import LEGS, MIRROR_LEG
 from tal_perception.rbf import RbfBasis
 from tal_perception.vpa_cnn import DEFAULT_WEIGHTS, CnnNsfModel, VpaNet, VpaNetConfig, encode_maps, encode_twist_leg
 from tal_perception.vpa_dataset import VpaDataset, build_evaluator, generate
@@ -33,7 +33,7 @@ from tal_perception.vpa_settings import VpaSettings
 LOG = logging.getLogger("tal_perception.train_vpa")
 
 
-MIRROR_LEG = np.array([Leg.RF, Leg.LF, Leg.RH, Leg.LH], dtype=np.int64)  # index: leg, value: its mirror
+MIRROR_LEG_INDEX = np.array([MIRROR_LEG[leg] for leg in LEGS], dtype=np.int64)  # index: leg, value: its mirror
 
 
 def concatenate(datasets: list[VpaDataset]) -> VpaDataset:
@@ -45,7 +45,7 @@ def mirrored(dataset: VpaDataset) -> VpaDataset:
     """The left-right mirror image of every sample (same NSF labels, see the module docstring)."""
     twists = dataset.twists.copy()
     twists[:, [1, 3, 5]] *= -1.0  # vy, roll rate, yaw rate change sign under the mirror
-    return VpaDataset(dataset.heights[:, :, ::-1].copy(), twists, MIRROR_LEG[dataset.legs], dataset.nsf,
+    return VpaDataset(dataset.heights[:, :, ::-1].copy(), twists, MIRROR_LEG_INDEX[dataset.legs], dataset.nsf,
                       dataset.kinds, dataset.hip_heights)  # fmt: skip
 
 

@@ -31,7 +31,7 @@ import torch
 from tal_core.robot_model import RobotModel
 from tal_perception.eval_vfa import score
 from tal_perception.fec import FootholdEvaluator
-from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, encode, load_model, store_decode
+from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, canonical_inputs, encode, load_model, mirror_cell_maps, store_decode
 from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate
 from tal_perception.vfa_decode import VfaDecode, decode
 
@@ -109,12 +109,15 @@ def network_outputs(
     with torch.inference_mode():
         for start in range(0, len(data), batch_size):
             index = np.arange(start, min(start + batch_size, len(data)))
-            image, scalars = encode(cfg, data.heights[index], data.hip_height_m[index], data.twist[index],
-                                    data.gait[index], data.leg[index])  # fmt: skip
+            heights, twist, legs = data.heights[index], data.twist[index], data.leg[index]
+            flip = np.zeros(len(index), dtype=bool)
+            if net.config.canonical_legs:  # right legs through their left mirror, the maps mirrored back
+                heights, twist, legs, flip = canonical_inputs(heights, twist, legs)
+            image, scalars = encode(cfg, heights, data.hip_height_m[index], twist, data.gait[index], legs)
             optimum, safe_logits = net(torch.from_numpy(image), torch.from_numpy(scalars))
-            logits.append(optimum.numpy())
+            logits.append(mirror_cell_maps(optimum.numpy(), flip, cfg.cells))
             if safe_logits is not None:
-                safe.append(torch.sigmoid(safe_logits).numpy())
+                safe.append(mirror_cell_maps(torch.sigmoid(safe_logits).numpy(), flip, cfg.cells))
     unknown = np.isnan(data.heights.reshape(len(data), -1))
     return np.concatenate(logits), (np.concatenate(safe) if safe else None), unknown
 

@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from torch import nn
 
 from tal_core.heightmap import HeightMapGrid
-from tal_core.legs import LEGS, Leg
+from tal_core.legs import LEGS, MIRROR_LEG, RIGHT_LEGS, Leg
 from tal_perception import vfa_cnn_ort
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
@@ -113,6 +113,10 @@ class NetConfig:
     # per candidate (per-cell depth for the criteria's sharp boundaries at ~5 % more multiply-adds each).
     # 0 in the files before it (they load with 0).
     head_blocks: int = 0
+    # Trained on left legs only (LF, LH): a right leg's tuple is y-mirrored in (``canonical_inputs``) and the
+    # choice mirrored back, so the network learns half the function (HyQ is symmetric about its x-z plane).
+    # False in the files before it.
+    canonical_legs: bool = False
 
     def __post_init__(self) -> None:
         if self.architecture not in ARCHITECTURES:
@@ -189,6 +193,48 @@ def encode(
 
 
 _LEG_INDICES = np.arange(len(LEGS))
+
+
+# Index: a leg's index in LEGS; value: its y-mirror's (LF <-> RF, LH <-> RH).
+MIRROR_LEG_INDEX = np.array([LEGS.index(MIRROR_LEG[leg]) for leg in LEGS], dtype=np.int64)
+RIGHT_LEG_INDICES = np.array([LEGS.index(leg) for leg in RIGHT_LEGS], dtype=np.int64)
+
+
+def canonical_inputs(
+    heights: NDArray[np.floating], twist: ArrayLike, legs: ArrayLike
+) -> tuple[NDArray[np.floating], NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
+    """The inputs of a ``NetConfig.canonical_legs`` network: every right-leg tuple replaced by its y-mirror
+    (patch columns flipped, vy and yaw rate negated, the left leg of the same end), as ``vfa_dataset.mirrored``
+    does to a data set. heights (B, n, n) [m], twist (B, 6) [m/s, rad/s], legs (B,) indices into LEGS.
+    Returns (heights, twist, legs, right) with right (B,) True where a tuple was mirrored; the inputs are not
+    modified (copies are made only when a right leg is present)."""
+    leg_index = np.asarray(legs, dtype=np.int64)
+    right = np.isin(leg_index, RIGHT_LEG_INDICES)
+    twist_array = np.array(twist, dtype=np.float64)
+    if not right.any():
+        return heights, twist_array, leg_index, right
+    heights = np.array(heights, copy=True)
+    heights[right] = heights[right][:, :, ::-1]
+    twist_array[right, 1] *= -1.0
+    twist_array[right, 5] *= -1.0
+    leg_index = np.where(right, MIRROR_LEG_INDEX[leg_index], leg_index)
+    return heights, twist_array, leg_index, right
+
+
+def mirror_cell_maps(maps: NDArray[np.floating], flip: NDArray[np.bool_], cells: int) -> NDArray[np.floating]:
+    """Per-candidate maps (B, n*n) of a canonical network mapped back to the tuples' own frame: the rows of
+    ``flip`` mirrored in y (columns reversed), in place; returns ``maps``."""
+    if flip.any():
+        grid = maps.reshape(len(maps), cells, cells)
+        grid[flip] = grid[flip][:, :, ::-1]
+    return maps
+
+
+def mirror_cell_index(index: NDArray[np.intp], flip: NDArray[np.bool_], cells: int) -> NDArray[np.intp]:
+    """Flat (row-major) candidate indices of a canonical network mapped back to the tuples' own frame: the
+    column of the entries of ``flip`` mirrored (c -> n - 1 - c)."""
+    column = index % cells
+    return np.where(flip, index - column + (cells - 1 - column), index)
 
 
 @lru_cache(maxsize=4)
@@ -438,6 +484,7 @@ def save_model(net: VfaNet | VfaUNet, path: Path, metadata: dict[str, object] | 
             "decoder_channels": list(cfg.decoder_channels),
             "roughness_features": cfg.roughness_features,
             "head_blocks": cfg.head_blocks,
+            "canonical_legs": cfg.canonical_legs,
         },  # fmt: skip
         "encoding": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg.encoding).items()},
         "state_dict": {k: v.detach().to(torch.float16).contiguous() for k, v in net.state_dict().items()},
@@ -460,7 +507,8 @@ def load_model(path: Path = DEFAULT_WEIGHTS) -> VfaNet | VfaUNet:
     config = NetConfig(tuple(net_cfg["channels"]), int(net_cfg["hidden"]), bool(net_cfg["safe_head"]),
                        EncodingConfig(**enc), str(net_cfg.get("architecture", "thesis")),
                        tuple(net_cfg.get("decoder_channels", NetConfig.decoder_channels)),
-                       bool(net_cfg.get("roughness_features", False)), int(net_cfg.get("head_blocks", 0)))  # fmt: skip
+                       bool(net_cfg.get("roughness_features", False)), int(net_cfg.get("head_blocks", 0)),
+                       bool(net_cfg.get("canonical_legs", False)))  # fmt: skip
     net = build_net(config)
     net.load_state_dict({k: v.to(torch.float32) for k, v in document["state_dict"].items()})
     net.eval()
@@ -598,7 +646,19 @@ class CnnFootholdSelector:
         legs: ArrayLike, workspace: _Workspace | None = None,
     ) -> NDArray[np.intp]:  # fmt: skip
         """The CNN's choices (B,) for the arrays of ``encode``: encoding, network, decode; into ``workspace``'s
-        buffers when given (a call of 1-4 legs), else into new arrays."""
+        buffers when given (a call of 1-4 legs), else into new arrays. A ``canonical_legs`` network sees a
+        right leg's tuple as its left mirror; its choice is mirrored back."""
+        flip = None
+        if self.net.config.canonical_legs:  # right legs go through the network as their left mirror
+            heights, twist, legs, flip = canonical_inputs(heights, twist, legs)
+        choices = self._decide(heights, hip_height_m, twist, gait, legs, workspace)
+        return choices if flip is None else mirror_cell_index(choices, flip, self.net.config.encoding.cells)
+
+    def _decide(
+        self, heights: NDArray[np.floating], hip_height_m: ArrayLike, twist: ArrayLike, gait: ArrayLike,
+        legs: ArrayLike, workspace: _Workspace | None,
+    ) -> NDArray[np.intp]:  # fmt: skip
+        """``_choose`` on the network's own frame: encoding, network, decode."""
         out = (workspace.image, workspace.scalars) if workspace is not None else None
         unknown = np.isnan(heights)
         image, scalars = encode(self.net.config.encoding, heights, hip_height_m, twist, gait, legs, out, unknown)

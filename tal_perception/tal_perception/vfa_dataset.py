@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from tal_core.legs import LEGS, Leg
+from tal_core.legs import LEGS, MIRROR_LEG, RIGHT_LEGS, Leg
 from tal_perception.errors import FecConfigError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import FecInput, GaitTiming
@@ -57,7 +57,6 @@ TWIST_RANGES = {"vx_mps": (-0.1, 0.5), "vy_mps": (-0.15, 0.15), "yaw_rate_radps"
 GAIT_RANGES = {"step_frequency_hz": (1.2, 1.8), "duty_factor": (0.55, 0.7), "step_height_m": (0.08, 0.14)}
 UNKNOWN_PROBABILITY = 0.15  # fraction of patches with a rectangle of unknown (NaN) cells
 UNKNOWN_EDGE_CELLS = (3, 12)  # [cells] edge lengths of that rectangle
-MIRROR_LEG = {Leg.LF: Leg.RF, Leg.RF: Leg.LF, Leg.LH: Leg.RH, Leg.RH: Leg.LH}
 
 
 @dataclass(frozen=True, eq=False)
@@ -268,6 +267,14 @@ def mirrored(data: VfaDataset) -> VfaDataset:
         np.ascontiguousarray(data.heights[:, :, ::-1]), data.hip_height_m, twist, data.gait, leg, data.kind, safe,
         label, data.seed,
     )  # fmt: skip
+
+
+def canonical_legs(data: VfaDataset) -> VfaDataset:
+    """Every sample in the frame of a left leg: the left legs' samples as they are, then the y-mirrors
+    (``mirrored``) of the right legs' samples; the training set of a ``NetConfig.canonical_legs`` network.
+    Holds the same tuples as ``data`` (each once), so it carries what ``data`` plus its mirror does."""
+    right = np.isin(data.leg, [LEGS.index(leg) for leg in RIGHT_LEGS])
+    return VfaDataset.concatenate([data.subset(~right), mirrored(data.subset(right))])
 
 
 def check_hip_range(hip_range: str) -> None:

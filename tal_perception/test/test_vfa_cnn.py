@@ -15,6 +15,7 @@ from tal_core.terrain import Course, DefaultGround, GapPatch, Region
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import FecInput, GaitTiming
+from tal_perception.tune_vfa_decode import network_outputs
 from tal_perception.vfa import FootholdSelector, VfaResult, VfaStatus, extract_patch
 from tal_perception.vfa_cnn import (
     DEFAULT_WEIGHTS,
@@ -27,8 +28,11 @@ from tal_perception.vfa_cnn import (
     VfaUNet,
     _row_medians,
     build_net,
+    canonical_inputs,
     encode,
     load_model,
+    mirror_cell_index,
+    mirror_cell_maps,
     save_model,
 )
 from tal_perception.vfa_cnn_fast import compile_fast_unet
@@ -36,6 +40,7 @@ from tal_perception.vfa_dataset import (
     HIP_RANGES,
     VfaDataset,
     cache_path,
+    canonical_legs,
     closest_safe_index,
     generate,
     load_or_generate,
@@ -935,3 +940,79 @@ def test_head_blocks_start_as_the_same_function_save_load_and_widen(fresh_set: V
         NetConfig(architecture="unet", head_blocks=-1)
     with pytest.raises(ValueError, match="blocks >= 1"):
         deepen_head(net, 0)
+
+
+# -- canonical legs: right legs through their left mirror ----------------------------------------------
+def test_canonical_set_holds_each_tuple_once_in_a_left_legs_frame(evaluator: FootholdEvaluator) -> None:
+    data = generate(evaluator, seed=9, count=2, progress=False)
+    canonical = canonical_legs(data)
+    assert len(canonical) == len(data)
+    assert set(canonical.leg.tolist()) == {Leg.LF, Leg.LH}
+    left = np.isin(data.leg, [Leg.LF, Leg.LH])
+    np.testing.assert_array_equal(canonical.heights[: left.sum()], data.heights[left])
+    mirror = mirrored(data.subset(~left))  # the right legs' tuples, mirrored: exact labels of the left side
+    np.testing.assert_array_equal(canonical.heights[left.sum():], mirror.heights)
+    np.testing.assert_array_equal(canonical.label[left.sum():], mirror.label)
+
+
+def test_canonical_inputs_mirror_only_the_right_legs_and_indices_map_back() -> None:
+    rng = np.random.default_rng(0)
+    heights = rng.normal(size=(4, 33, 33))
+    twist = rng.normal(size=(4, 6))
+    legs = np.array([Leg.LF, Leg.RF, Leg.LH, Leg.RH])
+    out_heights, out_twist, out_legs, flip = canonical_inputs(heights, twist, legs)
+    assert flip.tolist() == [False, True, False, True]
+    assert out_legs.tolist() == [Leg.LF, Leg.LF, Leg.LH, Leg.LH]
+    np.testing.assert_array_equal(out_heights[0], heights[0])
+    np.testing.assert_array_equal(out_heights[1], heights[1][:, ::-1])
+    np.testing.assert_array_equal(out_twist[3], twist[3] * [1, -1, 1, 1, 1, -1])
+    np.testing.assert_array_equal(out_twist[2], twist[2])
+    assert heights[1, 0, 0] == out_heights[1, 0, 32]  # the caller's arrays are not modified
+    index = np.array([0, 34, 32 * 33 + 5, 33 * 33 - 1])  # (0, 0), (1, 1), (32, 5), (32, 32)
+    np.testing.assert_array_equal(mirror_cell_index(index, flip, 33), [0, 1 * 33 + 31, 32 * 33 + 5, 32 * 33])
+    maps = np.arange(4 * 33 * 33, dtype=float).reshape(4, -1)
+    mirrored_maps = mirror_cell_maps(maps.copy(), flip, 33)
+    for i in range(4):  # the map's argmax moves as the index does
+        assert mirror_cell_index(np.array([maps[i].argmax()]), flip[i:i + 1], 33)[0] == mirrored_maps[i].argmax()
+
+
+def test_canonical_network_chooses_for_a_right_leg_the_mirror_of_its_left_choice(
+    evaluator: FootholdEvaluator, fresh_set: VfaDataset, tmp_path
+) -> None:
+    """A canonical network's choice for a right-leg tuple is the mirror of its choice for the tuple's mirror
+    (a left leg); the selector and ``tune_vfa_decode.network_outputs`` agree; the flag survives saving and
+    files without it load as not canonical."""
+    torch.manual_seed(0)
+    net = build_net(NetConfig(architecture="unet", decoder_channels=(8, 8, 8), canonical_legs=True)).eval()
+    path = tmp_path / "canonical.pt"
+    save_model(net, path)
+    net = load_model(path)
+    assert net.config.canonical_legs
+    selector = CnnFootholdSelector(evaluator, net, verify=False, backend="torch")
+    right = fresh_set.subset(np.isin(fresh_set.leg, [Leg.RF, Leg.RH]))
+    mirror = mirrored(right)
+    choices = selector.predict([right.fec_input(i) for i in range(len(right))])
+    mirror_choices = selector.predict([mirror.fec_input(i) for i in range(len(mirror))])
+    np.testing.assert_array_equal(choices, mirror_cell_index(mirror_choices, np.ones(len(right), bool), 33))
+    logits, probability, unknown = network_outputs(net, right)
+    np.testing.assert_array_equal(decode_choices(net.decode, logits, probability, unknown), choices)
+    document = torch.load(path, weights_only=True)
+    del document["net"]["canonical_legs"]
+    torch.save(document, path)
+    assert not load_model(path).config.canonical_legs
+
+
+def test_training_with_canonical_legs_uses_left_legs_only(evaluator: FootholdEvaluator, tmp_path) -> None:
+    from tal_perception import train_vfa
+
+    common = ["--data", str(tmp_path / "data"), "--samples-per-leg", "10", "--epochs", "1", "--batch-size", "16",
+              "--decoder-channels", "8", "8", "8"]  # fmt: skip
+    args = train_vfa.parse_args(["--out", str(tmp_path / "out"), "--canonical-legs", *common])
+    train_set, val_set, _ = train_vfa.training_sets(args, evaluator)
+    assert set(train_set.leg.tolist()) | set(val_set.leg.tolist()) == {Leg.LF, Leg.LH}
+    assert len(train_set) + len(val_set) == 40  # each tuple once (the mirrored sets hold each twice)
+    report = train_vfa.train(args)
+    assert report["canonical_legs"] and report["net"]["canonical_legs"] and not report["mirrored"]
+    assert load_model(tmp_path / "out" / "vfa_cnn.pt").config.canonical_legs
+    with pytest.raises(SystemExit):
+        train_vfa.parse_args(["--out", "x", "--canonical-legs", "--no-mirror"])
