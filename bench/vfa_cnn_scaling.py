@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shlex
 import sys
 from pathlib import Path
 
@@ -159,7 +160,7 @@ def markdown(report: dict, argv: list[str]) -> str:
     lines = [
         "# VFA CNN: learning curve and capacity",
         "",
-        f"Command: `python bench/vfa_cnn_scaling.py {' '.join(argv)}`  ",
+        f"Command: `python bench/vfa_cnn_scaling.py {shlex.join(argv)}`  ",
         f"Scored on `{report['data']}` ({report['scored']} tuples with a safe candidate).",
         "",
         "| group | run | tuples per leg | epochs | parameters | training [s] | argmax: perfect match / safe "
@@ -173,6 +174,8 @@ def markdown(report: dict, argv: list[str]) -> str:
             f"{r['training_s']:.0f} | {100 * a['perfect_match']:.1f} / {100 * a['safe']:.1f} % | "
             f"{100 * c['perfect_match']:.1f} / {100 * c['safe']:.1f} % (lambda {r['combined_best_lambda']:g}) |"
         )
+    lines += ["", "Training commands (from each run's `vfa_cnn_training.json`):", ""]
+    lines += [f"- {r['label']}: `{r['command']}`" for r in report["runs"]]
     if "fits" in report:
         lines += [
             "",
