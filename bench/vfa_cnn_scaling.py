@@ -9,7 +9,8 @@
 
 Each ``--run GROUP LABEL WEIGHTS`` is a trained weight file with its ``vfa_cnn_training.json`` beside it (or
 ``WEIGHTS:TRAINING_JSON``). Groups: ``curve`` (trained from scratch with one recipe, only the data size
-differs: the learning curve that is fitted), ``wide`` (the same recipe with a wider network) and ``chain``
+differs: the learning curve that is fitted), ``check`` (the same recipe on more data, not fitted: scored
+against the fit's prediction), ``wide`` (the same recipe with a wider network) and ``chain``
 (the fine-tuned weights that were shipped, plotted for reference, not fitted). Every file is scored on one
 labelled set (default: the decode tuning set, seed 3, never trained on; the test seed 2 stays for the final
 model) with the thesis' argmax decode and with the ``combined`` decode at the lambda of the best perfect
@@ -44,7 +45,7 @@ from tal_perception.vfa_cnn import load_model  # noqa: E402
 from tal_perception.vfa_dataset import VfaDataset  # noqa: E402
 from tal_perception.vfa_decode import VfaDecode, decode  # noqa: E402
 
-GROUPS = ("curve", "wide", "chain")
+GROUPS = ("curve", "check", "wide", "chain")
 GOAL_MATCH, GOAL_SAFE = 0.85, 0.98
 
 
@@ -145,6 +146,12 @@ def main(argv: list[str] | None = None) -> int:
                 4 * tuples * samples_per_tuple * seconds_per_sample_epoch / 3600 if math.isfinite(tuples) else math.inf
             )
         report["fits"] = fits
+        for run in runs:  # the held-out runs of the same recipe against the fit's prediction
+            if run["group"] == "check":
+                run["predicted"] = {
+                    name: fit["intercept"] + fit["per_doubling"] * math.log2(run["tuples_per_leg"])
+                    for name, fit in fits.items()
+                }
         report["seconds_per_sample_epoch"] = seconds_per_sample_epoch
         report["labels_per_s"] = args.labels_per_s
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -174,6 +181,15 @@ def markdown(report: dict, argv: list[str]) -> str:
             f"{r['training_s']:.0f} | {100 * a['perfect_match']:.1f} / {100 * a['safe']:.1f} % | "
             f"{100 * c['perfect_match']:.1f} / {100 * c['safe']:.1f} % (lambda {r['combined_best_lambda']:g}) |"
         )
+    for r in report["runs"]:
+        if "predicted" in r:
+            p = r["predicted"]
+            lines += ["", f"Held-out check `{r['label']}` against the fit's prediction: argmax perfect match "
+                      f"{100 * r['argmax']['perfect_match']:.1f} % "
+                      f"(predicted {100 * p['argmax perfect match']:.1f} %), "
+                      f"safe {100 * r['argmax']['safe']:.1f} % ({100 * p['argmax safe']:.1f} %); combined "
+                      f"{100 * r['combined_best']['perfect_match']:.1f} / {100 * r['combined_best']['safe']:.1f} % "
+                      f"({100 * p['combined perfect match']:.1f} / {100 * p['combined safe']:.1f} %)."]  # fmt: skip
     lines += ["", "Training commands (from each run's `vfa_cnn_training.json`):", ""]
     lines += [f"- {r['label']}: `{r['command']}`" for r in report["runs"]]
     if "fits" in report:
@@ -202,7 +218,7 @@ def markdown(report: dict, argv: list[str]) -> str:
 def plot(report: dict, path: Path) -> None:
     """Perfect match and safe rate against tuples per leg (log axis), with the fit and the goal."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    markers = {"curve": ("o", "C0"), "wide": ("s", "C3"), "chain": ("^", "C2")}
+    markers = {"curve": ("o", "C0"), "check": ("D", "C1"), "wide": ("s", "C3"), "chain": ("^", "C2")}
     for ax, measure, goal, title in (
         (axes[0], "perfect_match", GOAL_MATCH, "perfect match"),
         (axes[1], "safe", GOAL_SAFE, "safe"),
@@ -215,9 +231,10 @@ def plot(report: dict, path: Path) -> None:
             ax.plot(x, [100 * r["argmax"][measure] for r in runs], marker, color=colour, label=f"{group}, argmax")
             ax.plot(x, [100 * r["combined_best"][measure] for r in runs], marker, color=colour, mfc="none",
                     label=f"{group}, combined")  # fmt: skip
-            for r in runs:
+            for k, r in enumerate(runs):  # the chain's labels below their points, alternating, to stay apart
+                offset = (4, -10 - 8 * (k % 2)) if group == "chain" else (3, 3)
                 ax.annotate(r["label"], (r["tuples_per_leg"], 100 * r["argmax"][measure]), fontsize=7,
-                            xytext=(3, 3), textcoords="offset points")  # fmt: skip
+                            xytext=offset, textcoords="offset points")  # fmt: skip
         for decode_key, style in (("argmax", "-"), ("combined", "--")):
             fit = report.get("fits", {}).get(f"{decode_key} {title}")
             if fit:
