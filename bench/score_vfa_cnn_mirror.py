@@ -26,14 +26,9 @@ from scipy.special import log_softmax
 
 from tal_perception.eval_vfa import score
 from tal_perception.tune_vfa_decode import network_outputs
-from tal_perception.vfa_cnn import load_model
+from tal_perception.vfa_cnn import load_model, mirror_cell_maps
 from tal_perception.vfa_dataset import VfaDataset, mirrored
 from tal_perception.vfa_decode import VfaDecode, decode
-
-
-def unmirror(values: np.ndarray, cells: int) -> np.ndarray:
-    """(B, n*n) per-candidate values of mirrored tuples, flipped back to the original columns."""
-    return values.reshape(len(values), cells, cells)[:, :, ::-1].reshape(len(values), -1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -55,8 +50,10 @@ def main(argv: list[str] | None = None) -> int:
     cells, resolution = data.cells, net.config.encoding.resolution_m
     logits, probability, unknown = network_outputs(net, data)
     mirror_logits, mirror_probability, _ = network_outputs(net, mirrored(data))
-    averaged_logits = 0.5 * (log_softmax(logits, axis=1) + unmirror(log_softmax(mirror_logits, axis=1), cells))
-    averaged_probability = 0.5 * (probability + unmirror(mirror_probability, cells))
+    every = np.ones(len(data), dtype=bool)  # each mirrored tuple's outputs flipped back to the original columns
+    averaged_logits = 0.5 * (log_softmax(logits, axis=1) + mirror_cell_maps(log_softmax(mirror_logits, axis=1),
+                                                                            every, cells))  # fmt: skip
+    averaged_probability = 0.5 * (probability + mirror_cell_maps(mirror_probability, every, cells))
     rows = []
     for weight in args.safe_weights:
         settings = VfaDecode(mode="combined", safe_weight=weight)

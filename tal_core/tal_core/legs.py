@@ -29,6 +29,7 @@ JOINT_KINDS: tuple[str, ...] = ("HAA", "HFE", "KFE")
 # Each leg's y-mirror (left <-> right at the same end): a robot symmetric about its base's x-z plane does on a
 # y-mirrored terrain with the mirrored leg what it does on the terrain with the leg.
 MIRROR_LEG: dict[Leg, Leg] = {Leg.LF: Leg.RF, Leg.RF: Leg.LF, Leg.LH: Leg.RH, Leg.RH: Leg.LH}
+MIRROR_LEG_INDEX: tuple[int, ...] = tuple(int(MIRROR_LEG[leg]) for leg in LEGS)  # by leg index (per-leg arrays)
 RIGHT_LEGS: tuple[Leg, ...] = (Leg.RF, Leg.RH)
 NUM_LEGS = len(LEGS)
 JOINTS_PER_LEG = len(JOINT_KINDS)

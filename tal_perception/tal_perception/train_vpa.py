@@ -24,16 +24,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tal_core.legs import LEGS, MIRROR_LEG
+from tal_core.legs import MIRROR_LEG_INDEX
 from tal_perception.rbf import RbfBasis
 from tal_perception.vpa_cnn import DEFAULT_WEIGHTS, CnnNsfModel, VpaNet, VpaNetConfig, encode_maps, encode_twist_leg
 from tal_perception.vpa_dataset import VpaDataset, build_evaluator, generate
 from tal_perception.vpa_settings import VpaSettings
 
 LOG = logging.getLogger("tal_perception.train_vpa")
-
-
-MIRROR_LEG_INDEX = np.array([MIRROR_LEG[leg] for leg in LEGS], dtype=np.int64)  # index: leg, value: its mirror
 
 
 def concatenate(datasets: list[VpaDataset]) -> VpaDataset:
@@ -45,8 +42,9 @@ def mirrored(dataset: VpaDataset) -> VpaDataset:
     """The left-right mirror image of every sample (same NSF labels, see the module docstring)."""
     twists = dataset.twists.copy()
     twists[:, [1, 3, 5]] *= -1.0  # vy, roll rate, yaw rate change sign under the mirror
-    return VpaDataset(dataset.heights[:, :, ::-1].copy(), twists, MIRROR_LEG_INDEX[dataset.legs], dataset.nsf,
-                      dataset.kinds, dataset.hip_heights)  # fmt: skip
+    legs = np.asarray(MIRROR_LEG_INDEX)[dataset.legs]
+    return VpaDataset(dataset.heights[:, :, ::-1].copy(), twists, legs, dataset.nsf, dataset.kinds,
+                      dataset.hip_heights)  # fmt: skip
 
 
 def subset(dataset: VpaDataset, index: np.ndarray) -> VpaDataset:

@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from torch import nn
 
 from tal_core.heightmap import HeightMapGrid
-from tal_core.legs import LEGS, MIRROR_LEG, RIGHT_LEGS, Leg
+from tal_core.legs import LEGS, RIGHT_LEGS, Leg
 from tal_perception import vfa_cnn_ort
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
@@ -59,6 +59,7 @@ from tal_perception.vfa import (
     patch_heading,
 )
 from tal_perception.vfa_cnn_fast import compile_fast_unet
+from tal_perception.vfa_dataset import mirror_tuples
 from tal_perception.vfa_decode import VfaDecode, decode, decode_unchecked
 
 FloatArray = NDArray[np.float64]
@@ -195,29 +196,22 @@ def encode(
 _LEG_INDICES = np.arange(len(LEGS))
 
 
-# Index: a leg's index in LEGS; value: its y-mirror's (LF <-> RF, LH <-> RH).
-MIRROR_LEG_INDEX = np.array([LEGS.index(MIRROR_LEG[leg]) for leg in LEGS], dtype=np.int64)
-RIGHT_LEG_INDICES = np.array([LEGS.index(leg) for leg in RIGHT_LEGS], dtype=np.int64)
-
-
 def canonical_inputs(
     heights: NDArray[np.floating], twist: ArrayLike, legs: ArrayLike
 ) -> tuple[NDArray[np.floating], NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
     """The inputs of a ``NetConfig.canonical_legs`` network: every right-leg tuple replaced by its y-mirror
-    (patch columns flipped, vy and yaw rate negated, the left leg of the same end), as ``vfa_dataset.mirrored``
-    does to a data set. heights (B, n, n) [m], twist (B, 6) [m/s, rad/s], legs (B,) indices into LEGS.
+    (``vfa_dataset.mirror_tuples``: patch columns flipped, vy and yaw rate negated, the left leg of the same
+    end). heights (B, n, n) [m], twist (B, 6) [m/s, rad/s], legs (B,) indices into LEGS.
     Returns (heights, twist, legs, right) with right (B,) True where a tuple was mirrored; the inputs are not
     modified (copies are made only when a right leg is present)."""
-    leg_index = np.asarray(legs, dtype=np.int64)
-    right = np.isin(leg_index, RIGHT_LEG_INDICES)
+    leg_index = np.array(legs, dtype=np.int64)
+    right = np.isin(leg_index, RIGHT_LEGS)
     twist_array = np.array(twist, dtype=np.float64)
     if not right.any():
         return heights, twist_array, leg_index, right
     heights = np.array(heights, copy=True)
-    heights[right] = heights[right][:, :, ::-1]
-    twist_array[right, 1] *= -1.0
-    twist_array[right, 5] *= -1.0
-    leg_index = np.where(right, MIRROR_LEG_INDEX[leg_index], leg_index)
+    heights[right], twist_array[right], leg_index[right] = mirror_tuples(heights[right], twist_array[right],
+                                                                         leg_index[right])  # fmt: skip
     return heights, twist_array, leg_index, right
 
 

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from tal_core.legs import LEGS, MIRROR_LEG, RIGHT_LEGS, Leg
+from tal_core.legs import LEGS, MIRROR_LEG_INDEX, RIGHT_LEGS, Leg
 from tal_perception.errors import FecConfigError
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_settings import FecInput, GaitTiming
@@ -253,27 +253,32 @@ def generate(
     return VfaDataset(heights, hip, twist, gait, leg_index, kind_index, safe, label, seed)
 
 
-def mirrored(data: VfaDataset) -> VfaDataset:
-    """The y-mirror of every sample: columns flipped, vy and yaw rate negated, left <-> right leg, labels
-    recomputed from the flipped safe masks (exact on robots symmetric about the base's x-z plane)."""
-    twist = data.twist.copy()
+def mirror_tuples(
+    heights: NDArray[np.floating], twist: NDArray[np.floating], legs: NDArray[np.integer]
+) -> tuple[NDArray[np.floating], NDArray[np.floating], NDArray[np.integer]]:
+    """The y-mirror of B tuples (new arrays, same dtypes): patch columns flipped (heights (B, n, n) [m]), vy and
+    yaw rate negated (twist (B, 6) [m/s, rad/s], horizontal frame), each leg index (B,) replaced by its mirror's."""
+    twist = np.array(twist, copy=True)
     twist[:, 1] *= -1.0
     twist[:, 5] *= -1.0
-    leg = np.array([LEGS.index(MIRROR_LEG[LEGS[i]]) for i in range(len(LEGS))], np.int8)[data.leg]
+    return np.ascontiguousarray(heights[:, :, ::-1]), twist, np.asarray(MIRROR_LEG_INDEX, legs.dtype)[legs]
+
+
+def mirrored(data: VfaDataset) -> VfaDataset:
+    """The y-mirror of every sample (``mirror_tuples``), labels recomputed from the flipped safe masks (exact on
+    robots symmetric about the base's x-z plane)."""
+    heights, twist, leg = mirror_tuples(data.heights, data.twist, data.leg)
     safe = np.ascontiguousarray(data.safe[:, :, ::-1])
     order = search_order(data.cells)
     label = np.array([closest_safe_index(m, order) for m in safe], np.int16)
-    return VfaDataset(
-        np.ascontiguousarray(data.heights[:, :, ::-1]), data.hip_height_m, twist, data.gait, leg, data.kind, safe,
-        label, data.seed,
-    )  # fmt: skip
+    return VfaDataset(heights, data.hip_height_m, twist, data.gait, leg, data.kind, safe, label, data.seed)
 
 
 def canonical_legs(data: VfaDataset) -> VfaDataset:
     """Every sample in the frame of a left leg: the left legs' samples as they are, then the y-mirrors
     (``mirrored``) of the right legs' samples; the training set of a ``NetConfig.canonical_legs`` network.
     Holds the same tuples as ``data`` (each once), so it carries what ``data`` plus its mirror does."""
-    right = np.isin(data.leg, [LEGS.index(leg) for leg in RIGHT_LEGS])
+    right = np.isin(data.leg, RIGHT_LEGS)
     return VfaDataset.concatenate([data.subset(~right), mirrored(data.subset(right))])
 
 
