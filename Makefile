@@ -21,16 +21,16 @@ bench: bootstrap
 		&& python bench/bench_vfa_cnn.py && python bench/bench_vpa.py && python bench/report.py
 
 datasets: bootstrap
-	@$(ENV) && python -m tal_control.experiments.datasets --out data --duration-s $(or $(DURATION),70)
+	@$(ENV) && python -m tal_lab.datasets --out data --duration-s $(or $(DURATION),70)
 
 experiments: bootstrap
-	@$(ENV) && python -m tal_control.experiments.swbc_experiments --out results/swbc \
-		&& python -m tal_control.experiments.stance_experiments --out results/stance \
-		&& python -m tal_control.experiments.estimation_experiments --out results/estimation \
+	@$(ENV) && python -m tal_lab.swbc_experiments --out results/swbc \
+		&& python -m tal_lab.stance_experiments --out results/stance \
+		&& python -m tal_lab.estimation_experiments --out results/estimation \
 		&& python -m tal_sim2real benchmark --out results/sim2real --data data/sim2real --count 30 --jobs 2 \
-		&& python -m tal_perception.eval_vfa --out results/vital && python -m tal_perception.eval_vpa --out results/vital \
-		&& python -m tal_perception.vpa_open_loop --out results/vital \
-		&& python -m tal_perception.vital_experiments --out results/vital --jobs 2
+		&& python -m tal_lab.vital.eval_vfa --out results/vital && python -m tal_lab.vital.eval_vpa --out results/vital \
+		&& python -m tal_lab.vital.vpa_open_loop --out results/vital \
+		&& python -m tal_lab.vital.vital_experiments --out results/vital --jobs 2
 
 lint: bootstrap
 	@$(ENV) && ruff check . && ruff format --check .

@@ -34,14 +34,14 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy import ndimage
+from tal_lab.vital.terrain_samples import TERRAIN_KINDS
+from tal_lab.vital.tune_vfa_decode import network_outputs
+from tal_lab.vital.vfa_dataset import VfaDataset, cache_path, load_or_generate
 
 from tal_core.robot_model import RobotModel
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.fec_grid import disc_offsets
-from tal_perception.terrain_samples import TERRAIN_KINDS
-from tal_perception.tune_vfa_decode import network_outputs
 from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, CnnFootholdSelector, load_model
-from tal_perception.vfa_dataset import VfaDataset, cache_path, load_or_generate
 from tal_perception.vfa_decode import VfaDecode, decode
 
 CRITERIA = ("terrain_roughness", "leg_collision", "kinematic_feasibility", "foot_trajectory_collision")

@@ -18,7 +18,7 @@ memory is the same for every bag length).
    traffic published at real-time rate by a publisher process for ``--live-s`` seconds; its CPU share is
    read from /proc and the messages it stored are compared with those published.
 3. Reading: ``BagReader`` decoding every message (what ``bag_player`` and the offline replay do).
-4. Offline replay: ``tal_estimation.replay`` (estimator + TCE) on a trot dataset bag (``data/`` from
+4. Offline replay: ``tal_lab.estimation_replay`` (estimator + TCE) on a trot dataset bag (``data/`` from
    ``make datasets`` when present, else a 10 s dataset generated into bench/out): multiple of real time.
 5. Memory (``--skip-memory`` to leave out): peak resident memory of a fresh process writing, then of one
    reading, a 1-minute and a 10-minute bag (``--quick``: 10 s and 100 s); goal 10-min <= 1.2 x 1-min.
@@ -41,16 +41,13 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+from common import OUT_DIR, ROOT, progress_for, requires_env, write_json  # bench/common.py (bench/ is on sys.path)
+from machine import machine_info  # bench/machine.py
 
-try:
-    from tal_core.bag_io import BagReader, BagWriter, exact_cdr, message_class
-except ImportError as _exc:  # environment problem, not a benchmark result
-    raise SystemExit(f"bench_bags: {_exc}; run it after `source scripts/env.sh`") from None
+with requires_env("bench_bags"):
+    from tal_core.ros.bag_io import BagReader, BagWriter, exact_cdr, message_class
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT_DIR = ROOT / "bench" / "out"
-JSON_PATH = OUT_DIR / "bench_bags.json"
+progress = progress_for("bench_bags")
 POOL = 500
 # Goals (issue): the live recorder below 10 % of one core, offline replay >= 20x real time, a 10-minute bag's
 # peak memory <= 1.2 x a 1-minute bag's.
@@ -180,7 +177,7 @@ def run_memory(durations: tuple[float, float]) -> list[dict]:
     for duration in durations:
         path = OUT_DIR / f"memory_{int(duration)}s"
         for case in ("write", "read"):
-            sys.stderr.write(f"[bench_bags] memory: {case} {duration:.0f} s bag\n")
+            progress(f"memory: {case} {duration:.0f} s bag")
             out = subprocess.run([sys.executable, __file__, "--memory-case", case, "--duration", str(duration),
                                   "--path", str(path)], check=True, capture_output=True, text=True)
             rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
@@ -197,7 +194,7 @@ PUBLISHER = r"""
 import sys, time, json, rclpy
 sys.path.insert(0, {bench!r})
 from bench_bags import TRAFFIC, message_pool
-from tal_core.bag_io import message_class
+from tal_core.ros.bag_io import message_class
 duration = float(sys.argv[1])
 pool = message_pool(1)
 rclpy.init()
@@ -255,21 +252,22 @@ def run_live(duration_s: float) -> dict[str, object]:
 
 
 def run_replay(quick: bool) -> dict[str, object]:
+    from tal_lab.estimation_replay import replay_bag
+
     from tal_core.robot_model import RobotModel
-    from tal_estimation.replay import replay_bag
 
     bag = ROOT / "data" / "trot_in_place_soft"
     if not (bag / "metadata.yaml").exists():
-        from tal_control.experiments.datasets import SCENARIOS, generate
+        from tal_lab.datasets import SCENARIOS, generate
 
         bag = OUT_DIR / "replay_dataset"
         if not (bag / "metadata.yaml").exists():
-            sys.stderr.write("[bench_bags] replay: generating a 10 s soft trot dataset (no data/ found)\n")
+            progress("replay: generating a 10 s soft trot dataset (no data/ found)")
             generate(SCENARIOS["trot_in_place_soft"], bag, 10.0, progress=False)
     model = RobotModel.from_name("hyq")
     rows = {}
     for mode in ("rigid", "terrain_aware"):
-        sys.stderr.write(f"[bench_bags] replay {bag.name} ({mode} leg odometry + TCE)\n")
+        progress(f"replay {bag.name} ({mode} leg odometry + TCE)")
         _, summary = replay_bag(bag, model, leg_odometry=mode, run_tce=True)
         rows[mode] = {"bag": bag.name, "bag_time_s": summary["bag_time_s"], "wall_s": summary["wall_time_s"],
                       "real_time_factor": summary["real_time_factor"]}
@@ -296,23 +294,23 @@ def main(argv: list[str] | None = None) -> int:
                                   "machine": machine_info(), "goals": GOALS,
                                   "settings": {"quick": args.quick, "live_s": 5.0 if args.quick else args.live_s},
                                   "messages_per_robot_second": messages_per_second()}
-    sys.stderr.write("[bench_bags] building the message pool\n")
+    progress("building the message pool")
     pool = message_pool()
     duration = 10.0 if args.quick else 60.0
-    sys.stderr.write(f"[bench_bags] writer: {duration:.0f} s of graph traffic\n")
+    progress(f"writer: {duration:.0f} s of graph traffic")
     path = OUT_DIR / "writer_bag"
     results["writer"] = write_bag(path, pool, duration)
-    sys.stderr.write("[bench_bags] reader\n")
+    progress("reader")
     results["reader"] = read_bag(path)
     shutil.rmtree(path, ignore_errors=True)
     if not args.skip_live:
-        sys.stderr.write(f"[bench_bags] live recorder: {args.live_s:.0f} s at real time\n")
+        progress(f"live recorder: {args.live_s:.0f} s at real time")
         results["live_recorder"] = run_live(5.0 if args.quick else args.live_s)
     if not args.skip_replay:
         results["replay"] = run_replay(args.quick)
     if not args.skip_memory:
         results["memory"] = run_memory((10.0, 100.0) if args.quick else (60.0, 600.0))
-    JSON_PATH.write_text(json.dumps(results, indent=2) + "\n")
+    write_json("bench_bags", results, indent=2)
     print(report(results))
     return 0
 

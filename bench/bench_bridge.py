@@ -34,9 +34,10 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+from common import OUT_DIR, ROOT, progress_for, requires_env, write_json  # bench/common.py (bench/ is on sys.path)
+from machine import machine_info  # bench/machine.py
 
-try:
+with requires_env("bench_bridge", "run it with `make bench` or after `source scripts/env.sh`"):
     from tal_control.stand_hold import StandHold
     from tal_core.heightmap import extract_heightmap
     from tal_core.robot_description import load_robot_description
@@ -45,11 +46,8 @@ try:
     from tal_core.terrain import load_course
     from tal_sim_bridge.bridge_core import BridgeCore
     from tal_sim_bridge.physics import Simulation
-except ImportError as _exc:  # environment problem, not a benchmark result
-    raise SystemExit(f"bench_bridge: {_exc}; run it with `make bench` or after `source scripts/env.sh`") from None
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT_PATH = ROOT / "bench" / "out" / "bench_bridge.json"
+OUT_PATH = OUT_DIR / "bench_bridge.json"
 INSTALL = ROOT / "ros2_ws" / "install"
 BRIDGE_EXE = INSTALL / "tal_sim_bridge" / "lib" / "tal_sim_bridge" / "sim_bridge"
 CONTROLLER_EXE = INSTALL / "tal_control" / "lib" / "tal_control" / "stand_controller"
@@ -63,8 +61,7 @@ LOOP_TARGET = ">= 1x (250 ticks/s)"
 CONTROLLER_READY_TIMEOUT_S = 20.0  # [s] most to wait for stand_controller to finish its start-up
 
 
-def progress(message: str) -> None:
-    print(f"[bench_bridge {time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
+progress = progress_for("bench_bridge")
 
 
 class CpuMeter:
@@ -623,8 +620,7 @@ def main() -> int:
     results["total_wall_s"] = time.perf_counter() - t_start
     results["quiet_wait_s"] = GATE.waited_s
     results["load_average_at_end_1_5_15min"] = [round(x, 2) for x in os.getloadavg()]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2) + "\n")
+    write_json(args.out, results, indent=2)
     m: dict = results["machine"]  # type: ignore[assignment]
     print(
         f"bench_bridge {m['date']}, {m['cpus']} CPUs ({m['cpu_model']}), commit {m['git_commit']}, "

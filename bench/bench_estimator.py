@@ -28,28 +28,20 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import gc
-import json
 import os
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
-from bench_wbc import fmt  # bench/ is on sys.path
-from machine import add_wait_quiet_option, cpu_snapshot, machine_info, other_cores_busy, settle_machine
+from common import ESTIMATOR_STATS, fmt, latency_stats, progress_for, requires_env, write_json  # bench/common.py
+from machine import add_wait_quiet_option, cpu_snapshot, machine_info, machine_record, other_cores_busy, settle_machine
 
-try:
+with requires_env("bench_estimator"):
     from tal_core.legs import LEGS, NUM_LEGS
     from tal_core.robot_model import RobotModel
     from tal_estimation.leg_odometry import LegImpedance, LegOdometrySettings
     from tal_estimation.state_estimator import StateEstimator, StateEstimatorSettings, legs_from_impedance_arrays
-except ImportError as _exc:  # environment problem, not a benchmark result
-    raise SystemExit(f"bench_estimator: {_exc}; run it after `source scripts/env.sh`") from None
-
-ROOT = Path(__file__).resolve().parents[1]
-OUT_DIR = ROOT / "bench" / "out"
-JSON_PATH = OUT_DIR / "bench_estimator.json"
 
 PERIOD_S = 0.003  # 333 Hz: the budget of one tick
 MODES = ("rigid", "terrain_aware")
@@ -61,28 +53,12 @@ PARTS = ("attitude", "leg_odometry", "foot_dynamics", "kalman_filter")
 DEFAULT_TICKS, QUICK_TICKS, DEFAULT_WARMUP, DEFAULT_SEED = 3000, 300, 200, 20240531
 
 
-def progress(message: str) -> None:
-    print(f"[bench_estimator {time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
+progress = progress_for("bench_estimator")
 
 
 def stats(samples_ms: list[float] | np.ndarray) -> dict:
     """Median, p90, p99, max and mean [ms], and the median's and p99's share of the 3 ms budget [%]."""
-    x = np.asarray(samples_ms, dtype=float)
-    if x.size == 0:
-        return {"n": 0}
-    out = {
-        "n": int(x.size),
-        "median": float(np.median(x)),
-        "p90": float(np.percentile(x, 90)),
-        "p99": float(np.percentile(x, 99)),
-        "max": float(x.max()),
-        "mean": float(x.mean()),
-    }
-    budget_ms = 1e3 * PERIOD_S
-    return out | {
-        "median_budget_pct": 100.0 * out["median"] / budget_ms,
-        "p99_budget_pct": 100.0 * out["p99"] / budget_ms,
-    }
+    return latency_stats(samples_ms, ESTIMATOR_STATS, budget_ms=1e3 * PERIOD_S)
 
 
 def generate_inputs(model: RobotModel, n: int, seed: int) -> dict[str, np.ndarray]:
@@ -276,15 +252,10 @@ def main() -> int:
     )
     print(table)
 
-    OUT_DIR.mkdir(parents=True, exist_ok=True)
     document = {
         "benchmark": "bench_estimator",
         "date": now.isoformat(timespec="seconds"),
-        "machine": {
-            **machine_info(),
-            "load_average_at_start_1_5_15min": load_at_start,
-            "other_processes_cores_busy": other_load,
-        },
+        "machine": machine_record(load_at_start, other_load),
         "budget_ms": 1e3 * PERIOD_S,
         "ticks_per_round": n,
         "warmup_ticks": args.warmup,
@@ -296,8 +267,7 @@ def main() -> int:
         "table_markdown": table,
         "raw": {mode: {"update_ms": [r["update_ms"] for r in rounds[mode]], "parts_ms": parts[mode]} for mode in MODES},
     }
-    JSON_PATH.write_text(json.dumps(document, indent=1))
-    progress(f"wrote {JSON_PATH.relative_to(ROOT)}")
+    write_json("bench_estimator", document, log=progress)
     return 0
 
 

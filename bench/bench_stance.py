@@ -19,31 +19,25 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import gc
-import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-from bench_wbc import GROUPS, generate_states, references, stats  # bench/ is on sys.path
+from bench_wbc import GROUPS, generate_states, references  # bench/ is on sys.path
+from common import latency_stats, progress_for, requires_env, write_json  # bench/common.py
 from machine import machine_info
 
-try:
+with requires_env("bench_stance"):
     from tal_control.wbc import StandardWbc, WbcSettings
     from tal_control.wbc.tasks import WbcGains
     from tal_core.legs import NUM_LEGS
     from tal_core.robot_model import RobotModel
     from tal_estimation.tce import ContactSample, TceSettings, TerrainComplianceEstimator
-except ImportError as _exc:
-    raise SystemExit(f"bench_stance: {_exc}; run it after `source scripts/env.sh`") from None
 
-OUT = Path(__file__).resolve().parent / "out"
 GOALS_MS = {"tce_update_median": 0.1, "c3wbc_cycle_median": 0.6}  # the goals (docstring)
 T1_STIFFNESS, DAMPING = 3500.0, 400.0
 
 
-def progress(message: str) -> None:
-    sys.stderr.write(f"[bench_stance] {message}\n")
+progress = progress_for("bench_stance")
 
 
 def bench_tce_update(n: int, seed: int = 0) -> dict:
@@ -69,7 +63,7 @@ def bench_tce_update(n: int, seed: int = 0) -> dict:
         tce.update(s)
         times[i] = time.perf_counter() - t0
     k = [e.stiffness_n_per_m for e in tce.estimates]
-    return {"update_ms": stats((1e3 * times).tolist()), "final_estimates_n_per_m": k}
+    return {"update_ms": latency_stats((1e3 * times).tolist()), "final_estimates_n_per_m": k}
 
 
 def bench_contact_states(states: dict, n: int) -> dict:
@@ -83,7 +77,7 @@ def bench_contact_states(states: dict, n: int) -> dict:
         t0 = time.perf_counter()
         tce.contact_states(q, v, tau, height=lambda x, y: 0.0)
         times[i] = time.perf_counter() - t0
-    return {"contact_states_ms": stats((1e3 * times).tolist())}
+    return {"contact_states_ms": latency_stats((1e3 * times).tolist())}
 
 
 def wbc_round(model: RobotModel, states: dict, compliant: bool) -> dict[str, list[float]]:
@@ -126,12 +120,11 @@ def main() -> int:
             progress(f"WBC round {round_index + 1}/2: {kind}")
             for key, values in wbc_round(model, states, kind == "compliant").items():
                 pooled[kind].setdefault(key, []).extend(values)
-    wbc = {kind: {str(g): stats(pooled[kind][str(g)]) | {"fallbacks": int(sum(pooled[kind][f"{g}_fallbacks"]))}
+    wbc = {kind: {str(g): latency_stats(pooled[kind][str(g)]) | {"fallbacks": int(sum(pooled[kind][f"{g}_fallbacks"]))}
                   for g in GROUPS} for kind in pooled}
     summary = {"benchmark": "bench_stance", "machine": machine_info(), "settings": {"quick": args.quick},
                "goals_ms": GOALS_MS, "tce": tce, "contact_states": contact, "wbc": wbc}
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "bench_stance.json").write_text(json.dumps(summary, indent=2))
+    write_json("bench_stance", summary, indent=2)
     u, c = tce["update_ms"], contact["contact_states_ms"]
     lines = ["| part | median [ms] | p99 [ms] | goal (median) |", "|---|---|---|---|",
              f"| TCE update, 4 legs, full windows | {u['median']:.3f} | {u['p99']:.3f} | 0.1 ms |",

@@ -4,7 +4,7 @@
 Run after ``source scripts/env.sh``:  ``python bench/bench_vfa.py [--quick] [--samples N] [--seed S]``.
 Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/bench_vfa.json`` (git-ignored).
 
-Inputs (seeded, the same for every leg): ``--samples`` terrains from ``tal_perception.terrain_samples``
+Inputs (seeded, the same for every leg): ``--samples`` terrains from ``tal_lab.vital.terrain_samples``
 cycling through flat, bars, gaps, stairs and rocks, each a 65 x 65 map of 0.02 m cells around the
 nominal foothold at a random heading, with a random hip height (nominal +-0.05 m above the terrain's
 base height), a random base twist (vx in [0, 0.5] m/s, vy +-0.1 m/s, yaw rate +-0.3 rad/s) and a random
@@ -26,35 +26,24 @@ This is a benchmark, never a pass/fail test.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
-from machine import (  # bench/machine.py
-    add_wait_quiet_option,
-    cpu_snapshot,
-    machine_info,
-    other_cores_busy,
-    settle_machine,
-)
+from common import VITAL_STATS, latency_stats, progress_for, requires_env, write_json  # bench/common.py
+from machine import add_wait_quiet_option, cpu_snapshot, machine_info, other_cores_busy, settle_machine
 
-try:
+with requires_env("bench_vfa"):
+    from tal_lab.vital.terrain_samples import terrain_samples
+
     from tal_core.heightmap import HeightMapGrid
     from tal_core.legs import LEGS
     from tal_core.robot_model import RobotModel
     from tal_perception.fec import FootholdEvaluator
     from tal_perception.fec_settings import GaitTiming
-    from tal_perception.terrain_samples import terrain_samples
     from tal_perception.vfa import FootholdSelector
-except ImportError as _exc:  # environment problem, not a benchmark result
-    raise SystemExit(f"bench_vfa: {_exc}; run it after `source scripts/env.sh`") from None
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT_DIR = ROOT / "bench" / "out"
-JSON_PATH = OUT_DIR / "bench_vfa.json"
 THESIS_MEAN_MS = 7.5
 GOAL_MS = 1.0
 MAP_CELLS = 65
@@ -63,8 +52,7 @@ QUICK_SAMPLES = 40
 DEFAULT_SEED = 20240601
 
 
-def progress(message: str) -> None:
-    print(f"[bench_vfa] {message}", file=sys.stderr, flush=True)
+progress = progress_for("bench_vfa")
 
 
 def make_cases(model: RobotModel, n: int, seed: int) -> list[dict]:
@@ -103,18 +91,6 @@ def run(selector: FootholdSelector, cases: list[dict], lazy: bool) -> dict[str, 
     return out
 
 
-
-
-
-
-
-
-def stats(samples: list[float]) -> dict:
-    x = np.asarray(samples, dtype=float)
-    return {"n": int(x.size), "median": float(np.median(x)), "p99": float(np.percentile(x, 99)),
-            "mean": float(x.mean()), "std": float(x.std()), "max": float(x.max())}  # fmt: skip
-
-
 def report(summary: dict) -> str:
     lines = [
         "| leg | exact VFA median [ms] | p99 [ms] | round medians [ms] | full FEC + argmin median [ms] | p99 [ms] "
@@ -146,7 +122,6 @@ def main() -> int:
     n = args.samples or (QUICK_SAMPLES if args.quick else DEFAULT_SAMPLES)
     if n < 5 or args.rounds < 1:
         parser.error("need --samples >= 5 and --rounds >= 1")
-    OUT_DIR.mkdir(parents=True, exist_ok=True)
     load_at_start = settle_machine(args.wait_quiet, progress)
     model = RobotModel.from_name("hyq")
     selector = FootholdSelector(FootholdEvaluator(model))
@@ -165,7 +140,8 @@ def main() -> int:
                 entry = pooled[key].setdefault(leg, {"ms": [], "status": value["status"], "adapted": value["adapted"]})
                 entry["ms"].extend(value["ms"])
                 round_medians[key].setdefault(leg, []).append(float(np.median(value["ms"])))
-    summary = {key: {leg: {**r, "stats": stats(r["ms"]), "round_medians_ms": round_medians[key][leg]}
+    summary = {key: {leg: {**r, "stats": latency_stats(r["ms"], VITAL_STATS),
+                           "round_medians_ms": round_medians[key][leg]}
                      for leg, r in value.items()} for key, value in pooled.items()}  # fmt: skip
     busy = [b for b in others_busy if b is not None]
     progress(f"other processes kept {np.mean(busy):.2f} cores busy on average" if busy else "CPU use unknown")
@@ -191,8 +167,7 @@ def main() -> int:
         },  # fmt: skip
         "samples_ms": {key: {leg: r["ms"] for leg, r in value.items()} for key, value in summary.items()},
     }
-    JSON_PATH.write_text(json.dumps(document, indent=1))
-    progress(f"wrote {JSON_PATH.relative_to(ROOT)}")
+    write_json("bench_vfa", document, log=progress)
     return 0
 
 

@@ -31,22 +31,16 @@ Thesis figure: CNN VFA 3.5 ms +- 1 ms per leg (mean); goal <= 0.5 ms. A benchmar
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from bench_vfa import make_cases, stats
-from machine import (  # bench/machine.py
-    add_wait_quiet_option,
-    cpu_snapshot,
-    machine_info,
-    other_cores_busy,
-    settle_machine,
-)
+from bench_vfa import make_cases
+from common import OUT_DIR, VITAL_STATS, latency_stats, progress_for, requires_env, write_json  # bench/common.py
+from machine import add_wait_quiet_option, cpu_snapshot, machine_info, other_cores_busy, settle_machine
 
-try:
+with requires_env("bench_vfa_cnn"):
     import torch
 
     import tal_perception
@@ -54,11 +48,7 @@ try:
     from tal_core.robot_model import RobotModel
     from tal_perception.fec import FootholdEvaluator
     from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, CnnFootholdSelector, FootholdRequest, load_model
-except ImportError as _exc:  # environment problem, not a benchmark result
-    raise SystemExit(f"bench_vfa_cnn: {_exc}; run it after `source scripts/env.sh`") from None
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT_DIR = ROOT / "bench" / "out"
 JSON_PATH = OUT_DIR / "bench_vfa_cnn.json"
 THESIS_MEAN_MS = 3.5
 GOAL_MS = 0.5
@@ -69,8 +59,7 @@ MODES = ("cnn", "cnn_4legs", "cnn_2legs", "cnn_verified")
 BATCHES = {"cnn_4legs": LEGS, "cnn_2legs": (LEGS[0], LEGS[3])}  # all legs; a trot's diagonal pair (LF, RH)
 
 
-def progress(message: str) -> None:
-    print(f"[bench_vfa_cnn] {message}", file=sys.stderr, flush=True)
+progress = progress_for("bench_vfa_cnn")
 
 
 def _kwargs(case: dict) -> dict:
@@ -143,12 +132,8 @@ def headline(summary: dict) -> dict[str, dict[str, float]]:
     verified = [t for r in summary["cnn_verified"].values() for t in r["ms"]]
     batch = summary["cnn_4legs"]["4legs"]["ms_per_leg"]
     pair = summary["cnn_2legs"]["2legs"]["ms_per_leg"]
-    return {
-        "4legs_per_leg": {k: stats(batch)[k] for k in ("median", "p99")},
-        "2legs_per_leg": {k: stats(pair)[k] for k in ("median", "p99")},
-        "one_leg": {k: stats(single)[k] for k in ("median", "p99")},
-        "verified": {k: stats(verified)[k] for k in ("median", "p99")},
-    }
+    samples = {"4legs_per_leg": batch, "2legs_per_leg": pair, "one_leg": single, "verified": verified}
+    return {key: {k: latency_stats(x, VITAL_STATS)[k] for k in ("median", "p99")} for key, x in samples.items()}
 
 
 def comparison(headlines: dict[str, dict[str, dict[str, float]]], labels: dict[str, str]) -> str:
@@ -194,7 +179,6 @@ def main() -> int:
     if not backends or any(b not in ("onnxruntime", "torch") for b in backends) or len(set(backends)) != len(backends):
         parser.error("--backends: distinct names out of onnxruntime, torch")
     torch.set_num_threads(1)
-    OUT_DIR.mkdir(parents=True, exist_ok=True)
     load_at_start = settle_machine(args.wait_quiet, progress)
     model = RobotModel.from_name("hyq")
     net = load_model(args.weights)
@@ -233,11 +217,12 @@ def main() -> int:
                     round_medians[backend][mode].setdefault(key, []).append(float(np.median(value["ms"])))
     summaries = {}
     for backend in backends:
-        summary = {mode: {key: {**r, "stats": stats(r["ms"]), "round_medians_ms": round_medians[backend][mode][key]}
+        summary = {mode: {key: {**r, "stats": latency_stats(r["ms"], VITAL_STATS),
+                                "round_medians_ms": round_medians[backend][mode][key]}
                           for key, r in value.items()} for mode, value in pooled[backend].items()}  # fmt: skip
         for mode, legs in BATCHES.items():
             batch = summary[mode][f"{len(legs)}legs"]
-            batch["per_leg_stats"] = stats(batch["ms_per_leg"])
+            batch["per_leg_stats"] = latency_stats(batch["ms_per_leg"], VITAL_STATS)
         summaries[backend] = summary
     busy = [b for b in others_busy if b is not None]
     progress(f"other processes kept {np.mean(busy):.2f} cores busy on average" if busy else "CPU use unknown")
@@ -277,9 +262,7 @@ def main() -> int:
             for b in backends
         },  # fmt: skip
     }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(document, indent=1))
-    progress(f"wrote {args.json}")
+    write_json(args.json, document, log=progress)
     return 0
 
 

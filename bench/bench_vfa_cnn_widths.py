@@ -19,7 +19,8 @@ import sys
 import time
 
 import torch
-from bench_vfa import make_cases, stats
+from bench_vfa import make_cases
+from common import VITAL_STATS, latency_stats  # bench/common.py
 
 from tal_core.legs import LEGS
 from tal_core.robot_model import RobotModel
@@ -85,7 +86,7 @@ def main() -> int:
           "one leg per call: median (p99) [ms] |")  # fmt: skip
     print("| --- | --- | --- | --- | --- |")
     for (text, backend), (_, parameters) in selectors.items():
-        b, o = stats(times[(text, backend)]["batch"]), stats(times[(text, backend)]["one"])
+        b, o = (latency_stats(times[(text, backend)][key], VITAL_STATS) for key in ("batch", "one"))
         print(f"| {text} | {parameters:,} | {backend} | {b['median']:.3f} ({b['p99']:.3f}) | "
               f"{o['median']:.3f} ({o['p99']:.3f}) |")  # fmt: skip
     return 0

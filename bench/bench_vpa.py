@@ -4,7 +4,7 @@
 Run after ``source scripts/env.sh``:  ``python bench/bench_vpa.py [--quick] [--scenes N] [--rounds R]``.
 Prints a markdown table on stdout, progress on stderr, and writes ``bench/out/bench_vpa.json`` (git-ignored).
 
-Inputs: ``--scenes`` seeded whole-robot scenes (``tal_perception.vpa_scenes``: flat, bars, gaps,
+Inputs: ``--scenes`` seeded whole-robot scenes (``tal_lab.vital.vpa_scenes``: flat, bars, gaps,
 stairs, rocks ahead of the robot; a 141 x 141 map of 0.02 m cells; forward twist 0.1-0.4 m/s, so the
 two horizon stages have different maps: 8 leg maps per update), trot gait, cost C_int, L-BFGS-B.
 One ``PoseAdapter.update`` call is timed per scene (time.perf_counter; the call includes the extraction
@@ -20,45 +20,31 @@ Goals of the issue: exact <= 50 ms, CNN <= 20 ms. A benchmark, never a pass/fail
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
-from bench_vfa import stats
-from machine import (  # bench/machine.py
-    add_wait_quiet_option,
-    cpu_snapshot,
-    machine_info,
-    other_cores_busy,
-    settle_machine,
-)
+from common import VITAL_STATS, latency_stats, progress_for, requires_env, write_json  # bench/common.py
+from machine import add_wait_quiet_option, cpu_snapshot, machine_info, other_cores_busy, settle_machine
 
-try:
+with requires_env("bench_vpa"):
     import torch
+    from tal_lab.vital.vpa_dataset import TROT_GAIT
+    from tal_lab.vital.vpa_scenes import vpa_scenes
 
     from tal_core.robot_model import RobotModel
     from tal_perception.fec import FootholdEvaluator
     from tal_perception.vpa import PoseAdapter
     from tal_perception.vpa_cnn import CnnNsfModel
-    from tal_perception.vpa_dataset import TROT_GAIT
-    from tal_perception.vpa_scenes import vpa_scenes
-except ImportError as _exc:  # environment problem, not a benchmark result
-    raise SystemExit(f"bench_vpa: {_exc}; run it after `source scripts/env.sh`") from None
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT_DIR = ROOT / "bench" / "out"
-JSON_PATH = OUT_DIR / "bench_vpa.json"
 THESIS_MS = {"exact": 720.0, "cnn": 180.0}
 GOAL_MS = {"exact": 50.0, "cnn": 20.0}
 DEFAULT_SCENES, QUICK_SCENES = 40, 10
 DEFAULT_SEED = 20240602
 
 
-def progress(message: str) -> None:
-    print(f"[bench_vpa] {message}", file=sys.stderr, flush=True)
+progress = progress_for("bench_vpa")
 
 
 def run(adapter: PoseAdapter, scenes: list) -> dict[str, object]:
@@ -104,7 +90,6 @@ def main() -> int:
     if n < 2 or args.rounds < 1:
         parser.error("need --scenes >= 2 and --rounds >= 1")
     torch.set_num_threads(1)
-    OUT_DIR.mkdir(parents=True, exist_ok=True)
     load_at_start = settle_machine(args.wait_quiet, progress)
     model = RobotModel.from_name("hyq")
     evaluator = FootholdEvaluator(model)
@@ -128,7 +113,7 @@ def main() -> int:
                 entry[key].extend(result[key])
             entry["round_medians_ms"].append(float(np.median(result["ms"])))
     for row in pooled.values():
-        row["stats"] = stats(row["ms"])
+        row["stats"] = latency_stats(row["ms"], VITAL_STATS)
     busy = [b for b in others_busy if b is not None]
     progress(f"other processes kept {np.mean(busy):.2f} cores busy on average" if busy else "CPU use unknown")
     print(report(pooled))
@@ -146,8 +131,7 @@ def main() -> int:
         "samples_ms": {mode: {k: row[k] for k in ("ms", "evaluation_ms", "optimisation_ms")}
                        for mode, row in pooled.items()},  # fmt: skip
     }
-    JSON_PATH.write_text(json.dumps(document, indent=1))
-    progress(f"wrote {JSON_PATH.relative_to(ROOT)}")
+    write_json("bench_vpa", document, log=progress)
     return 0
 
 

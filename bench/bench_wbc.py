@@ -42,15 +42,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from machine import (  # bench/machine.py
-    add_wait_quiet_option,
-    cpu_snapshot,
-    machine_info,
-    other_cores_busy,
-    settle_machine,
-)
+from common import OUT_DIR, ROOT, fmt, latency_stats, progress_for, requires_env, write_json  # bench/common.py
+from machine import add_wait_quiet_option, cpu_snapshot, machine_info, machine_record, other_cores_busy, settle_machine
 
-try:
+with requires_env("bench_wbc"):
     import osqp
     import pinocchio as pin
 
@@ -59,13 +54,8 @@ try:
     from tal_core.legs import NUM_LEGS
     from tal_core.robot_description import find_example_robot_data_dir
     from tal_core.robot_model import RobotModel
-except ImportError as _exc:  # environment problem, not a benchmark result
-    raise SystemExit(f"bench_wbc: {_exc}; run it after `source scripts/env.sh`") from None
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT_DIR = ROOT / "bench" / "out"
 STATES_PATH = OUT_DIR / "wbc_states.npz"
-JSON_PATH = OUT_DIR / "bench_wbc.json"
 SETUP_SCRIPT = ROOT / "bench" / "setup_tsid_venv.sh"
 TSID_SIDE = ROOT / "bench" / "tsid_side.py"
 TSID_VENV = Path(os.environ.get("TAL_TSID_VENV", OUT_DIR / ".venv-tsid"))
@@ -83,8 +73,7 @@ DEFAULT_SEED = 20240531
 UP = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1))
 
 
-def progress(message: str) -> None:
-    print(f"[bench_wbc {time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
+progress = progress_for("bench_wbc")
 
 
 # -- 1. the state set ------------------------------------------------------------------------------------
@@ -363,31 +352,8 @@ def run_tsid(round_index: int) -> dict:
 
 
 # -- 4. statistics and report ------------------------------------------------------------------------------
-def stats(samples: list[float]) -> dict:
-    if not samples:
-        return {"n": 0, "median": None, "p99": None, "max": None}
-    x = np.asarray(samples, dtype=float)
-    return {
-        "n": int(x.size),
-        "median": float(np.median(x)),
-        "p99": float(np.percentile(x, 99)),
-        "max": float(x.max()),
-        "mean": float(x.mean()),
-    }
-
-
 def pool(rounds: list[dict], group: str, key: str) -> list[float]:
     return [value for r in rounds for value in r[group][key]]
-
-
-
-
-
-
-
-
-def fmt(value: float | None, digits: int = 3) -> str:
-    return "n/a" if value is None else f"{value:.{digits}f}"
 
 
 def report(summary: dict) -> str:
@@ -523,15 +489,15 @@ def main() -> int:
     summary: dict = {"ours": {}, "tsid": {}}
     for group in map(str, GROUPS):
         summary["ours"][group] = {
-            "cycle": stats(pool(ours_rounds, group, "cycle_ms")),
-            "update": stats(pool(ours_rounds, group, "update_ms")),
-            "wbc_solve": stats(pool(ours_rounds, group, "wbc_solve_ms")),
-            "osqp_solve": stats(pool(ours_rounds, group, "osqp_solve_ms")),
-            "iterations": stats([float(i) for i in pool(ours_rounds, group, "iterations")]),
+            "cycle": latency_stats(pool(ours_rounds, group, "cycle_ms")),
+            "update": latency_stats(pool(ours_rounds, group, "update_ms")),
+            "wbc_solve": latency_stats(pool(ours_rounds, group, "wbc_solve_ms")),
+            "osqp_solve": latency_stats(pool(ours_rounds, group, "osqp_solve_ms")),
+            "iterations": latency_stats([float(i) for i in pool(ours_rounds, group, "iterations")]),
             "states": sum(r[group]["states"] for r in ours_rounds),
             "not_solved": sum(r[group]["not_solved"] for r in ours_rounds),
             "first_solve_ms": float(np.median([r[group]["first_solve_ms"] for r in ours_rounds])),
-            "round_medians_ms": [stats(r[group]["cycle_ms"])["median"] for r in ours_rounds],
+            "round_medians_ms": [latency_stats(r[group]["cycle_ms"])["median"] for r in ours_rounds],
             "median_total_fz_n": ours_rounds[-1][group]["median_total_fz_n"],
             "median_tau_norm_nm": ours_rounds[-1][group]["median_tau_norm_nm"],
             "status_counts": ours_rounds[-1][group]["status_counts"],
@@ -539,11 +505,11 @@ def main() -> int:
         if tsid_rounds:
             groups = [t["groups"][group] for t in tsid_rounds]
             summary["tsid"][group] = {
-                "cycle": stats([x for g in groups for x in g["cycle_ms"]]),
+                "cycle": latency_stats([x for g in groups for x in g["cycle_ms"]]),
                 "states": sum(g["states"] for g in groups),
                 "failures": sum(g["failures"] for g in groups),
                 "first_solve_ms": float(np.median([g["first_solve_ms"] for g in groups])),
-                "round_medians_ms": [stats(g["cycle_ms"])["median"] for g in groups],
+                "round_medians_ms": [latency_stats(g["cycle_ms"])["median"] for g in groups],
                 "qp_size": groups[-1]["qp_size"],
                 "median_total_fz_n": groups[-1]["median_total_fz_n"],
                 "median_tau_norm_nm": groups[-1]["median_tau_norm_nm"],
@@ -576,11 +542,7 @@ def main() -> int:
     document = {
         "benchmark": "bench_wbc",
         "date": now.isoformat(timespec="seconds"),
-        "machine": {
-            **machine_info(),
-            "load_average_at_start_1_5_15min": load_at_start,
-            "other_processes_cores_busy": other_load,
-        },
+        "machine": machine_record(load_at_start, other_load),
         "versions": {
             "numpy": np.__version__,
             "osqp": getattr(osqp, "__version__", "?"),
@@ -599,8 +561,7 @@ def main() -> int:
         "table_markdown": table,
         "raw": {"ours": ours_rounds, "tsid": [t["groups"] for t in tsid_rounds]},
     }
-    JSON_PATH.write_text(json.dumps(document, indent=1))
-    progress(f"wrote {JSON_PATH.relative_to(ROOT)}")
+    write_json("bench_wbc", document, log=progress)
     return 0
 
 

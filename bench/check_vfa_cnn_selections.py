@@ -38,15 +38,15 @@ from bench_vfa import make_cases
 
 try:
     import torch
+    from tal_lab.vital.eval_vfa import predict_all
+    from tal_lab.vital.vfa_dataset import VfaDataset
 
     from tal_core.heightmap import HeightMapGrid
     from tal_core.legs import LEGS
     from tal_core.robot_model import RobotModel
-    from tal_perception.eval_vfa import predict_all
     from tal_perception.fec import FootholdEvaluator
     from tal_perception.vfa import VfaStatus
     from tal_perception.vfa_cnn import CnnFootholdSelector, FootholdRequest
-    from tal_perception.vfa_dataset import VfaDataset
 except ImportError as _exc:  # environment problem, not a result
     raise SystemExit(f"check_vfa_cnn_selections: {_exc}; run it after `source scripts/env.sh`") from None
 

@@ -2,7 +2,7 @@
 """Do the VFA CNN's network runtimes select the same candidates? (ONNX Runtime vs torch fast path vs plain.)
 
 Run after ``source scripts/env.sh``:  ``python bench/compare_vfa_cnn_backends.py [--weights F] [--data D]``.
-On the protocol's test set (``<data>/test_seed2_n4401.npz``, made by ``python -m tal_perception.eval_vfa``),
+On the protocol's test set (``<data>/test_seed2_n4401.npz``, made by ``python -m tal_lab.vital.eval_vfa``),
 ``CnnFootholdSelector.predict`` (batches of 256, no verification) with the weights' stored decode and with the
 argmax, once per backend; prints each run's time and how many of the tuples' selections differ between them.
 """
@@ -15,12 +15,12 @@ import time
 from pathlib import Path
 
 import torch
+from tal_lab.vital.eval_vfa import predict_all
+from tal_lab.vital.vfa_dataset import VfaDataset
 
 from tal_core.robot_model import RobotModel
-from tal_perception.eval_vfa import predict_all
 from tal_perception.fec import FootholdEvaluator
 from tal_perception.vfa_cnn import DEFAULT_WEIGHTS, CnnFootholdSelector, load_model
-from tal_perception.vfa_dataset import VfaDataset
 from tal_perception.vfa_decode import VfaDecode
 
 

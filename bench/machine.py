@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from common import ROOT  # bench/common.py (the script folder is on sys.path)
 
 
 def machine_info() -> dict[str, object]:
@@ -36,6 +36,16 @@ def machine_info() -> dict[str, object]:
         "git_commit": commit,
         "rmw": os.environ.get("RMW_IMPLEMENTATION", "default (rmw_fastrtps_cpp)"),
         "load_average_1_5_15min": [round(x, 2) for x in os.getloadavg()],
+    }
+
+
+def machine_record(load_at_start: list[float], other_busy: float | None) -> dict[str, object]:
+    """``machine_info()`` plus the 1/5/15 min load averages when the measurement started and how many cores other
+    processes kept busy on average meanwhile (the ``machine`` section of bench_wbc's and bench_estimator's JSON)."""
+    return {
+        **machine_info(),
+        "load_average_at_start_1_5_15min": load_at_start,
+        "other_processes_cores_busy": other_busy,
     }
 
 

@@ -22,10 +22,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from machine import machine_info  # bench/machine.py (the script folder is on sys.path)
+from common import OUT_DIR, ROOT  # bench/common.py (the script folder is on sys.path)
+from machine import machine_info  # bench/machine.py
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT_DIR = ROOT / "bench" / "out"
 OUTPUT = ROOT / "results" / "bench.md"
 
 # Thesis figures (seed 000_a1bc1bec5ccfad53.txt, line numbers there).

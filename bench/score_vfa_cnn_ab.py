@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tal_lab.vital.eval_vfa import score
+from tal_lab.vital.terrain_samples import TERRAIN_KINDS
+from tal_lab.vital.tune_vfa_decode import network_outputs, safe_head_quality
+from tal_lab.vital.vfa_dataset import VfaDataset
 
-from tal_perception.eval_vfa import score
-from tal_perception.terrain_samples import TERRAIN_KINDS
-from tal_perception.tune_vfa_decode import network_outputs, safe_head_quality
 from tal_perception.vfa_cnn import load_model
-from tal_perception.vfa_dataset import VfaDataset
 from tal_perception.vfa_decode import VfaDecode, decode
 
 

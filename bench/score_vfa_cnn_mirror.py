@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.special import log_softmax
+from tal_lab.vital.eval_vfa import score
+from tal_lab.vital.tune_vfa_decode import network_outputs
+from tal_lab.vital.vfa_dataset import VfaDataset, mirrored
 
-from tal_perception.eval_vfa import score
-from tal_perception.tune_vfa_decode import network_outputs
 from tal_perception.vfa_cnn import load_model, mirror_cell_maps
-from tal_perception.vfa_dataset import VfaDataset, mirrored
 from tal_perception.vfa_decode import VfaDecode, decode
 
 
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     if not args.data.exists():
-        parser.error(f"{args.data}: no such labelled set (make it with python -m tal_perception.eval_vfa)")
+        parser.error(f"{args.data}: no such labelled set (make it with python -m tal_lab.vital.eval_vfa)")
     if any(not np.isfinite(w) or w < 0.0 for w in args.safe_weights):
         parser.error(f"--safe-weights must be finite and >= 0, got {args.safe_weights}")
     torch.set_num_threads(1)

@@ -39,10 +39,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from score_vfa_cnn_ab import rates  # noqa: E402  (bench/ is on sys.path when this script runs)
+from tal_lab.vital.tune_vfa_decode import network_outputs  # noqa: E402
+from tal_lab.vital.vfa_dataset import VfaDataset  # noqa: E402
 
-from tal_perception.tune_vfa_decode import network_outputs  # noqa: E402
 from tal_perception.vfa_cnn import load_model  # noqa: E402
-from tal_perception.vfa_dataset import VfaDataset  # noqa: E402
 from tal_perception.vfa_decode import VfaDecode, decode  # noqa: E402
 
 GROUPS = ("curve", "check", "wide", "chain")

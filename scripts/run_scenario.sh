@@ -69,7 +69,7 @@ walk() {
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
         "${vfa[@]+"${vfa[@]}"}" "${nodes[@]}" \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
-    python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
+    python -m tal_lab.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
         --estimator "$dir/estimator_summary.json" \
         --title "HyQ $gait at $speed m/s on '$course', control on the $state_source base state" --output "$RUN_ROOT/report.md"
     if [ -f "$dir/vfa_summary.json" ]; then
@@ -99,7 +99,7 @@ stance() {
         tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc tal_estimation/tce \
         tal_control/cmd_vel_script tal_sim_bridge/bag_recorder \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
-    python -m tal_control.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
+    python -m tal_lab.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
         --tce "$dir/tce_summary.json" --estimator "$dir/estimator_summary.json" --title "STANCE: HyQ crawl at $speed m/s, rigid -> T1 -> T2 -> T3 -> rigid" --output "$RUN_ROOT/report.md"
 }
 
@@ -133,7 +133,7 @@ tour() {
     local bench=()
     # A real-time tour is the graph-rates measurement of `make bench` (bench/report.py reads it).
     [ "$mode" = realtime ] && bench=(--bench-json "$ROOT/bench/out/graph_rates.json")
-    python -m tal_control.graph_report "$dir" --title "tour ($mode): HyQ trots at $speed m/s over rigid, T1, T2 and stairs" \
+    python -m tal_lab.graph_report "$dir" --title "tour ($mode): HyQ trots at $speed m/s over rigid, T1, T2 and stairs" \
         "${bench[@]+"${bench[@]}"}"
 }
 
@@ -151,7 +151,7 @@ stand() {
             || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
         parts+=("$dir/summary.json")
     done
-    python -m tal_sim_bridge.stand_report --output "$RUN_ROOT/report.md" "${parts[@]}"
+    python -m tal_lab.stand_report --output "$RUN_ROOT/report.md" "${parts[@]}"
 }
 
 case "$SCENARIO" in

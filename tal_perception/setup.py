@@ -10,7 +10,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
-    package_data={PACKAGE: ["py.typed", "models/*.pt", "models/*.json", "models/*.md"]},  # CNN weights + cards
+    package_data={PACKAGE: ["py.typed", "models/*.pt"]},  # the weights the nodes load
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml", "README.md"]),

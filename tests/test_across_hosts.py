@@ -272,7 +272,7 @@ def run_graph(net: Namespaces, split: bool, env: dict[str, str], out: Path) -> d
 
 def _from_bag(bag: Path) -> tuple[float, list[tuple[int, tuple[float, ...]]]]:
     """The last ground-truth base x [m] and every joint command (stamp [ns], torques) the robot side got."""
-    from tal_core.bag_io import BagReader
+    from tal_core.ros.bag_io import BagReader
 
     final_x, commands = None, []
     for m in BagReader(bag).messages(["/ground_truth/odom", "/joint_command"]):

@@ -20,7 +20,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
 from tal_control.stand_controller_node import StandControllerNode
-from tal_core.bag_io import BagReader
+from tal_core.ros.bag_io import BagReader
 from tal_sim_bridge.bag_player_node import BagPlayerNode
 from tal_sim_bridge.bag_recorder_node import BagRecorderNode
 from tal_sim_bridge.sim_bridge_node import SimBridgeNode
@@ -92,10 +92,8 @@ def test_player_replays_every_message_with_clock_and_remapping(context, spin_unt
     executor.add_node(probe)
     executor.add_node(player)
     try:
-        # Let DDS match the player's publishers with the probe before the first message is due.
-        start = time.monotonic()
+        # Play the bag to its end (1 s of recorded time at 4x), then let the last messages arrive.
         assert spin_until(executor, lambda: player.finished, 60.0)
-        wall = time.monotonic() - start
         spin_until(executor, lambda: got["imu"] >= recorded["/imu"] and got["joints"] >= recorded["/joint_states"],
                    5.0)
     finally:
@@ -104,7 +102,6 @@ def test_player_replays_every_message_with_clock_and_remapping(context, spin_unt
         probe.destroy_node()
     assert player.published == recorded["/joint_states"] + recorded["/imu"]  # clock: from the log times
     assert got["joints"] >= recorded["/joint_states"] - 5 and got["imu"] >= recorded["/imu"] - 5
-    assert wall < 30.0  # 1 s of recorded time at 4x (generous: a loaded machine)
     # Recorded under use_sim_time: the log times, and so the replayed clock, are the run's sim time.
     assert last_clock and max(last_clock) == pytest.approx(1.0, abs=0.01) and min(last_clock) < 0.01
 

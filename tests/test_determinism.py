@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tal_core.bag_io import BagReader
-from tal_core.node_utils import ns_from_stamp
+from tal_core.ros.bag_io import BagReader
+from tal_core.ros.node_utils import ns_from_stamp
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

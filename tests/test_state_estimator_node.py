@@ -15,8 +15,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu, JointState
 
-from tal_core.node_utils import ns_from_stamp, stamp_from_ns
 from tal_core.robot_model import RobotModel
+from tal_core.ros.node_utils import ns_from_stamp, stamp_from_ns
 from tal_estimation.state_estimator_node import StateEstimatorNode
 from tal_msgs.msg import ContactState
 
@@ -91,7 +91,7 @@ def test_ticks_at_333_hz_and_survives_bad_input(context, spin_until) -> None:
     try:
         assert spin_until(executor, robot.matched, 20.0)
         robot.publish_truth(0)
-        spin_until(executor, lambda: estimator._initial_pose is not None, 5.0)
+        spin_until(executor, lambda: estimator.stream.has_initial_pose, 5.0)
         for k in range(0, 7):  # 0..6 ms: the initial estimate at 0, ticks at 3 and 6 ms
             robot.sample(k * MS)
         assert spin_until(executor, lambda: stamps()[-1:] == [6 * MS] and len(robot.contacts) == 2, 10.0), stamps()

@@ -13,7 +13,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from vital_fakes import MS, FakeWbc
 
-from tal_core.node_utils import ns_from_stamp
+from tal_core.ros.node_utils import ns_from_stamp
 from tal_msgs.msg import FootholdArray, GaitState
 from tal_perception.errors import FecConfigError
 from tal_perception.vfa_node import VfaNode

@@ -12,7 +12,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from vital_fakes import MS, FakeWbc
 
-from tal_core.node_utils import ns_from_stamp
+from tal_core.ros.node_utils import ns_from_stamp
 from tal_msgs.msg import BodyPoseReference, Foothold, FootholdArray, GaitState
 from tal_perception.errors import VpaConfigError
 from tal_perception.vpa_node import VpaNode

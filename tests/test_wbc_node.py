@@ -17,8 +17,8 @@ from sensor_msgs.msg import JointState
 
 from tal_control.cmd_vel_script_node import CmdVelScriptNode
 from tal_control.wbc_node import WbcNode
-from tal_core.node_utils import stamp_from_ns
 from tal_core.robot_model import RobotModel
+from tal_core.ros.node_utils import stamp_from_ns
 from tal_estimation.state_estimator_node import StateEstimatorNode
 from tal_msgs.msg import ContactState, GaitState, JointCommand, WbcDiagnostics
 from tal_sim_bridge.sim_bridge_node import SimBridgeNode
@@ -281,6 +281,32 @@ def test_contact_feedback_waits_for_the_ticks_contacts_and_searches_with_a_hover
         robot.publish_joints(8_000_000)
         assert spin_until(executor, lambda: len(robot.commands) >= 2, 10.0)
         assert wbc.deferred_ticks >= 1
+    finally:
+        executor.shutdown()
+        wbc.destroy_node()
+        robot.node.destroy_node()
+
+
+def test_live_parameters_take_effect_at_the_next_tick(context, spin_until) -> None:
+    """`ros2 param set` while running: a shorter stale_state_periods makes a base state 2 periods old stale
+    (safe mode, which the default 3 periods would not enter), and the safe command holds with the new
+    safe_damping_nms_per_rad; a read-only parameter is refused with a reason."""
+    wbc, robot, executor = standing_wbc_with_robot(context)
+    try:
+        assert spin_until(executor, robot.matched, 20.0)
+        robot.publish_odom(0)
+        robot.publish_joints(0)
+        assert spin_until(executor, lambda: len(robot.commands) >= 1, 10.0)
+        assert len(robot.commands[-1].kd) == 0
+        for name, value in (("stale_state_periods", 1), ("safe_damping_nms_per_rad", 55.0)):
+            result = wbc.set_parameters([Parameter(name, value=value)])[0]
+            assert result.successful, result.reason
+        refused = wbc.set_parameters([Parameter("control_period_s", value=0.002)])[0]
+        assert not refused.successful and "read-only" in refused.reason
+        robot.publish_joints(4_000_000)   # its ground truth does not come: deferred
+        robot.publish_joints(8_000_000)   # decided on the 0 ms base state: 8 ms > 1 period old
+        assert spin_until(executor, lambda: len(robot.commands) >= 2, 10.0)
+        assert list(robot.commands[-1].kd) == [55.0] * 12 and wbc.mode == WbcDiagnostics.MODE_SAFE
     finally:
         executor.shutdown()
         wbc.destroy_node()

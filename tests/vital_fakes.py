@@ -9,8 +9,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point
 
 from tal_core.heightmap import extract_heightmap
-from tal_core.node_utils import stamp_from_ns
 from tal_core.robot_model import RobotModel
+from tal_core.ros.node_utils import stamp_from_ns
 from tal_core.terrain import Course, DefaultGround, GapPatch, Region
 from tal_msgs.msg import FootholdArray, GaitState, HeightMap
 

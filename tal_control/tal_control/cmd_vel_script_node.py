@@ -11,6 +11,10 @@ first control tick at or after the stamp (and ignores the Twist while they come)
 not depend on when this process gets the CPU; a Twist is applied at whichever tick follows its arrival.
 Reliable, transient local (a late transient-local subscriber gets the recent ones; the wbc subscribes
 volatile, to match any publisher).
+
+``profile`` is live (``ros2 param set``): the Twist follows the new profile at once; stamped commands
+already published (up to ``lead_s`` ahead) stay, the new profile applies to the stamps published after.
+period_s, stamped and lead_s are read-only.
 """
 
 from __future__ import annotations
@@ -20,7 +24,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
+from tal_core.errors import InputError
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
 
 from .cmd_vel_profile import command_at, parse_profile, stamps_due
 
@@ -32,11 +37,12 @@ class CmdVelScriptNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("cmd_vel_script", **kwargs)
         profile = declare(self, "profile", [0.0, 0.0, 0.0, 0.0],
-                          "flat list of (t [s], vx [m/s], vy [m/s], yaw rate [rad/s]) segments")
+                          "flat list of (t [s], vx [m/s], vy [m/s], yaw rate [rad/s]) segments; live",
+                          on_change=self._set_profile)
         self.period_ns = round(declare(self, "period_s", 0.02, "[s] sim time between messages",
                                        low=0.001, high=10.0) * 1e9)
         self.stamped = declare(self, "stamped", True, "also publish TwistStamped on cmd_vel_stamped ahead of the "
-                               "clock (deterministic in lockstep)", read_only=True)
+                               "clock (deterministic in lockstep)")
         self.lead_ns = round(declare(self, "lead_s", 0.1, "[s] stamped: sim time ahead of the clock at which "
                                      "commands are published", low=0.0, high=10.0) * 1e9)
         self.segments = parse_profile(profile)
@@ -46,6 +52,12 @@ class CmdVelScriptNode(Node):
         self.create_subscription(Clock, "clock", self._on_clock, 10)
         self._last_ns: int | None = None        # unstamped: clock of the last message
         self._published_ns: int | None = None   # stamped: stamp of the last message
+
+    def _set_profile(self, profile: list[float]) -> None:
+        try:
+            self.segments = parse_profile(profile)
+        except InputError as exc:
+            raise ValueError(f"parameter 'profile': {exc}") from exc
 
     def _twist(self, t_ns: int) -> Twist:
         segment = command_at(self.segments, t_ns * 1e-9)

@@ -3,6 +3,9 @@
 Answers every control tick of the bridge. Control ticks lie on the sim-time grid t = k * control_period_s;
 when a ``joint_states`` message reaches the next tick it publishes a ``joint_command`` stamped with that
 joint-state stamp, which is what the bridge's lockstep protocol waits for.
+
+The PD gains kp_nm_per_rad and kd_nms_per_rad are live (``ros2 param set``, from the next tick); robot and
+control_period_s are read-only.
 """
 
 from __future__ import annotations
@@ -12,21 +15,22 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
-from tal_core.node_utils import declare, ns_from_stamp, reaches_tick, run_node, tick_after
 from tal_core.robot_model import RobotModel
+from tal_core.ros.node_utils import declare, ns_from_stamp, reaches_tick, run_node, tick_after
+from tal_core.ticks import CLOCK_RESET_NS
 from tal_msgs.msg import JointCommand
 
 from .stand_hold import StandHold
-
-CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
 
 
 class StandControllerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("stand_controller", **kwargs)
-        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True)
-        kp = declare(self, "kp_nm_per_rad", 1500.0, "[N m/rad] joint stiffness", low=0.0, high=1e5)
-        kd = declare(self, "kd_nms_per_rad", 40.0, "[N m s/rad] joint damping", low=0.0, high=1e4)
+        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path")
+        kp = declare(self, "kp_nm_per_rad", 1500.0, "[N m/rad] joint stiffness; live", low=0.0, high=1e5,
+                     on_change=lambda value: setattr(self.hold, "kp", float(value)))
+        kd = declare(self, "kd_nms_per_rad", 40.0, "[N m s/rad] joint damping; live", low=0.0, high=1e4,
+                     on_change=lambda value: setattr(self.hold, "kd", float(value)))
         period = declare(self, "control_period_s", 0.004, "[s] control tick", low=0.0005, high=0.1)
         self.model = RobotModel.from_name(robot)
         self.hold = StandHold(self.model, kp, kd)

@@ -41,6 +41,17 @@ class VelocityCommandInput:
         self._newest_ns: int | None = None               # newest stamp received
         self._last_tick_ns: int | None = None
 
+    def set_limits(self, max_linear_m_s: float, max_yaw_rate_rad_s: float) -> None:
+        """New clamps [m/s], [rad/s] (a live parameter change): the command in force and the queued ones are
+        clamped to them at once; what a lower limit cut off is not restored by raising it again."""
+        for name, value in (("max_linear_m_s", max_linear_m_s), ("max_yaw_rate_rad_s", max_yaw_rate_rad_s)):
+            if not (np.isfinite(value) and value >= 0.0):
+                raise InputError(f"velocity command limit {name} must be finite and >= 0, got {value!r}")
+        self.max_linear_m_s = float(max_linear_m_s)
+        self.max_yaw_rate_rad_s = float(max_yaw_rate_rad_s)
+        self.command = self._clamped(self.command)
+        self._queue = [(stamp, self._clamped(command)) for stamp, command in self._queue]
+
     def _clamped(self, values: Sequence[float]) -> np.ndarray:
         v = np.asarray(values, dtype=float).reshape(-1)
         if v.shape != (3,) or not np.all(np.isfinite(v)):

@@ -214,3 +214,29 @@ def test_requesting_the_running_gait_cancels_a_pending_switch():
     assert scheduler.pending_gait is None
     phases = run(scheduler, 3.0, t_start=1.0)
     assert all(p.gait.name == "trot" for p in phases)
+
+
+@pytest.mark.parametrize("gait", [TROT, CRAWL])
+def test_a_new_step_height_applies_from_the_next_liftoff_without_touching_the_schedule(gait: GaitParameters):
+    reference = run(GaitScheduler(gait), 6.0)
+    scheduler = GaitScheduler(gait)
+    phases = run(scheduler, 2.05)
+    scheduler.set_step_height(0.2)
+    assert scheduler.pending_gait is None and scheduler.gait.step_height_m == 0.2
+    phases += run(scheduler, 6.0, t_start=2.05 + DT / 2)
+    assert [p.t_s for p in phases if p.liftoff_event.any()] == pytest.approx(
+        [p.t_s for p in reference if p.liftoff_event.any()])   # no switch, no preparation cycle
+    assert {p.gait.step_height_m for p in phases if p.t_s > 2.05} == {0.2}
+    with pytest.raises(MotionConfigError, match="step_height_m"):
+        scheduler.set_step_height(0.0)
+    assert scheduler.gait.step_height_m == 0.2
+
+
+def test_a_step_height_before_the_first_update_and_with_a_pending_switch():
+    scheduler = GaitScheduler(STAND)
+    scheduler.set_step_height(0.05)
+    run(scheduler, 1.0)
+    assert scheduler.gait.step_height_m == 0.05
+    scheduler.set_gait(TROT)
+    scheduler.set_step_height(0.15)
+    assert scheduler.gait.step_height_m == 0.15 and scheduler.pending_gait.step_height_m == 0.15

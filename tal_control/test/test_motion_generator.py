@@ -375,3 +375,21 @@ def test_hip_velocities_are_the_trunk_references_rigid_body_velocity_at_the_hips
     assert trunk.com_velocity[2] < -0.01 and trunk.angular_velocity[1] > 0.01  # sinking, pitching nose down
     front, hind = targets.hip_velocities()[[Leg.LF, Leg.RF], 2], targets.hip_velocities()[[Leg.LH, Leg.RH], 2]
     assert np.all(front < trunk.com_velocity[2] - 0.01) and np.all(hind > trunk.com_velocity[2] + 0.01)
+
+
+def test_run_time_motion_parameters_change_and_the_others_are_refused_by_name(hyq):
+    generator = MotionGenerator(hyq, TROT)
+    generator.update_params(touchdown_depth_m=0.03, k_feedback=0.12)
+    assert generator.params.touchdown_depth_m == 0.03 and generator.params.k_feedback == 0.12
+    history = replay(generator, standing_state(hyq), 1.6, cmd_vel=(0.2, 0.0, 0.0))
+    touchdowns = [(i, leg) for i, h in enumerate(history) for leg in Leg if i and h.gait.touchdown_event[leg]]
+    assert touchdowns
+    for i, leg in touchdowns:  # the swing ends the new depth below the foothold
+        before = history[i - 1]
+        np.testing.assert_allclose(before.foot_position[leg][2],
+                                   before.target_footholds[leg][2] + generator.foot_radius_m - 0.03, atol=1e-3)
+    with pytest.raises(MotionConfigError, match="foothold_centre"):
+        generator.update_params(foothold_centre="com")
+    with pytest.raises(MotionConfigError, match="touchdown_depth_m"):
+        generator.update_params(touchdown_depth_m=0.5)
+    assert generator.params.touchdown_depth_m == 0.03

@@ -64,3 +64,15 @@ def test_bad_commands_raise_and_change_nothing(values) -> None:
     with pytest.raises(InputError, match="3 finite values"):
         cmd.stamped(0, values)
     assert np.array_equal(cmd.command, np.zeros(3)) and not cmd.stamped_in_use()
+
+
+def test_new_limits_clamp_the_command_in_force_and_the_queued_ones_at_once() -> None:
+    cmd = VelocityCommandInput(1.0, 1.0)
+    cmd.unstamped((0.8, -0.6, 0.9))
+    cmd.stamped(4 * MS, (0.7, 0.0, -0.9))
+    cmd.set_limits(0.5, 0.25)
+    assert cmd.command.tolist() == [0.5, -0.5, 0.25]
+    assert cmd.at_tick(4 * MS).tolist() == [0.5, 0.0, -0.25]
+    with pytest.raises(InputError, match="max_linear_m_s"):
+        cmd.set_limits(-1.0, 0.25)
+    assert cmd.max_linear_m_s == 0.5

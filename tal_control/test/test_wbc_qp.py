@@ -195,3 +195,20 @@ def test_compliant_wbc_keeps_forces_consistent_with_the_contact_model(model) -> 
 def test_unknown_contact_model_is_rejected() -> None:
     with pytest.raises(InputError, match="contact_model"):
         WbcSettings(contact_model="squishy")
+
+
+def test_run_time_settings_take_effect_at_the_next_solve_and_fixed_ones_are_refused(model) -> None:
+    q, v = standing_state(model)
+    refs = references(model, com_offset=(0.2, 0.0, 0.0))
+    wbc = StandardWbc(model)
+    wide = wbc.solve(q, v, refs).forces
+    assert np.any(np.abs(wide[:, 0]) > 0.1 * wide[:, 2] + 0.05)       # mu 0.8 lets the feet push harder
+    wbc.update_settings(friction_coefficient=0.05, max_normal_force_n=300.0)
+    f = wbc.solve(q, v, refs).forces                                    # the cached pyramids are rebuilt
+    assert np.all(np.abs(f[:, 0]) <= 0.05 * f[:, 2] + 0.05)
+    assert np.all(f[:, 2] <= 300.0 + 0.05)
+    with pytest.raises(InputError, match="contact_model"):
+        wbc.update_settings(contact_model="compliant")
+    with pytest.raises(InputError, match="min <= max"):
+        wbc.update_settings(min_normal_force_n=400.0)
+    assert wbc.settings.min_normal_force_n == 10.0 and wbc.settings.friction_coefficient == 0.05

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 NS_PER_S = 1_000_000_000
 TICK_TOLERANCE_NS = 100_000  # [ns] stamps are exact multiples of the physics step; absorb rounding
+CLOCK_RESET_NS = 500_000_000  # [ns] a stamp this far behind the last one is a restarted clock, not reordering
 
 
 def reaches_tick(stamp_ns: int, next_tick_ns: int) -> bool:
@@ -14,3 +15,4 @@ def reaches_tick(stamp_ns: int, next_tick_ns: int) -> bool:
 def tick_after(stamp_ns: int, period_ns: int) -> int:
     """The next control tick [ns] after the one at ``stamp_ns``, on the sim-time grid k * period_ns."""
     return ((stamp_ns + TICK_TOLERANCE_NS) // period_ns + 1) * period_ns
+

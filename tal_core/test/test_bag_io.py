@@ -1,4 +1,4 @@
-"""rosbag2 MCAP bags written by tal_core.bag_io: read back by our reader and by an independent one
+"""rosbag2 MCAP bags written by tal_core.ros.bag_io: read back by our reader and by an independent one
 (rosbags), metadata.yaml as rosbag2 writes it, truncated and corrupt files, unknown types."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from nav_msgs.msg import Odometry
 from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import Imu, JointState
 
-from tal_core.bag_io import BagError, BagReader, BagWriter, content_digest, exact_cdr, message_definition
-from tal_core.node_utils import stamp_from_ns
+from tal_core.ros.bag_io import BagError, BagReader, BagWriter, content_digest, exact_cdr, message_definition
+from tal_core.ros.node_utils import stamp_from_ns
 from tal_msgs.msg import ContactState, TerrainImpedance
 
 MS = 1_000_000
@@ -154,7 +154,7 @@ def test_unknown_types_are_skipped_with_one_warning_per_type(tmp_path: Path, cap
             bag.write("/mystery", b"\x00\x01\x00\x00" + bytes(8), k * MS)
             imu = Imu()
             bag.write("/imu", imu, k * MS)
-    with caplog.at_level(logging.WARNING, logger="tal_core.bag_io"):
+    with caplog.at_level(logging.WARNING, logger="tal_core.ros.bag_io"):
         reader = BagReader(tmp_path / "bag")
         messages = list(reader.messages())
     assert [m.topic for m in messages] == ["/imu"] * 5

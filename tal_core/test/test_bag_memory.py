@@ -15,7 +15,7 @@ CHILD = r"""
 import json, sys
 import numpy as np
 from sensor_msgs.msg import Imu, JointState
-from tal_core.bag_io import BagReader, BagWriter, exact_cdr
+from tal_core.ros.bag_io import BagReader, BagWriter, exact_cdr
 from tal_msgs.msg import HeightMap
 
 def rss_mb():  # VmHWM: ru_maxrss would carry the parent's (pytest's) peak across fork and exec

@@ -13,9 +13,9 @@ from geometry_msgs.msg import Quaternion, Vector3
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, JointState
 
-from tal_core.bag_io import BagReader, BagWriter
-from tal_core.csv_import import ColumnMap, CsvImportError, export_csv, import_csv
-from tal_core.node_utils import stamp_from_ns
+from tal_core.ros.bag_io import BagReader, BagWriter
+from tal_core.ros.csv_import import ColumnMap, CsvImportError, export_csv, import_csv
+from tal_core.ros.node_utils import stamp_from_ns
 
 MAPS = Path(__file__).resolve().parents[1] / "tal_core" / "config" / "csv_maps"
 EXAMPLE_MAP = MAPS / "hyq_example.yaml"

@@ -10,7 +10,7 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
-from tal_core.fault_injection import FaultRelay, FaultSchedule, corrupt_with_nan
+from tal_core.ros.fault_injection import FaultRelay, FaultSchedule, corrupt_with_nan
 
 
 def picks(schedule: FaultSchedule, n: int) -> list[int]:

@@ -131,8 +131,16 @@ class ExogenousKalmanFilter:
         self.bias = nlo.bias.copy()
         std = settings.initial_attitude_std_rad if attitude_std_rad is None else attitude_std_rad
         self.covariance = np.diag([std**2] * 3 + [settings.initial_bias_std_rad_s**2] * 3)
-        self._process_noise_density = np.diag([settings.gyro_noise_rad_s_sqrt_hz**2] * 3
-                                              + [settings.gyro_bias_walk_rad_s2_sqrt_hz**2] * 3)
+        self._process_noise_density = self._noise_density(settings)
+
+    @staticmethod
+    def _noise_density(settings: AttitudeSettings) -> np.ndarray:
+        return np.diag([settings.gyro_noise_rad_s_sqrt_hz**2] * 3 + [settings.gyro_bias_walk_rad_s2_sqrt_hz**2] * 3)
+
+    def reconfigure(self, settings: AttitudeSettings) -> None:
+        """New noise figures from the next update; the state and its covariance stay."""
+        self.settings = settings
+        self._process_noise_density = self._noise_density(settings)
 
     def update(self, dt: float, gyro: np.ndarray, nlo: NonlinearAttitudeObserver,
                measurements: Sequence[VectorMeasurement], has_heading: bool) -> None:
@@ -184,6 +192,12 @@ class AttitudeEstimator:
         self._heading_world: np.ndarray | None = None
         if magnetic_field_world is not None:
             self._heading_world = self._heading(np.asarray(magnetic_field_world, float), UP, "world field")
+
+    def reconfigure(self, settings: AttitudeSettings) -> None:
+        """Apply new gains and noise figures from the next update, keeping the attitude, bias and covariance."""
+        self.settings = settings
+        self.nlo.settings = settings
+        self.xkf.reconfigure(settings)
 
     @staticmethod
     def _heading(field: np.ndarray, up: np.ndarray, what: str) -> np.ndarray:

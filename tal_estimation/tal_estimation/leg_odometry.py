@@ -103,8 +103,8 @@ class LegOdometry:
                  gravity_m_s2: float = 9.81) -> None:
         self.model = model
         self.settings = settings or LegOdometrySettings()
-        self.threshold_n = self.settings.contact_threshold_weight_fraction * model.total_mass_kg * gravity_m_s2
-        self._width_n = self.settings.probability_width_fraction * self.threshold_n
+        self._gravity_m_s2 = gravity_m_s2
+        self._set_thresholds()
         self._v_index = [model.leg_joint_v_indices(leg) for leg in range(NUM_LEGS)]
         self._tau_index = [np.arange(3 * leg, 3 * leg + 3) for leg in range(NUM_LEGS)]
         self._origin = np.zeros(3)
@@ -112,6 +112,19 @@ class LegOdometry:
         self.penetration = np.zeros(NUM_LEGS)
         self._previous_v: np.ndarray | None = None
         self._penetration_rate = np.zeros(NUM_LEGS)
+
+    def _set_thresholds(self) -> None:
+        fraction = self.settings.contact_threshold_weight_fraction
+        self.threshold_n = fraction * self.model.total_mass_kg * self._gravity_m_s2
+        self._width_n = self.settings.probability_width_fraction * self.threshold_n
+
+    def reconfigure(self, settings: LegOdometrySettings) -> None:
+        """Apply ``settings`` from the next update (thresholds, bounds), keeping the legs' state; the mode is
+        fixed for the odometry's lifetime (InputError)."""
+        if settings.mode != self.settings.mode:
+            raise InputError(f"leg odometry mode is fixed at {self.settings.mode!r}; got {settings.mode!r}")
+        self.settings = settings
+        self._set_thresholds()
 
     def _forces(self, jacobians: np.ndarray, h: np.ndarray, tau: np.ndarray) -> np.ndarray:
         """(4, 3) ground reaction forces [N] world: J_leg^T F = h_leg - tau_leg for all legs in one batched

@@ -25,6 +25,7 @@ from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.rotations import quat_xyzw_from_rotation, rotation_from_quat_xyzw
+from tal_core.state import BaseState
 
 from .attitude import AttitudeEstimator, AttitudeSettings
 from .leg_odometry import LegImpedance, LegOdometry, LegOdometryOutput, LegOdometrySettings
@@ -102,6 +103,13 @@ class StateEstimate:
     def world_R_base(self) -> np.ndarray:
         return rotation_from_quat_xyzw(self.quat_xyzw)
 
+    @property
+    def base_state(self) -> BaseState:
+        """The estimate as a base state (angular velocity in the world frame), as controllers and the TCE
+        take it."""
+        return BaseState(self.position, self.quat_xyzw, self.linear_velocity,
+                         self.world_R_base @ self.angular_velocity_base)
+
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a x b for 3-vectors (np.cross costs ~25 us of axis bookkeeping per call)."""
@@ -176,6 +184,19 @@ class StateEstimator:
     @property
     def initialised(self) -> bool:
         return self.kf is not None
+
+    def reconfigure(self, settings: StateEstimatorSettings) -> None:
+        """Apply ``settings`` from the next tick (noise figures, limits, gains, contact threshold), keeping
+        the estimated state. The tick period and the leg odometry mode are fixed (InputError)."""
+        if settings.period_s != self.settings.period_s:
+            raise InputError(f"the estimator's period is fixed at {self.settings.period_s} s; got {settings.period_s}")
+        self.legs.reconfigure(settings.leg_odometry)
+        self.settings = settings
+        self._measurement_noise = np.eye(3) * settings.leg_velocity_noise_m_s**2
+        self._model_dt = -1.0  # the KF's process noise is rebuilt at the next tick
+        if self.attitude is not None:
+            self.attitude.reconfigure(settings.attitude)
+            self._gravity.tau_s = settings.motion_compensation_tau_s
 
     # -- one tick -----------------------------------------------------------------------------------------
     def check_imu(self, specific_force: np.ndarray, angular_rate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

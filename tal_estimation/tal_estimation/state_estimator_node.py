@@ -8,17 +8,22 @@ Publishes: ``state_estimate`` (nav_msgs/Odometry, pose in world, twist in base, 
 ``contact_estimate`` (tal_msgs/ContactState) at the ticks k * period_s, and ``state_estimator/diagnostics``
 (diagnostic_msgs/DiagnosticArray, counters) once per second of sim time.
 
-A tick at stamp J runs once the joint state of J and the IMU sample of J have arrived (in any order); its
-IMU input is the mean of the IMU samples in (previous tick, J], so lockstep runs are deterministic. Bad
-input (NaN, saturated IMU, missing/unknown joints, stamps going backwards) is rejected and counted by
-reason; a gap of more than max_gap_periods re-initialises the velocity filter; a clock that jumps back by
-more than 0.5 s (restarted simulation) restarts the estimator.
+When it ticks, which samples a tick uses, what it rejects and when it restarts is
+``tal_estimation.streaming.StreamingEstimator`` (shared with the offline runners): a tick at stamp J runs
+once the joint state of J and the IMU sample of J have arrived (in any order), with the mean of the IMU
+samples in (previous tick, J], so lockstep runs are deterministic. Bad input (NaN, saturated IMU,
+missing/unknown joints, stamps going backwards) is rejected and counted by reason; a gap of more than
+max_gap_periods re-initialises the velocity filter; a clock that jumps back by more than 0.5 s (restarted
+simulation) restarts the estimator. This node converts messages, publishes and reports. Noise figures,
+limits, gains, the contact threshold, initial_xy_m and summary_path are live parameters.
 """
 
 from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -28,94 +33,78 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState, MagneticField
 
 from tal_core.errors import InputError
-from tal_core.node_utils import (
-    declare,
-    ns_from_stamp,
-    reaches_tick,
-    run_node,
-    stamp_from_ns,
-    tick_after,
-    write_summary,
-)
 from tal_core.robot_model import RobotModel
-from tal_core.ros_conversions import base_state_from_odometry, canonical_joint_state
+from tal_core.ros.conversions import base_state_from_odometry
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_core.rotations import quat_xyzw_from_rotation, rotation_from_quat_xyzw
 from tal_msgs.msg import ContactState, TerrainImpedance
 
 from .attitude import AttitudeSettings
 from .drift_statistics import DriftStatistics
 from .leg_odometry import LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
-from .state_estimator import EstimatorInputError, StateEstimate, StateEstimator, StateEstimatorSettings
+from .live_settings import with_field
+from .messages import joint_state_arrays
+from .state_estimator import StateEstimate, StateEstimator, StateEstimatorSettings
+from .streaming import EstimatorOutput, StreamingEstimator
 
-CLOCK_RESET_NS = 500_000_000  # [ns] a jump back larger than this is a restarted clock, not reordering
 GYRO_VARIANCE_RAD2_S2 = 1e-4  # [rad^2/s^2] reported variance of the bias-corrected angular rate
 
 
 class StateEstimatorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("state_estimator", **kwargs)
-        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True)
-        period = declare(self, "period_s", 0.003, "[s] estimator tick (333 Hz)", low=0.0005, high=0.1,
-                         read_only=True)
+        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path")
+        period = declare(self, "period_s", 0.003, "[s] estimator tick (333 Hz)", low=0.0005, high=0.1)
         mode = declare(self, "leg_odometry", "rigid", "rigid (thesis: force threshold, static feet) or "
                        "terrain_aware (continuous contact weight, feet sink per terrain_impedance)",
-                       choices=LEG_ODOMETRY_MODES, read_only=True)
+                       choices=LEG_ODOMETRY_MODES)
         fraction = declare(self, "contact_threshold_weight_fraction", 0.1,
                            "[-] contact force threshold as a fraction of the robot's weight", low=0.001, high=0.99,
-                           read_only=True)
+                           on_change=self._setting("leg_odometry.contact_threshold_weight_fraction"))
         self.init_source = declare(self, "initial_pose_source", "ground_truth",
                                    "ground_truth (first ground_truth/odom message aligns the world frame, as a "
                                    "motion-capture start) or standing (level, feet on z = 0 under initial_xy_m)",
-                                   choices=("ground_truth", "standing"), read_only=True)
-        self.initial_xy = declare(self, "initial_xy_m", [0.0, 0.0], "[m] world x, y of the base when standing",
-                                  read_only=True)
-        use_mag = declare(self, "use_magnetometer", False, "fuse imu/mag (heading) in the attitude observer",
-                          read_only=True)
+                                   choices=("ground_truth", "standing"))
+        initial_xy = declare(self, "initial_xy_m", [0.0, 0.0], "[m] world x, y of the base when standing (at "
+                             "the next start or restart)", on_change=self._set_initial_xy)
+        use_mag = declare(self, "use_magnetometer", False, "fuse imu/mag (heading) in the attitude observer")
         field = declare(self, "magnetic_field_world", [2.3e-5, 0.0, -4.1e-5],
-                        "[T] Earth's field in the world frame (for use_magnetometer)", read_only=True)
+                        "[T] Earth's field in the world frame (for use_magnetometer)")
         settings = StateEstimatorSettings(
             period_s=period,
             accel_noise_m_s2=declare(self, "accel_noise_m_s2", 0.5, "[m/s^2] KF acceleration input std",
-                                     low=1e-6, high=100.0, read_only=True),
+                                     low=1e-6, high=100.0, on_change=self._setting("accel_noise_m_s2")),
             leg_velocity_noise_m_s=declare(self, "leg_velocity_noise_m_s", 0.05, "[m/s] one leg's velocity std",
-                                           low=1e-6, high=100.0, read_only=True),
+                                           low=1e-6, high=100.0, on_change=self._setting("leg_velocity_noise_m_s")),
             max_gap_periods=declare(self, "max_gap_periods", 10, "[-] a larger gap re-initialises the velocity",
-                                    low=1, high=100000, read_only=True),
+                                    low=1, high=100000, on_change=self._setting("max_gap_periods")),
             accel_range_m_s2=declare(self, "accel_range_m_s2", 392.0, "[m/s^2] IMU accelerometer range "
                                      "(samples at or beyond it are rejected as saturated)", low=1.0, high=1e4,
-                                     read_only=True),
+                                     on_change=self._setting("accel_range_m_s2")),
             gyro_range_rad_s=declare(self, "gyro_range_rad_s", 34.9, "[rad/s] IMU gyro range", low=0.1,
-                                     high=1e3, read_only=True),
+                                     high=1e3, on_change=self._setting("gyro_range_rad_s")),
             attitude=AttitudeSettings(
                 k_p=declare(self, "attitude_k_p", 1.0, "[rad/s] NLO injection gain", low=1e-6, high=100.0,
-                            read_only=True),
+                            on_change=self._setting("attitude.k_p")),
                 k_i=declare(self, "attitude_k_i", 0.3, "[1/s^2] NLO gyro-bias gain", low=1e-6, high=100.0,
-                            read_only=True)),
+                            on_change=self._setting("attitude.k_i"))),
             leg_odometry=LegOdometrySettings(mode=mode, contact_threshold_weight_fraction=fraction))
         self.summary_path = declare(self, "summary_path", "", "JSON written at shutdown (counters, drift "
-                                    "against ground truth when available); empty: none", read_only=True)
-        if len(self.initial_xy) != 2 or len(field) != 3:
+                                    "against ground truth when available); empty: none",
+                                    on_change=self._set_summary_path)
+        if len(initial_xy) != 2 or len(field) != 3:
             raise ValueError("initial_xy_m needs 2 values and magnetic_field_world 3")
         self.model = RobotModel.from_name(robot)
-        self.estimator = StateEstimator(self.model, settings, np.array(field, float) if use_mag else None)
+        self.stream = StreamingEstimator(
+            self.model, settings, magnetic_field_world=np.array(field, float) if use_mag else None,
+            wait_for_initial_pose=self.init_source == "ground_truth",
+            initial_xy=(float(initial_xy[0]), float(initial_xy[1])), on_reject=self._log_rejection,
+            on_restart=self._log_restart)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
-        self.period_ns = round(period * 1e9)
-        self.rejections: Counter[str] = Counter()
-        self.held_imu_ticks = 0
-        self._last_imu_mean: tuple[np.ndarray, np.ndarray] | None = None
-        self.duplicates = 0  # repeated samples (the driver re-sends its first state until it is answered)
+        self.period_ns = self.stream.period_ns
         self._last_output: tuple[Odometry, ContactState | None] | None = None
-        self.ticks = 0
-        self.restarts = 0
-        self._next_tick_ns = 0
-        self._last_tick_ns: int | None = None
-        self._imu: list[tuple[int, np.ndarray, np.ndarray]] = []   # samples after the last tick
-        self._last_imu_ns: int | None = None
-        self._pending: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # joints of the next tick
-        self._impedance: LegImpedance | None = None
-        self._mag: np.ndarray | None = None
-        self._initial_pose: tuple[np.ndarray, np.ndarray] | None = None
         self._truth: tuple[int, object] | None = None
+        self._truth_subscription = None
         self._vs_truth = DriftStatistics(align_start=True)  # constant memory: the node may run for hours
 
         self.pub_state = self.create_publisher(Odometry, "state_estimate", 10)
@@ -128,15 +117,58 @@ class StateEstimatorNode(Node):
         if use_mag:
             self.create_subscription(MagneticField, "imu/mag", self._on_mag, 10)
         if self.init_source == "ground_truth" or self.summary_path:
-            self.create_subscription(Odometry, "ground_truth/odom", self._on_truth, 10)
+            self._subscribe_truth()
         self.get_logger().info(f"state_estimator ready: robot '{robot}', {1.0 / period:.0f} Hz, leg odometry "
                                f"{mode}, initial pose from {self.init_source}")
 
-    # -- rejections -----------------------------------------------------------------------------------------
+    # -- counters of the streaming tick (diagnostics, summary, tests) ---------------------------------------
+    @property
+    def estimator(self) -> StateEstimator:
+        return self.stream.estimator
+
+    @property
+    def rejections(self) -> Counter[str]:
+        return self.stream.rejections
+
+    @property
+    def ticks(self) -> int:
+        return self.stream.ticks
+
+    @property
+    def restarts(self) -> int:
+        return self.stream.restarts
+
+    # -- live parameters ------------------------------------------------------------------------------------
+    def _setting(self, name: str) -> Callable[[Any], None]:
+        """on_change of a parameter that is the estimator setting ``name`` (dotted for nested settings)."""
+        return lambda value: self.stream.reconfigure(with_field(self.stream.settings, name, value))
+
+    def _set_initial_xy(self, value: list[float]) -> None:
+        if len(value) != 2:
+            raise ValueError(f"initial_xy_m needs 2 values, got {len(value)}")
+        self.stream.initial_xy = (float(value[0]), float(value[1]))
+
+    def _set_summary_path(self, value: str) -> None:
+        self.summary_path = value
+        if value:
+            self._subscribe_truth()  # the drift needs ground truth
+
+    def _subscribe_truth(self) -> None:
+        if self._truth_subscription is None:
+            self._truth_subscription = self.create_subscription(Odometry, "ground_truth/odom", self._on_truth, 10)
+
+    # -- logging --------------------------------------------------------------------------------------------
     def _reject(self, reason: str, message: str) -> None:
         self.rejections[reason] += 1
+        self._log_rejection(reason, message)
+
+    def _log_rejection(self, reason: str, message: str) -> None:
         self.get_logger().warn(f"rejected ({reason}, {self.rejections[reason]} so far): {message}",
                                throttle_duration_sec=1.0)
+
+    def _log_restart(self, stamp_ns: int) -> None:
+        self.get_logger().warn(f"time jumped back to {stamp_ns * 1e-9:.3f} s: restarting the estimator")
+        self._last_output = None
 
     # -- inputs ---------------------------------------------------------------------------------------------
     def _on_truth(self, msg: Odometry) -> None:
@@ -146,14 +178,13 @@ class StateEstimatorNode(Node):
             self._reject("ground_truth", str(exc))
             return
         self._truth = (ns_from_stamp(msg.header.stamp), base)
-        if self._initial_pose is None:
-            self._initial_pose = (base.position, rotation_from_quat_xyzw(base.quat_xyzw))
-            self._try_tick()
+        if self.init_source == "ground_truth":
+            self._output(self.stream.set_initial_pose(base.position, rotation_from_quat_xyzw(base.quat_xyzw)))
 
     def _on_mag(self, msg: MagneticField) -> None:
         field = np.array([msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z])
         if np.all(np.isfinite(field)) and np.linalg.norm(field) > 0.0:
-            self._mag = field
+            self.stream.magnetic_field = field
         else:
             self._reject("mag", "magnetic field has NaN/inf or is zero")
 
@@ -166,124 +197,33 @@ class StateEstimatorNode(Node):
             self._reject("terrain_impedance", "normals must be finite unit vectors")
             return
         valid = np.array(msg.valid, bool) & np.isfinite(k) & np.isfinite(d) & (k > 0) & (d > 0)
-        self._impedance = LegImpedance(k, d, normals / norms[:, None], valid)
+        self.stream.impedance = LegImpedance(k, d, normals / norms[:, None], valid)
 
     def _on_imu(self, msg: Imu) -> None:
-        stamp = ns_from_stamp(msg.header.stamp)
         f = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
         w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
-        try:
-            f, w = self.estimator.check_imu(f, w)
-        except EstimatorInputError as exc:
-            self._reject(exc.reason, str(exc))
-            return
-        if self._last_imu_ns is not None and stamp == self._last_imu_ns:
-            self.duplicates += 1  # the driver repeats its first sample until a controller answers
-            return
-        if self._last_imu_ns is not None and stamp < self._last_imu_ns:
-            if stamp + CLOCK_RESET_NS < self._last_imu_ns:
-                self._restart(stamp)
-            else:
-                self._reject("imu_out_of_order", f"imu stamp {stamp * 1e-9:.6f} s is not after "
-                             f"{self._last_imu_ns * 1e-9:.6f} s")
-                return
-        self._last_imu_ns = stamp
-        self._imu.append((stamp, f, w))
-        self._try_tick()
+        self._output(self.stream.add_imu(ns_from_stamp(msg.header.stamp), f, w))
 
     def _on_joints(self, msg: JointState) -> None:
-        stamp = ns_from_stamp(msg.header.stamp)
-        if self._last_tick_ns is not None and stamp + CLOCK_RESET_NS < self._last_tick_ns:
-            self._restart(stamp)
-        if stamp == self._last_tick_ns and self._last_output is not None:
-            # A repeated sample (the driver waits for its first command; our answer may have gone out
-            # before DDS matched the controller): publish the same estimate again.
-            self.duplicates += 1
-            for publisher, msg in zip((self.pub_state, self.pub_contact), self._last_output):
-                if msg is not None:
-                    publisher.publish(msg)
-            return
-        if not reaches_tick(stamp, self._next_tick_ns):
-            return
-        try:
-            q, qd = canonical_joint_state(msg, self.joint_index)
-            if len(msg.effort) != len(msg.name):
-                raise InputError(f"joint_states has {len(msg.name)} names and {len(msg.effort)} efforts")
-            tau = np.full(len(self.joint_index), np.nan)
-            for name, effort in zip(msg.name, msg.effort):
-                tau[self.joint_index[name]] = effort
-            if not np.all(np.isfinite(tau)):
-                raise InputError("joint_states efforts have NaN/inf")
-        except InputError as exc:
-            self._reject("joints", str(exc))
-            return
-        if self._pending is not None and self._pending[0] < stamp:
-            self._tick(*self._pending)  # its IMU sample never came: run it with what arrived
-        # The grid point is taken: later samples before the next one are not ticks, whether or not the
-        # IMU sample of this one has arrived yet (topics are delivered in no fixed order).
-        self._next_tick_ns = tick_after(stamp, self.period_ns)
-        self._pending = (stamp, q, qd, tau)
-        self._try_tick()
+        self._output(self.stream.add_joints(ns_from_stamp(msg.header.stamp),
+                                            lambda: joint_state_arrays(msg, self.joint_index)))
 
-    def _restart(self, stamp_ns: int) -> None:
-        self.get_logger().warn(f"time jumped back to {stamp_ns * 1e-9:.3f} s: restarting the estimator")
-        self.restarts += 1
-        self.estimator = StateEstimator(self.model, self.estimator.settings, self.estimator._magnetic_field_world)
-        self._next_tick_ns = 0
-        self._last_tick_ns = None
-        self._imu.clear()
-        self._last_imu_ns = None
-        self._pending = None
-        self._last_output = None
-        if self.init_source == "ground_truth":
-            self._initial_pose = None
-
-    # -- the tick -------------------------------------------------------------------------------------------
-    def _try_tick(self) -> None:
-        if self._pending is None or self._last_imu_ns is None:
-            return
-        if self._last_imu_ns >= self._pending[0]:
-            self._tick(*self._pending)
-
-    def _tick(self, stamp: int, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> None:
-        est = self.estimator
-        if not est.initialised:
-            if self.init_source == "ground_truth" and self._initial_pose is None:
-                return  # no pose yet: the tick stays pending until ground_truth/odom arrives
-            self._pending = None
-            self._imu = [s for s in self._imu if s[0] > stamp]
-            if self._initial_pose is not None and self.init_source == "ground_truth":
-                position, rotation = self._initial_pose
-                est.initialise(stamp * 1e-9, position, rotation)
+    def _output(self, outputs: list[EstimatorOutput]) -> None:
+        for out in outputs:
+            if out.kind == "repeat":
+                # A repeated sample (the driver waits for its first command; our answer may have gone out
+                # before DDS matched the controller): publish the same estimate again.
+                for publisher, msg in zip((self.pub_state, self.pub_contact), self._last_output or ()):
+                    if msg is not None:
+                        publisher.publish(msg)
+            elif out.kind == "initial":
+                self._publish_initial(out.stamp_ns)
             else:
-                est.initialise_standing(stamp * 1e-9, q, (float(self.initial_xy[0]), float(self.initial_xy[1])))
-            self._last_tick_ns = stamp
-            self._publish_initial(stamp)
-            return
-        self._pending = None
-        samples = [s for s in self._imu if s[0] <= stamp]
-        self._imu = [s for s in self._imu if s[0] > stamp]
-        if samples:
-            f = np.mean([s[1] for s in samples], axis=0)
-            w = np.mean([s[2] for s in samples], axis=0)
-            self._last_imu_mean = (f, w)
-        elif self._last_imu_mean is not None:
-            self.held_imu_ticks += 1  # every sample of the interval was rejected: hold the last mean
-            f, w = self._last_imu_mean
-        else:
-            self._reject("no_imu", f"no IMU sample for the tick at {stamp * 1e-9:.6f} s")
-            return
-        try:
-            estimate = est.update(stamp * 1e-9, f, w, q, qd, tau, impedance=self._impedance, magnetic_field=self._mag)
-        except EstimatorInputError as exc:
-            self._reject(exc.reason, str(exc))
-            return
-        self._last_tick_ns = stamp
-        self._publish(stamp, estimate)
-        self._compare_with_truth(stamp, estimate)
-        self.ticks += 1
-        if self.ticks % max(1, round(1e9 / self.period_ns)) == 0:
-            self._publish_diagnostics(stamp)
+                assert out.estimate is not None
+                self._publish(out.stamp_ns, out.estimate)
+                self._compare_with_truth(out.stamp_ns, out.estimate)
+                if self.ticks % max(1, round(1e9 / self.period_ns)) == 0:
+                    self._publish_diagnostics(out.stamp_ns)
 
     # -- outputs --------------------------------------------------------------------------------------------
     def _publish_initial(self, stamp: int) -> None:
@@ -333,7 +273,8 @@ class StateEstimatorNode(Node):
         contact = ContactState()
         contact.header.stamp = header_stamp
         contact.header.frame_id = "world"
-        normals = self._impedance.normal if self._impedance is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
+        impedance = self.stream.impedance
+        normals = impedance.normal if impedance is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
         for leg in range(4):
             contact.in_contact[leg] = bool(legs.in_contact[leg])
             contact.probability[leg] = float(legs.probability[leg])
@@ -357,7 +298,7 @@ class StateEstimatorNode(Node):
         rejected = sum(self.rejections.values())
         status.level = DiagnosticStatus.OK if rejected == 0 else DiagnosticStatus.WARN
         status.message = "ok" if rejected == 0 else f"{rejected} inputs rejected"
-        values = {"ticks": self.ticks, "restarts": self.restarts, "held_imu_ticks": self.held_imu_ticks,
+        values = {"ticks": self.ticks, "restarts": self.restarts, "held_imu_ticks": self.stream.held_imu_ticks,
                   "reinitialisations": self.estimator.reinitialisations, **{f"rejected_{k}": v for k, v in
                                                                            sorted(self.rejections.items())}}
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
@@ -373,8 +314,8 @@ class StateEstimatorNode(Node):
 
     def summary(self) -> dict:
         """Counters and, when ground truth was seen, drift [m] and velocity RMSE [m/s] per axis."""
-        out: dict = {"ticks": self.ticks, "restarts": self.restarts, "held_imu_ticks": self.held_imu_ticks,
-                     "duplicates": self.duplicates,
+        out: dict = {"ticks": self.ticks, "restarts": self.restarts, "held_imu_ticks": self.stream.held_imu_ticks,
+                     "duplicates": self.stream.duplicates,
                      "reinitialisations": self.estimator.reinitialisations,
                      "rejected": dict(self.rejections),
                      "leg_odometry": self.estimator.settings.leg_odometry.mode}

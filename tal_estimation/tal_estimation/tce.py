@@ -280,9 +280,23 @@ class TerrainComplianceEstimator:
         self._tau_slice = [RobotDescription.leg_joint_slice(leg) for leg in range(NUM_LEGS)]
         self._anchor: list[np.ndarray | None] = [None] * NUM_LEGS   # foot position at touchdown (tangential)
         self._was_in_contact = np.zeros(NUM_LEGS, dtype=bool)
-        r = self.settings.relief_radius_m
-        self._relief_offsets = ((r, 0.0), (-r, 0.0), (0.0, r), (0.0, -r))
+        self._relief_offsets = self._offsets(self.settings.relief_radius_m)
         self.edge_samples = np.zeros(NUM_LEGS, dtype=np.int64)   # stance samples left out at edges, per leg
+
+    @staticmethod
+    def _offsets(r: float) -> tuple[tuple[float, float], ...]:
+        return ((r, 0.0), (-r, 0.0), (0.0, r), (0.0, -r))
+
+    def reconfigure(self, settings: TceSettings) -> None:
+        """Apply ``settings`` from the next update (thresholds, validity limits), keeping the windows and the
+        estimates. The window length and estimate_tangential shape the buffers and are fixed (InputError)."""
+        if settings.window != self.settings.window or settings.estimate_tangential != self.settings.estimate_tangential:
+            raise InputError("TCE window and estimate_tangential are fixed for the estimator's lifetime")
+        self.settings = settings
+        self.normal.settings = settings
+        if self.tangential is not None:
+            self.tangential.settings = settings
+        self._relief_offsets = self._offsets(settings.relief_radius_m)
 
     @property
     def estimates(self) -> list[LegEstimate]:

@@ -9,12 +9,12 @@ from functools import cache
 
 import numpy as np
 import pytest
+from tal_lab.offline_estimation import SensorArrays, run_estimator
 
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
 from tal_core.rotations import so3_exp
 from tal_estimation.leg_odometry import LegImpedance, LegOdometrySettings
-from tal_estimation.offline import SensorArrays, run_estimator
 from tal_estimation.state_estimator import (
     EstimatorInputError,
     StateEstimate,

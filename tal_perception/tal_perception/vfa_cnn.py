@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from torch import nn
 
 from tal_core.heightmap import HeightMapGrid
-from tal_core.legs import LEGS, RIGHT_LEGS, Leg
+from tal_core.legs import LEGS, MIRROR_LEG_INDEX, RIGHT_LEGS, Leg
 from tal_perception import vfa_cnn_ort
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
@@ -59,7 +59,6 @@ from tal_perception.vfa import (
     patch_heading,
 )
 from tal_perception.vfa_cnn_fast import compile_fast_unet
-from tal_perception.vfa_dataset import mirror_tuples
 from tal_perception.vfa_decode import VfaDecode, decode, decode_unchecked
 
 FloatArray = NDArray[np.float64]
@@ -71,6 +70,18 @@ IMAGE_CHANNELS = 4  # relative height, unknown mask, row offset, column offset
 # Four, so that the last decoder layer reads 16 + 8 + 4 + 4 = 32 channels: ONNX Runtime's blocked (NCHWc)
 # convolution needs a multiple of 4 (with 30 it fell back to a plain convolution, 0.73 instead of 0.38 ms).
 ROUGHNESS_CHANNELS = 4
+
+
+def mirror_tuples(
+    heights: NDArray[np.floating], twist: NDArray[np.floating], legs: NDArray[np.integer]
+) -> tuple[NDArray[np.floating], NDArray[np.floating], NDArray[np.integer]]:
+    """The y-mirror of B tuples (new arrays, same dtypes): patch columns flipped (heights (B, n, n) [m]), vy and
+    yaw rate negated (twist (B, 6) [m/s, rad/s], horizontal frame), each leg index (B,) replaced by its mirror's."""
+    twist = np.array(twist, copy=True)
+    twist[:, 1] *= -1.0
+    twist[:, 5] *= -1.0
+    return np.ascontiguousarray(heights[:, :, ::-1]), twist, np.asarray(MIRROR_LEG_INDEX, legs.dtype)[legs]
+
 
 
 @dataclass(frozen=True)
@@ -200,7 +211,7 @@ def canonical_inputs(
     heights: NDArray[np.floating], twist: ArrayLike, legs: ArrayLike
 ) -> tuple[NDArray[np.floating], NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
     """The inputs of a ``NetConfig.canonical_legs`` network: every right-leg tuple replaced by its y-mirror
-    (``vfa_dataset.mirror_tuples``: patch columns flipped, vy and yaw rate negated, the left leg of the same
+    (``mirror_tuples``: patch columns flipped, vy and yaw rate negated, the left leg of the same
     end). heights (B, n, n) [m], twist (B, 6) [m/s, rad/s], legs (B,) indices into LEGS.
     Returns (heights, twist, legs, right) with right (B,) True where a tuple was mirrored; the inputs are not
     modified (copies are made only when a right leg is present)."""
@@ -492,7 +503,7 @@ def load_model(path: Path = DEFAULT_WEIGHTS) -> VfaNet | VfaUNet:
     """The network saved by ``save_model`` (float32, eval mode); ``net.decode`` is the stored decode
     (``VfaDecode``; the thesis' argmax when the file has none)."""
     if not path.exists():
-        raise FecConfigError(f"VFA CNN weights not found: {path} (train them with python -m tal_perception.train_vfa)")
+        raise FecConfigError(f"VFA CNN weights not found: {path} (train them with python -m tal_lab.vital.train_vfa)")
     document = torch.load(path, map_location="cpu", weights_only=True)
     if document.get("format") != "tal_perception.vfa_cnn/1":
         raise FecConfigError(f"{path} is not a tal_perception VFA CNN file (format {document.get('format')!r})")
@@ -555,7 +566,7 @@ class CnnFootholdSelector:
     stored with the weights (``net.decode``; the thesis' argmax for a network without one).
 
     backend: which runtime computes the network. ``"onnxruntime"``: the module's forward exported to ONNX
-    and run by ONNX Runtime on one thread (``vfa_cnn_ort``; the faster one, see ``models/VFA_CARD.md``);
+    and run by ONNX Runtime on one thread (``vfa_cnn_ort``; the faster one, see ``docs/models/VFA_CARD.md``);
     ``"torch"``: PyTorch (see ``fast``); ``"auto"`` (default): onnxruntime when ``onnxruntime`` and
     ``onnx`` import, else torch. An explicit ``"onnxruntime"`` that cannot be imported falls back to torch
     with a ``RuntimeWarning``. ``self.backend`` says which one runs. Both compute the same function (float32

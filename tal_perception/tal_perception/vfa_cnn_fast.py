@@ -14,7 +14,7 @@ taken in another order, ~1e-6 relative on the logits), with these exact rewrites
 * weights are float32 copies made once (the file stores float16), convolutions run channels-last.
 
 ``compile_fast_unet(net)`` traces and freezes it with TorchScript (no Python per layer at call time).
-Measured with ``python bench/bench_vfa_cnn.py`` (one torch thread): see ``models/VFA_CARD.md``.
+Measured with ``python bench/bench_vfa_cnn.py`` (one torch thread): see ``docs/models/VFA_CARD.md``.
 Plain torch, no ROS.
 """
 

@@ -27,9 +27,9 @@ from rclpy.node import Node
 
 from tal_core.errors import InputError
 from tal_core.heightmap import HeightMapGrid
-from tal_core.node_utils import declare, ns_from_stamp, run_node, write_summary
 from tal_core.robot_model import RobotModel
-from tal_core.ros_conversions import heightmap_grid
+from tal_core.ros.conversions import heightmap_grid
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
 from tal_msgs.msg import Foothold, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
@@ -85,39 +85,37 @@ def foothold_message(decision: FootholdDecision) -> Foothold:
 class VfaNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("vfa", **kwargs)
-        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True)
+        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path")
         selector = declare(self, "selector", "exact", f"foothold selector: one of {', '.join(SELECTORS)} "
-                           "(exact: lazy exact evaluation of the foothold evaluation criteria)", read_only=True)
+                           "(exact: lazy exact evaluation of the foothold evaluation criteria)")
         settings = PlannerSettings(
             max_map_age_s=declare(self, "max_map_age_s", 0.5, "[s] a heightmap further than this from the gait "
-                                  "state's stamp is stale (nominal passed through)", low=0.001, high=60.0,
-                                  read_only=True),
+                                  "state's stamp is stale (nominal passed through)", low=0.001, high=60.0),
             min_swing_time_left_s=declare(self, "min_swing_time_left_s", 0.08, "[s] no (re-)decision with less "
                                           "swing time left (the wbc accepts footholds until 0.05 s)", low=0.0,
-                                          high=2.0, read_only=True),
+                                          high=2.0),
             nominal_shift_threshold_m=declare(self, "nominal_shift_threshold_m", 0.02, "[m] re-decide when the "
                                               "nominal foothold moved this far since the last decision", low=0.0,
-                                              high=1.0, read_only=True),
+                                              high=1.0),
             reevaluate_on_new_map=declare(self, "reevaluate_on_new_map", True, "re-decide when a newer heightmap "
-                                          "arrives during a swing", read_only=True),
+                                          "arrives during a swing"),
             level_lock_swing_fraction=declare(self, "level_lock_swing_fraction", 0.35, "[-] after this fraction "
                                               "of the swing a re-decision may not change the foothold's level "
-                                              "(the swing can no longer re-plan its apex)", low=0.0, high=1.0,
-                                              read_only=True),
+                                              "(the swing can no longer re-plan its apex)", low=0.0, high=1.0),
             level_lock_dz_m=declare(self, "level_lock_dz_m", 0.02, "[m] a late re-decision moving the foothold "
-                                    "height by more than this is not taken", low=0.0, high=1.0, read_only=True),
+                                    "height by more than this is not taken", low=0.0, high=1.0),
             pair_compensation_m=declare(self, "pair_compensation_m", 0.0, "[m] largest shift of a swinging "
                                         "diagonal partner's nominal against the other leg's adaptation, so the "
                                         "trot's support line stays under the CoM (0: off, the thesis' VFA; "
-                                        "0.08 in ViTAL's stairs runs)", low=0.0, high=0.3, read_only=True),
+                                        "0.08 in ViTAL's stairs runs)", low=0.0, high=0.3),
             predict_hip_descent=declare(self, "predict_hip_descent", False, "evaluate a swing at its hip's "
                                         "predicted height at touchdown (gait_state hip_velocity) when that is "
-                                        "lower than now (the way down stairs)", read_only=True))
+                                        "lower than now (the way down stairs)"))
         self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
-                                            "clock: sim time with use_sim_time)", low=0.05, high=60.0,
-                                            read_only=True)
+                                            "clock: sim time with use_sim_time)", low=0.05, high=60.0)
         self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
-                                    "('' = none)", read_only=True)
+                                    "('' = none)",
+                                    on_change=lambda value: setattr(self, "summary_path", value))
         self.planner = VfaPlanner.for_robot(RobotModel.from_name(robot), selector, settings)
         self.selector_name = selector
         warm_up_s = self.planner.warm_up()  # the first selections build caches (~30 ms): not in a callback

@@ -27,8 +27,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 
 from tal_core.errors import InputError
-from tal_core.node_utils import declare, run_node, write_summary
 from tal_core.robot_model import RobotModel
+from tal_core.ros.node_utils import declare, run_node, write_summary
 from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
@@ -51,37 +51,36 @@ def pose_message(reference: PoseReference) -> BodyPoseReference:
 class VpaNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("vpa", **kwargs)
-        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True)
+        robot = declare(self, "robot", "hyq", "robot YAML: shipped name or path")
         source = declare(self, "source", "vpa", f"pose reference source: one of {', '.join(SOURCES)} (tbr: the "
-                         "thesis' baseline)", choices=SOURCES, read_only=True)
+                         "thesis' baseline)", choices=SOURCES)
         use_cnn = declare(self, "use_cnn", True, "VPA: CNN pose evaluation (committed weights) instead of the "
-                          "exact one", read_only=True)
+                          "exact one")
         period = declare(self, "update_period_s", 0.05, "[s] gait-state time between updates (0.05: 20 Hz)",
-                         low=0.004, high=10.0, read_only=True)
+                         low=0.004, high=10.0)
         cost = declare(self, "cost", "int", "pose optimiser cost: sum, prod or int (C_int with cost_margin_m)",
-                       choices=[c.value for c in CostKind], read_only=True)
+                       choices=[c.value for c in CostKind])
         settings = VpaSettings(
             cost=CostKind(cost),
-            cost_margin_m=declare(self, "cost_margin_m", 0.025, "[m] C_int margin", low=0.0, high=0.2,
-                                  read_only=True),
-            horizon=declare(self, "horizon", 2, "[-] receding horizon stages N_h", low=1, high=5, read_only=True),
+            cost_margin_m=declare(self, "cost_margin_m", 0.025, "[m] C_int margin", low=0.0, high=0.2),
+            horizon=declare(self, "horizon", 2, "[-] receding horizon stages N_h", low=1, high=5),
             max_map_age_s=declare(self, "max_map_age_s", 0.5, "[s] a heightmap older than this (gait-state time) "
-                                  "is stale: default pose held", low=0.001, high=60.0, read_only=True),
+                                  "is stale: default pose held", low=0.001, high=60.0),
             swing_hip_model=declare(self, "swing_hip_model", "level", "exact evaluation: the hip during the swing, "
                                     "level (thesis) or terrain (follows the terrain from lift-off to touchdown)",
-                                    choices=SWING_HIP_MODELS, read_only=True),
+                                    choices=SWING_HIP_MODELS),
             leg_weighting=declare(self, "leg_weighting", "none", "optimiser: none (thesis) or peak (each leg's "
-                                  "curve divided by its peak)", choices=LEG_WEIGHTINGS, read_only=True))
+                                  "curve divided by its peak)", choices=LEG_WEIGHTINGS))
         tbr_height = declare(self, "tbr_height_m", 0.0, "[m] TBR: base height above the footholds' plane "
-                             "(0: the robot's nominal height)", low=0.0, high=2.0, read_only=True)
+                             "(0: the robot's nominal height)", low=0.0, high=2.0)
         self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
-                                            "clock)", low=0.05, high=60.0, read_only=True)
+                                            "clock)", low=0.05, high=60.0)
         self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
-                                    "('' = none)", read_only=True)
+                                    "('' = none)",
+                                    on_change=lambda value: setattr(self, "summary_path", value))
         # The CNN is small: a second intra-op thread only contends with the other nodes (2 threads on the
         # loaded 2-core machine took 258 ms per update instead of 11-20 ms).
-        torch.set_num_threads(declare(self, "torch_threads", 1, "[-] torch intra-op threads", low=1, high=64,
-                                      read_only=True))
+        torch.set_num_threads(declare(self, "torch_threads", 1, "[-] torch intra-op threads", low=1, high=64))
         self.planner = PosePlanner(RobotModel.from_name(robot), source, use_cnn=use_cnn, update_period_s=period,
                                    tbr_height_m=tbr_height or None, settings=settings)
         self.source = source

@@ -185,8 +185,9 @@ def test_bad_inputs_raise_precise_errors(evaluator: FootholdEvaluator, hip_heigh
 
 
 def test_gathered_grid_operations_match_the_reference_ones(evaluator: FootholdEvaluator) -> None:
+    from tal_lab.vital.terrain_samples import terrain_samples
+
     from tal_perception.fec_grid import PatchGrids, disc_max
-    from tal_perception.terrain_samples import terrain_samples
 
     s = evaluator.settings
     grids = PatchGrids(33, 33, 0.02, s.roughness_radius_m, s.leg_radius_m, evaluator.foot_radius_m, 0.04)

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tal_lab.vital.terrain_samples import terrain_samples
 
 from tal_core.heightmap import HeightMapGrid, extract_heightmap
 from tal_core.legs import LEGS, Leg
 from tal_core.terrain import Course, DefaultGround, FlatPatch, GapPatch, Region
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec_settings import GaitTiming
-from tal_perception.terrain_samples import terrain_samples
 from tal_perception.vfa import FootholdSelector, VfaStatus, extract_patch, extract_patches, select_foothold
 
 TROT_SWING = GaitTiming(step_frequency_hz=1.5, duty_factor=0.6, swing_time_left_s=0.4 / 1.5, step_height_m=0.1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from tal_lab.vital.vfa_dataset import closest_safe_index
 
 from tal_perception.errors import FecConfigError, PerceptionInputError
 from tal_perception.fec import FootholdEvaluator
@@ -19,7 +20,6 @@ from tal_perception.vfa_cnn import (
     save_model,
     store_decode,
 )
-from tal_perception.vfa_dataset import closest_safe_index
 from tal_perception.vfa_decode import VfaDecode, combined_score, decode
 
 N = 5  # a 5 x 5 patch: centre (2, 2) = flat index 12
@@ -204,7 +204,7 @@ def test_selector_uses_the_stored_decode_unless_given_one(evaluator: FootholdEva
 
 
 def test_tune_vfa_decode_scores_the_grid_and_stores_the_best_decode(tmp_path) -> None:
-    from tal_perception import tune_vfa_decode
+    from tal_lab.vital import tune_vfa_decode
 
     torch.manual_seed(0)
     weights = tmp_path / "net.pt"
@@ -233,7 +233,7 @@ def test_tune_vfa_decode_scores_the_grid_and_stores_the_best_decode(tmp_path) ->
 
 
 def test_selection_rules_trade_perfect_match_against_safe_rate() -> None:
-    from tal_perception.tune_vfa_decode import rule_key
+    from tal_lab.vital.tune_vfa_decode import rule_key
 
     rows = [{"perfect_match": 0.74, "safe": 0.83}, {"perfect_match": 0.72, "safe": 0.88},
             {"perfect_match": 0.60, "safe": 0.95}]  # fmt: skip

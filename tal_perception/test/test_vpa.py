@@ -7,6 +7,9 @@ import math
 
 import numpy as np
 import pytest
+from tal_lab.vital.terrain_samples import random_terrain
+from tal_lab.vital.vpa_dataset import TROT_GAIT
+from tal_lab.vital.vpa_scenes import SCENE_KINDS, vpa_scenes
 
 from tal_core.heightmap import HeightMapGrid, extract_heightmap
 from tal_core.legs import LEGS, Leg
@@ -20,13 +23,10 @@ from tal_perception.fec_grid import erode
 from tal_perception.fec_settings import FecSettings, GaitTiming
 from tal_perception.rbf import RbfBasis
 from tal_perception.tbr import TerrainBasedReference
-from tal_perception.terrain_samples import random_terrain
 from tal_perception.vfa import extract_patch
 from tal_perception.vpa import PoseAdapter, VpaStatus
-from tal_perception.vpa_dataset import TROT_GAIT
 from tal_perception.vpa_evaluation import PoseEvaluator
 from tal_perception.vpa_optimizer import HipHeightModel, PoseOptimizer, PoseProblem, Solver
-from tal_perception.vpa_scenes import SCENE_KINDS, vpa_scenes
 from tal_perception.vpa_settings import CostKind, VpaSettings
 
 SETTINGS = VpaSettings()
@@ -433,8 +433,9 @@ def test_tbr_plane_through_known_footholds() -> None:
 # -- CNN -------------------------------------------------------------------------------------------------
 def test_committed_cnn_weights_load_and_approximate_fresh_curves(pose_evaluator: PoseEvaluator, basis: RbfBasis) -> None:
     pytest.importorskip("torch")
+    from tal_lab.vital.vpa_dataset import generate
+
     from tal_perception.vpa_cnn import CnnNsfModel
-    from tal_perception.vpa_dataset import generate
 
     model = CnnNsfModel.load()
     model.check(SETTINGS.rbf_count, 33)

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from tal_lab.datasets import DatasetError, DatasetScenario, generate
 
-from tal_control.experiments.datasets import DatasetError, DatasetScenario, generate
 from tal_core.robot_description import load_robot_description
 
 from .measured import load_measured

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tal_core.bag_io import BagError, BagReader
 from tal_core.robot_description import RobotDescription
+from tal_core.ros.bag_io import BagError, BagReader
 
 from .errors import MeasuredDataError
 
@@ -232,7 +232,7 @@ def _joint_arrays(
     if largest > MAX_ABS_JOINT_ANGLE_RAD:
         raise MeasuredDataError(
             f"{where}: joint positions reach {largest:.1f}, beyond 2 pi: they are not in "
-            "radians (degrees?); convert them (tal_core.csv_import maps units)"
+            "radians (degrees?); convert them (tal_core.ros.csv_import maps units)"
         )
     return {"t": t[keep], "q": q[keep], "qd": qd[keep], "effort": None if effort is None else effort[keep]}
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from tal_lab.closed_loop import ClosedLoopConfig, run_closed_loop
 
-from tal_control.experiments.closed_loop import ClosedLoopConfig, run_closed_loop
 from tal_core.robot_description import load_robot_description
 
 from .identify import Identification

@@ -88,7 +88,7 @@ def test_out_of_order_and_repeated_stamps_are_dropped_and_counted() -> None:
 def test_joint_angles_in_degrees_are_refused(tmp_path: Path) -> None:
     from sensor_msgs.msg import JointState
 
-    from tal_core.bag_io import BagWriter
+    from tal_core.ros.bag_io import BagWriter
     from tal_sim2real.measured import load_measured
 
     description = load_robot_description("hyq")

@@ -96,7 +96,7 @@ def test_two_effects_in_different_subsystems_are_both_named(bags: Path, tmp_path
 def test_missing_torque_sensor_skips_only_the_effects_that_need_it(bags: Path, tmp_path: Path) -> None:
     """A bag without joint_states.effort and joint_command: torque-path effects are skipped with the
     signal named; the IMU check still runs."""
-    from tal_core.bag_io import BagReader, BagWriter
+    from tal_core.ros.bag_io import BagReader, BagWriter
 
     src = bags / "bags" / "free"
     dst = tmp_path / "no_effort"

@@ -1,4 +1,4 @@
-"""Node ``bag_player``: replays a rosbag2 MCAP bag into the graph (tal_core.bag_io).
+"""Node ``bag_player``: replays a rosbag2 MCAP bag into the graph (tal_core.ros.bag_io).
 
 Parameters: ``bag`` (folder or .mcap file), ``rate`` (multiple of real time; 0 = as fast as possible,
 with reliable keep-all publishers so that DDS paces the player to its readers), ``topics`` (subset; empty:
@@ -21,8 +21,8 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
-from tal_core.bag_io import BagError, BagMessage, BagReader, message_class
-from tal_core.node_utils import declare, run_node, stamp_from_ns, write_summary
+from tal_core.ros.bag_io import BagError, BagMessage, BagReader, message_class
+from tal_core.ros.node_utils import declare, run_node, stamp_from_ns, write_summary
 
 TICK_S = 0.001      # [s] wall-clock timer period of the player
 BURST = 2000        # messages per tick at most when playing as fast as possible
@@ -31,17 +31,18 @@ BURST = 2000        # messages per tick at most when playing as fast as possible
 class BagPlayerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("bag_player", **kwargs)
-        bag = declare(self, "bag", "", "bag folder or .mcap file to play", read_only=True)
+        bag = declare(self, "bag", "", "bag folder or .mcap file to play")
         self.rate = declare(self, "rate", 1.0, "[-] multiple of real time; 0: as fast as possible", low=0.0,
-                            high=1000.0, read_only=True)
-        topics = [t for t in declare(self, "topics", [""], "topics to play (empty: all)", read_only=True) if t]
-        remaps = [r for r in declare(self, "remap", [""], "topic remappings 'from:=to'", read_only=True) if r]
+                            high=1000.0, on_change=self._set_rate)
+        topics = [t for t in declare(self, "topics", [""], "topics to play (empty: all)") if t]
+        remaps = [r for r in declare(self, "remap", [""], "topic remappings 'from:=to'") if r]
         self.start_offset_ns = round(declare(self, "start_offset_s", 0.0, "[s] skip this much of the bag's start",
-                                             low=0.0, high=1e6, read_only=True) * 1e9)
-        self.loop = declare(self, "loop", False, "start again at the end", read_only=True)
-        self.publish_clock = declare(self, "publish_clock", True, "publish clock from the recorded times",
-                                     read_only=True)
-        self.summary_path = declare(self, "summary_path", "", "JSON written at shutdown", read_only=True)
+                                             low=0.0, high=1e6) * 1e9)
+        self.loop = declare(self, "loop", False, "start again at the end",
+                            on_change=lambda value: setattr(self, "loop", bool(value)))
+        self.publish_clock = declare(self, "publish_clock", True, "publish clock from the recorded times")
+        self.summary_path = declare(self, "summary_path", "", "JSON written at shutdown",
+                                    on_change=lambda value: setattr(self, "summary_path", value))
         if not bag:
             raise ValueError("parameter 'bag' is required (a bag folder or .mcap file)")
         self.reader = BagReader(bag)  # BagError for a missing bag: a start-up error
@@ -72,6 +73,16 @@ class BagPlayerNode(Node):
         self._bag_start_ns: int | None = None
         self._wall_start = time.monotonic()
         self._last_clock_ns: int | None = None
+
+    def _set_rate(self, rate: float) -> None:
+        """Live: the playback goes on from where it is at the new rate (0 <-> > 0 changes the QoS: refused)."""
+        if (rate == 0.0) != (self.rate == 0.0):
+            raise ValueError("rate: switching to or from 0 (as fast as possible) changes the publishers' QoS; "
+                             "restart the player")
+        if self.rate > 0.0:
+            now = time.monotonic()
+            self._wall_start = now - (now - self._wall_start) * self.rate / rate
+        self.rate = float(rate)
 
     def _publisher(self, topic: str, type_name: str):
         key = self.remap.get(topic, topic)

@@ -1,4 +1,4 @@
-"""Node ``bag_recorder``: records topics of the graph into a rosbag2 MCAP bag (tal_core.bag_io).
+"""Node ``bag_recorder``: records topics of the graph into a rosbag2 MCAP bag (tal_core.ros.bag_io).
 
 Parameters: ``output`` (bag folder to create; empty: ``bags/<UTC timestamp>``), ``topics`` (names to
 record; empty: every topic seen, re-discovered every ``discovery_period_s``), ``compression``
@@ -23,8 +23,8 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from tal_core.bag_io import BagError, BagWriter, message_class
-from tal_core.node_utils import declare, run_node, write_summary
+from tal_core.ros.bag_io import BagError, BagWriter, message_class
+from tal_core.ros.node_utils import declare, run_node, write_summary
 
 IGNORED_TOPICS = ("/rosout", "/parameter_events")
 
@@ -32,20 +32,18 @@ IGNORED_TOPICS = ("/rosout", "/parameter_events")
 class BagRecorderNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("bag_recorder", **kwargs)
-        output = declare(self, "output", "", "bag folder to create (empty: bags/<UTC timestamp>)", read_only=True)
-        self.wanted = list(declare(self, "topics", [""], "topics to record (empty list or ['']: all)",
-                                   read_only=True))
+        output = declare(self, "output", "", "bag folder to create (empty: bags/<UTC timestamp>)")
+        self.wanted = list(declare(self, "topics", [""], "topics to record (empty list or ['']: all)"))
         self.wanted = [t if t.startswith("/") else self._resolve(t) for t in self.wanted if t]
-        compression = declare(self, "compression", "zstd", "chunk compression", choices=("zstd", "lz4", "none"),
-                              read_only=True)
+        compression = declare(self, "compression", "zstd", "chunk compression", choices=("zstd", "lz4", "none"))
         chunk = declare(self, "chunk_size_bytes", 1 << 20, "[B] chunk size before compression", low=1024,
-                        high=1 << 30, read_only=True)
+                        high=1 << 30)
         flush_period = declare(self, "flush_period_s", 1.0, "[s] wall time between chunk flushes (bounds the "
-                               "loss on SIGKILL)", low=0.01, high=60.0, read_only=True)
+                               "loss on SIGKILL)", low=0.01, high=60.0)
         discovery = declare(self, "discovery_period_s", 0.5, "[s] how often new topics are looked for",
-                            low=0.05, high=60.0, read_only=True)
+                            low=0.05, high=60.0)
         self.summary_path = declare(self, "summary_path", "", "JSON written at shutdown (counts, bytes)",
-                                    read_only=True)
+                                    on_change=lambda value: setattr(self, "summary_path", value))
         path = Path(output) if output else Path("bags") / datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
         self.writer = BagWriter(path, compression=compression, chunk_size=chunk)
         self.bytes_written = 0

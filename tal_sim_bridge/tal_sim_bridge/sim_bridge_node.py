@@ -29,8 +29,8 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, JointState
 
 from tal_core.heightmap import extract_heightmap
-from tal_core.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
 from tal_core.robot_description import load_robot_description
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
 from tal_core.rotations import yaw_from_quat_xyzw
 from tal_core.terrain import load_course
 from tal_msgs.msg import ContactState, HeightMap, JointCommand
@@ -46,6 +46,7 @@ from .sensor_messages import (
     joint_state_message,
     odometry_message,
 )
+from .stepping import LockstepGate, OutputSchedule, RealtimePacer
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
     "actuator_delay_s": (0.0, "[s] transport delay of the joint torques"),
@@ -81,14 +82,13 @@ class SimBridgeNode(Node):
                                summary_window_steps=max(1, int(p["contact_rate_hz"])))
         self.params = p
         self.steps_per_control = max(1, round(p["control_period_s"] * p["physics_rate_hz"]))
-        self.sensor_every = max(1, round(p["physics_rate_hz"] / p["sensor_rate_hz"]))
-        self.contact_every = max(1, round(p["physics_rate_hz"] / p["contact_rate_hz"]))
-        self.heightmap_every = max(1, round(p["physics_rate_hz"] / p["heightmap_rate_hz"]))
-        self.duration_steps = (round(p["duration_s"] * p["physics_rate_hz"]) if p["duration_s"] > 0 else None)
+        self.schedule = OutputSchedule.from_rates(p["physics_rate_hz"], p["sensor_rate_hz"], p["contact_rate_hz"],
+                                                  p["heightmap_rate_hz"])
+        self._set_duration(p["duration_s"])
         self.finished = False
-        self.lockstep_timeouts = 0
         self.initial_state_repeats = 0  # re-sends of the initial state while waiting for a controller
-        self.realtime_overruns = 0
+        self.gate = LockstepGate(p["lockstep_timeout_s"], p["startup_timeout_s"])
+        self.pacer = RealtimePacer(p["physics_rate_hz"], p["max_catch_up_steps"], time.monotonic())
         self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
 
         qos_sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -101,15 +101,11 @@ class SimBridgeNode(Node):
         self.create_subscription(JointCommand, "joint_command", self._on_command, 10)
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._wall_start = time.monotonic()
-        self._waiting_since = time.monotonic()
-        self._awaiting_tick_ns: int | None = None
+        self._publish_step_outputs(force_all=True)
         if self.mode == "lockstep":
-            self._publish_step_outputs(force_all=True)
-            self._awaiting_tick_ns = self.core.sim.time_ns
+            self.gate.wait_for(self.core.sim.time_ns, time.monotonic())
             self.create_timer(0.05, self._check_lockstep_timeout, clock=steady)
         else:
-            self._publish_step_outputs(force_all=True)
             self.create_timer(1.0 / p["physics_rate_hz"], self._realtime_tick, clock=steady)
         self.get_logger().info(
             f"sim_bridge ready: robot '{robot.name}' ({sim.total_mass_kg:.2f} kg), course '{course.name}', "
@@ -120,23 +116,23 @@ class SimBridgeNode(Node):
     def _declare_parameters(self) -> dict[str, object]:
         p: dict[str, object] = {
             "mode": declare(self, "mode", "lockstep", "lockstep (deterministic) or realtime (wall clock)",
-                            choices=("lockstep", "realtime"), read_only=True),
-            "robot": declare(self, "robot", "hyq", "robot YAML: shipped name or path", read_only=True),
-            "course": declare(self, "course", "flat_rigid", "course YAML: shipped name or path", read_only=True),
-            "gui": declare(self, "gui", False, "open the PyBullet GUI instead of DIRECT", read_only=True),
+                            choices=("lockstep", "realtime")),
+            "robot": declare(self, "robot", "hyq", "robot YAML: shipped name or path"),
+            "course": declare(self, "course", "flat_rigid", "course YAML: shipped name or path"),
+            "gui": declare(self, "gui", False, "open the PyBullet GUI instead of DIRECT"),
             "physics_rate_hz": declare(self, "physics_rate_hz", 1000.0, "[Hz] physics step rate",
-                                       low=100.0, high=10000.0, read_only=True),
+                                       low=100.0, high=10000.0),
             "control_period_s": declare(self, "control_period_s", 0.004,
-                                        "[s] control tick of the lockstep protocol", low=0.0005, high=0.1,
-                                        read_only=True),
+                                        "[s] control tick of the lockstep protocol", low=0.0005, high=0.1),
             "lockstep_timeout_s": declare(self, "lockstep_timeout_s", 2.0,
                                           "[s] wall time to wait for a command before advancing anyway",
-                                          low=0.01, high=3600.0),
+                                          low=0.01, high=3600.0, on_change=self._set_gate("timeout_s")),
             "startup_timeout_s": declare(self, "startup_timeout_s", 30.0,
                                          "[s] wall time to wait for the very first command (DDS discovery)",
-                                         low=0.01, high=3600.0),
+                                         low=0.01, high=3600.0, on_change=self._set_gate("startup_timeout_s")),
             "max_catch_up_steps": declare(self, "max_catch_up_steps", 20,
-                                          "[-] realtime: most physics steps per timer call", low=1, high=1000),
+                                          "[-] realtime: most physics steps per timer call", low=1, high=1000,
+                                          on_change=self._set_catch_up),
             "sensor_rate_hz": declare(self, "sensor_rate_hz", 1000.0,
                                       "[Hz] clock, joint_states, imu, ground_truth/odom", low=1.0, high=10000.0),
             "contact_rate_hz": declare(self, "contact_rate_hz", 250.0, "[Hz] ground_truth/contacts",
@@ -148,11 +144,11 @@ class SimBridgeNode(Node):
             "heightmap_resolution_m": declare(self, "heightmap_resolution_m", 0.02, "[m] cell size",
                                               low=0.001, high=1.0),
             "initial_x_m": declare(self, "initial_x_m", 0.0, "[m] world x of the robot at start",
-                                   low=-1e4, high=1e4, read_only=True),
+                                   low=-1e4, high=1e4),
             "initial_y_m": declare(self, "initial_y_m", 0.0, "[m] world y of the robot at start",
-                                   low=-1e4, high=1e4, read_only=True),
+                                   low=-1e4, high=1e4),
             "initial_yaw_rad": declare(self, "initial_yaw_rad", 0.0, "[rad] heading at start",
-                                       low=-math.pi, high=math.pi, read_only=True),
+                                       low=-math.pi, high=math.pi),
             "imu_gyro_noise_std_rad_s": declare(self, "imu_gyro_noise_std_rad_s", 0.0,
                                                 "[rad/s] gyroscope white noise", low=0.0, high=10.0),
             "imu_accel_noise_std_m_s2": declare(self, "imu_accel_noise_std_m_s2", 0.0,
@@ -162,12 +158,29 @@ class SimBridgeNode(Node):
                                                 "[N m s/rad] joint damping before any valid command",
                                                 low=0.0, high=1000.0),
             "duration_s": declare(self, "duration_s", 0.0, "[s] sim time after which the bridge stops; 0 = never",
-                                  low=0.0, high=1e6),
-            "summary_path": declare(self, "summary_path", "", "JSON file for the end-of-run summary ('' = none)"),
+                                  low=0.0, high=1e6, on_change=self._set_duration),
+            "summary_path": declare(self, "summary_path", "", "JSON file for the end-of-run summary ('' = none)",
+                                    on_change=lambda value: self.params.__setitem__("summary_path", value)),
         }
         for name, (default, description) in EFFECT_PARAMETERS.items():
-            declare(self, f"effects.{name}", default, description, read_only=True)
+            declare(self, f"effects.{name}", default, description)
         return p
+
+    def _set_gate(self, attribute: str):
+        def apply(value: float) -> None:
+            setattr(self.gate, attribute, float(value))
+        return apply
+
+    def _set_catch_up(self, value: int) -> None:
+        self.pacer.max_catch_up_steps = int(value)
+
+    def _set_duration(self, duration_s: float) -> None:
+        """Live: a run may be lengthened or shortened while it goes (not below the current step)."""
+        steps = round(duration_s * self.params["physics_rate_hz"]) if duration_s > 0 else None
+        if steps is not None and steps < self.core.sim.step_count:
+            raise ValueError(f"duration_s {duration_s} s is before the current sim time "
+                             f"{self.core.sim.time_ns * 1e-9:.3f} s")
+        self.duration_steps = steps
 
     # -- commands ---------------------------------------------------------------------------------------
     def _on_command(self, msg: JointCommand) -> None:
@@ -181,12 +194,12 @@ class SimBridgeNode(Node):
                 throttle_duration_sec=1.0)
             return
         if self.core.commands.accepted == 1 and self.mode == "lockstep":
-            self._wall_start = time.monotonic()  # the run starts now: discovery time is not sim time
-        if self._awaiting_tick_ns is not None and stamp_ns >= self._awaiting_tick_ns:
+            self.pacer.start_s = time.monotonic()  # the run starts now: discovery time is not sim time
+        if self.gate.releases(stamp_ns):
             self._advance_control_period()
 
     def _check_lockstep_timeout(self) -> None:
-        if self.finished or self._awaiting_tick_ns is None:
+        if self.finished or self.gate.awaiting_tick_ns is None:
             return
         if self.core.commands.accepted == 0 and self.core.sim.step_count == 0:
             # Controllers may join after the bridge (DDS discovery): re-send the initial state until the
@@ -194,36 +207,26 @@ class SimBridgeNode(Node):
             self._publish_step_outputs(force_all=True, record=False)
             self.initial_state_repeats += 1
         # Before the first command, give DDS discovery time (seconds with LOCALHOST discovery).
-        timeout = (self.params["startup_timeout_s"] if self.core.commands.accepted == 0
-                   else self.params["lockstep_timeout_s"])
-        if time.monotonic() - self._waiting_since > timeout:
-            self.lockstep_timeouts += 1
+        timeout = self.gate.timed_out(time.monotonic(), self.core.commands.accepted)
+        if timeout is not None:
             self.get_logger().warn(
-                f"lockstep: no joint_command for tick {self._awaiting_tick_ns * 1e-9:.3f} s within "
+                f"lockstep: no joint_command for tick {self.gate.awaiting_tick_ns * 1e-9:.3f} s within "
                 f"{timeout} s; advancing with the held command "
-                f"({self.lockstep_timeouts} timeouts)", throttle_duration_sec=1.0)
+                f"({self.gate.timeouts} timeouts)", throttle_duration_sec=1.0)
             self._advance_control_period()
 
     # -- stepping ---------------------------------------------------------------------------------------
     def _advance_control_period(self) -> None:
-        self._awaiting_tick_ns = None
+        self.gate.release()
         for _ in range(self.steps_per_control):
             if self._step_once():
                 return
-        self._awaiting_tick_ns = self.core.sim.time_ns
-        self._waiting_since = time.monotonic()
+        self.gate.wait_for(self.core.sim.time_ns, time.monotonic())
 
     def _realtime_tick(self) -> None:
         if self.finished:
             return
-        target_steps = int((time.monotonic() - self._wall_start) * self.params["physics_rate_hz"])
-        behind = target_steps - self.core.sim.step_count
-        if behind > self.params["max_catch_up_steps"]:
-            self.realtime_overruns += 1
-            # Drop the backlog rather than spiral: sim time then runs slower than the wall clock.
-            self._wall_start += (behind - self.params["max_catch_up_steps"]) / self.params["physics_rate_hz"]
-            behind = self.params["max_catch_up_steps"]
-        for _ in range(max(0, behind)):
+        for _ in range(self.pacer.steps_due(time.monotonic(), self.core.sim.step_count)):
             if self._step_once():
                 return
 
@@ -242,14 +245,15 @@ class SimBridgeNode(Node):
         self.pub_clock.publish(ClockMsg(clock=stamp))
         if state is None:
             state = self.core.sim.robot_state()
-        if force_all or step % self.sensor_every == 0:
+        due = self.schedule.due(step, force_all)
+        if due.sensors:
             self._publish_sensors(stamp, state)
-        if force_all or step % self.contact_every == 0:
+        if due.contacts:
             contacts = self.core.sim.foot_contacts()
             self._publish_contacts(stamp, contacts)
             if record:
                 self.core.record_statistics(state, contacts)
-        if force_all or step % self.heightmap_every == 0:
+        if due.heightmap:
             self._publish_heightmap(stamp, state)
 
     def _publish_sensors(self, stamp, state) -> None:
@@ -282,10 +286,10 @@ class SimBridgeNode(Node):
             Path(path).write_text(json.dumps(summary, indent=2) + "\n")
 
     def summary(self) -> dict[str, object]:
-        summary = self.core.summary(time.monotonic() - self._wall_start)
-        summary.update(mode=self.mode, lockstep_timeouts=self.lockstep_timeouts,
+        summary = self.core.summary(time.monotonic() - self.pacer.start_s)
+        summary.update(mode=self.mode, lockstep_timeouts=self.gate.timeouts,
                        initial_state_repeats=self.initial_state_repeats,
-                       realtime_overruns=self.realtime_overruns)
+                       realtime_overruns=self.pacer.overruns)
         return summary
 
     def destroy_node(self) -> None:

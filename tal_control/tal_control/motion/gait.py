@@ -14,7 +14,7 @@ gait such as the crawl), so the trunk can settle and shift the CoM before the fi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -248,6 +248,17 @@ class GaitScheduler:
         for index, leg in enumerate(self._legs):
             if not leg.swinging:
                 self._plan_next_liftoff(index, self._t_prev)
+
+    def set_step_height(self, step_height_m: float) -> None:
+        """Swing apex [m] of the running gait (and of a pending one) from the next lift-off on. Not a gait
+        switch: the schedule and the swings under way are untouched. MotionConfigError when a gait
+        refuses the height (0 for a moving gait)."""
+        schedules = [s for s in (self._active, self._pending) if s is not None]
+        height = float(step_height_m)
+        gaits = [replace(gait, step_height_m=height) for gait in (self._initial, *(s.gait for s in schedules))]
+        self._initial = gaits[0]
+        for schedule, gait in zip(schedules, gaits[1:], strict=True):
+            schedule.gait = gait
 
     def update(self, t_s: float) -> GaitPhase:
         """Advance to time ``t_s`` [s] (strictly after the previous call) and return the gait state."""

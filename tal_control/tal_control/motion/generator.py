@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from tal_core.robot_description import RobotDescription
 from tal_core.robot_model import RobotModel
 from tal_core.rotations import rotation_from_quat_xyzw
 
+# MotionParameters read at every update (the others shape what the constructor builds)
+RUNTIME_MOTION_PARAMETERS = frozenset({"k_feedback", "touchdown_depth_m", "retarget_until_progress",
+                                       "retarget_threshold_m", "min_external_time_left_s"})
 _REACH_FRACTION = 0.4  # default foothold offset limit, as a fraction of the nominal hip-to-foot height
 
 
@@ -242,6 +245,19 @@ class MotionGenerator:
     @property
     def gait(self) -> GaitParameters:
         return self._scheduler.gait
+
+    def set_step_height(self, step_height_m: float) -> None:
+        """Swing apex [m] from the next lift-off on (``GaitScheduler.set_step_height``)."""
+        self._scheduler.set_step_height(step_height_m)
+
+    def update_params(self, **changes: float) -> None:
+        """Change the settings read every tick (``RUNTIME_MOTION_PARAMETERS``) from the next update on;
+        MotionConfigError names one out of range or one fixed at construction."""
+        fixed = sorted(set(changes) - RUNTIME_MOTION_PARAMETERS)
+        if fixed:
+            raise MotionConfigError(f"motion parameters {fixed} are fixed at construction; at run time only "
+                                    f"{sorted(RUNTIME_MOTION_PARAMETERS)} change")
+        self.params = replace(self.params, **changes)
 
     def set_gait(self, params: GaitParameters) -> None:
         """Switch gait at the next cycle boundary (see ``GaitScheduler.set_gait``)."""

@@ -17,7 +17,7 @@ Pinocchio's base coordinates (first 6 rows of M qdd + h = S^T tau + J^T F), an e
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import osqp
@@ -103,6 +103,10 @@ class WbcSettings:
                              f"got {self.max_load_ramp_stance_fraction!r}")
 
 
+# WbcSettings read at every solve (the others shape the QP's layout and static blocks)
+RUNTIME_SETTINGS = frozenset({"friction_coefficient", "min_normal_force_n", "max_normal_force_n"})
+
+
 @dataclass
 class WbcSolution:
     """Result of one control cycle."""
@@ -171,6 +175,22 @@ class StandardWbc:
                 raise InputError(f"position limit override for {name}: lower {low} must be < upper {high}")
             self.position_lower[names.index(name)] = low
             self.position_upper[names.index(name)] = high
+
+    def update_settings(self, **changes: float) -> None:
+        """Change settings read at every solve (``RUNTIME_SETTINGS``) from the next one on. InputError for
+        another setting (fixed by the QP's layout and static blocks) or an invalid value."""
+        fixed = sorted(set(changes) - RUNTIME_SETTINGS)
+        if fixed:
+            raise InputError(f"WBC settings {fixed} are fixed at construction; at run time only "
+                             f"{sorted(RUNTIME_SETTINGS)} change")
+        settings = replace(self.settings, **{name: float(value) for name, value in changes.items()})
+        if not (np.isfinite(settings.friction_coefficient) and settings.friction_coefficient > 0.0):
+            raise InputError(f"friction_coefficient must be > 0, got {settings.friction_coefficient!r}")
+        if not 0.0 <= settings.min_normal_force_n <= settings.max_normal_force_n < INF:
+            raise InputError(f"normal force bounds must satisfy 0 <= min <= max, got min "
+                             f"{settings.min_normal_force_n!r} N, max {settings.max_normal_force_n!r} N")
+        self.settings = settings
+        self._friction_key = None  # the pyramids are rebuilt with the new coefficient
 
     # ------------------------------------------------------------------------------------------------
     def solve(self, q: np.ndarray, v: np.ndarray, refs: WbcReferences) -> WbcSolution:

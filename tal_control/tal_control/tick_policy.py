@@ -1,0 +1,354 @@
+"""The wbc's tick policy (no rclpy): when a control tick is due, which inputs it uses, restarts, safe mode
+and the watchdog. The ``wbc`` node feeds it every arrival and acts on its answers; an offline runner can
+feed it the same stamps and get the same decisions.
+
+Stamps are integer nanoseconds of sim time. Ticks lie on the grid k * period_ns (``tal_core.ticks``).
+
+- A tick is due when a joint state reaches the next grid point. It is computed once the base state
+  expected for it has arrived (ground truth: the same stamp; an estimate published every
+  ``base_period_ns``: the estimator's latest tick at or before it) and, with ``contacts``, the foot
+  contacts of its stamp. Arrival order does not matter, so lockstep runs are deterministic. A tick whose
+  inputs have not arrived is deferred; it is decided, with whatever base state is there, when a later
+  joint state arrives (the robot driver moved on).
+- A tick whose base state is older than ``stale_periods`` control periods is a safe-mode tick (joint
+  damping hold); the first normal tick after it leaves safe mode.
+- A heightmap comes into use at the first tick at least one control period after its stamp (one stamped
+  with the tick itself may arrive before or after the tick's joint state).
+- A joint state more than ``CLOCK_RESET_NS`` older than the last one is a restarted clock: every input is
+  forgotten and the grid starts again (the node starts its controller afresh). Base states and contacts
+  that jump back likewise replace the held ones.
+- The driver repeats the state it last got an answer for (a command sent before DDS matched): the policy
+  says so, and the node sends the same command again.
+- ``command_source_wait_s``: the first tick waits (wall time) until a command source exists.
+- The watchdog (``watchdog_timeout_s`` of steady time after the last joint state was handled) trips into
+  safe mode while the driver is silent.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from enum import Enum
+from typing import Any
+
+import numpy as np
+
+from tal_core.errors import InputError
+from tal_core.ticks import CLOCK_RESET_NS, TICK_TOLERANCE_NS, reaches_tick, tick_after
+
+from .velocity_command import VelocityCommandInput
+
+
+class Mode(Enum):
+    """What the last command was: the QP's solution, its fallback, or the safe-mode damping hold."""
+
+    NORMAL = "normal"
+    FALLBACK = "fallback"
+    SAFE = "safe"
+
+
+@dataclass(frozen=True)
+class TickPolicyConfig:
+    """period_ns: control tick [ns]. stale_periods: a base state older than this many periods means safe
+    mode. base_period_ns: the base state's publishing period [ns] (None: one with every joint state, as
+    ground truth). contacts: a tick also waits for the foot contacts of its stamp. command_source_wait_s
+    [s] (wall time): the first tick waits this long for a command source (0: no wait).
+    watchdog_timeout_s [s] (steady time): silence of the driver before safe mode (0: off)."""
+
+    period_ns: int
+    stale_periods: int = 3
+    base_period_ns: int | None = None
+    contacts: bool = False
+    command_source_wait_s: float = 0.0
+    watchdog_timeout_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.period_ns <= 0:
+            raise InputError(f"tick policy: period_ns must be > 0, got {self.period_ns!r}")
+        if self.stale_periods < 1:
+            raise InputError(f"tick policy: stale_periods must be >= 1, got {self.stale_periods!r}")
+        if self.base_period_ns is not None and self.base_period_ns <= 0:
+            raise InputError(f"tick policy: base_period_ns must be > 0 or None, got {self.base_period_ns!r}")
+        for name in ("command_source_wait_s", "watchdog_timeout_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"tick policy: {name} must be finite and >= 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Stamped:
+    """An input sample (whatever the caller stores: arrays, a message, a map) with its stamp [ns]."""
+
+    stamp_ns: int
+    value: Any
+
+
+@dataclass(frozen=True)
+class Tick:
+    """A decided tick. safe_reason set: a safe-mode tick (stale base state), otherwise a normal one.
+    joints, base: the samples it uses; base_age_ns: stamp - base stamp. heightmap: the map in use (None:
+    none yet). contacts: the contacts of its stamp (None: not used or none fresh: the gait plan).
+    command: the velocity command in force (vx, vy [m/s], yaw rate [rad/s])."""
+
+    stamp_ns: int
+    joints: Any
+    base: Any
+    base_age_ns: int
+    command: np.ndarray
+    heightmap: Any = None
+    contacts: Any = None
+    safe_reason: str | None = None
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """What the caller does after an input arrived. tick: compute it (None: nothing due). restarted: the
+    clock jumped back, start the controller afresh (before computing ``tick``). repeat_answer: the driver
+    repeats the state last answered, send the same command again. feed_watchdog: once the tick (if any)
+    is done, call ``feed_watchdog``. command_source_missing: the wait for a command source ended without
+    one (say so once)."""
+
+    tick: Tick | None = None
+    restarted: bool = False
+    repeat_answer: bool = False
+    feed_watchdog: bool = False
+    command_source_missing: bool = False
+
+
+@dataclass(frozen=True)
+class WatchdogTrip:
+    """The watchdog fired: send a safe-mode command stamped ``stamp_ns`` (the last joint state's);
+    silence_s [s]: steady time since the last joint state was handled."""
+
+    stamp_ns: int
+    silence_s: float
+
+
+def _accepts(held: Stamped | None, stamp_ns: int) -> bool:
+    """A sample stamped ``stamp_ns`` replaces ``held`` when newer, or when ``held`` is from before a
+    restarted clock; an older or repeated one is dropped."""
+    return held is None or stamp_ns > held.stamp_ns or stamp_ns + CLOCK_RESET_NS < held.stamp_ns
+
+
+@dataclass
+class _Counters:
+    ticks: int = 0                   # normal ticks computed
+    deferred_ticks: int = 0          # ticks whose base state (or contacts) had not arrived with their joint state
+    ticks_without_contacts: int = 0  # contacts expected, none fresh for the tick (the plan used)
+    watchdog_trips: int = 0          # safe-mode commands asked for by the watchdog
+    command_source_waits: int = 0    # ticks held back waiting for a command source
+    restarts: int = 0                # clock jumps back
+
+
+class WbcTickPolicy:
+    """The wbc's timing state machine (see the module docstring). Feed it ``joint_state``,
+    ``base_state``, ``contacts``, ``heightmap`` and velocity commands (``commands``); tell it
+    ``answered`` for every command sent, ``tick_done`` / ``enter_safe_mode`` for what a tick became,
+    ``feed_watchdog`` after handling a joint state, and ask ``watchdog`` when its timer fires.
+
+    clock: steady time [s] (watchdog, command source wait). command_source_found: whether a command
+    source exists (asked only while the first tick waits for one).
+    """
+
+    def __init__(self, config: TickPolicyConfig, commands: VelocityCommandInput | None = None, *,
+                 clock: Callable[[], float] = time.monotonic,
+                 command_source_found: Callable[[], bool] = lambda: True) -> None:
+        self.config = config
+        self.commands = commands if commands is not None else VelocityCommandInput(math.inf, math.inf)
+        self.clock = clock
+        self.command_source_found = command_source_found
+        self.counters = _Counters()
+        self.mode = Mode.NORMAL
+        self.next_tick_ns = 0
+        self._joints: Stamped | None = None
+        self._base: Stamped | None = None
+        self._contacts: Stamped | None = None
+        self._deferred_tick_ns: int | None = None
+        self._answered_ns: int | None = None
+        self._heightmap: Any = None
+        self._pending_heightmaps: list[Stamped] = []  # received, not yet in use
+        self._fed_s: float | None = None
+        self._source_deadline_s = (None if config.command_source_wait_s <= 0.0
+                                   else clock() + config.command_source_wait_s)
+
+    # -- configuration -------------------------------------------------------------------------------------
+    @property
+    def stale_ns(self) -> int:
+        """[ns] base states older than this at a tick mean safe mode."""
+        return self.config.stale_periods * self.config.period_ns
+
+    def set_stale_periods(self, periods: int) -> None:
+        """Change ``stale_periods`` (from the next tick on); InputError below 1."""
+        self.config = replace(self.config, stale_periods=int(periods))
+
+    @property
+    def waiting_for_command_source(self) -> bool:
+        return self._source_deadline_s is not None
+
+    @property
+    def heightmap_in_use(self) -> Any:
+        return self._heightmap
+
+    # -- arrivals ------------------------------------------------------------------------------------------
+    def joint_state(self, stamp_ns: int, sample: Any) -> Arrival:
+        """A valid joint state stamped ``stamp_ns``: restart, repeat, drop, or store it and decide the tick."""
+        restarted = self._joints is not None and stamp_ns + CLOCK_RESET_NS < self._joints.stamp_ns
+        if restarted:
+            self._restart(stamp_ns)
+        if self._answered_ns is not None and stamp_ns == self._answered_ns:
+            return Arrival(restarted=restarted, repeat_answer=True)
+        if self._joints is not None and stamp_ns <= self._joints.stamp_ns:
+            if stamp_ns == self._joints.stamp_ns and self.waiting_for_command_source:
+                # The driver repeats its first state while we wait for the command source: try again.
+                tick, missing = self._decide()
+                return Arrival(tick=tick, command_source_missing=missing)
+            return Arrival(restarted=restarted)  # repeated or out-of-order sample: keep the newer one
+        self._joints = Stamped(stamp_ns, sample)
+        tick, missing = self._decide()
+        return Arrival(tick=tick, restarted=restarted, feed_watchdog=True, command_source_missing=missing)
+
+    def base_state(self, stamp_ns: int, sample: Any) -> Arrival:
+        """A valid base state: kept when newer (or after a restarted clock); it may complete a deferred tick."""
+        if not _accepts(self._base, stamp_ns):
+            return Arrival()
+        self._base = Stamped(stamp_ns, sample)
+        return self._decided()
+
+    def contacts(self, stamp_ns: int, sample: Any) -> Arrival:
+        """Foot contacts: kept when newer (or after a restarted clock); they may complete a deferred tick."""
+        if not _accepts(self._contacts, stamp_ns):
+            return Arrival()
+        self._contacts = Stamped(stamp_ns, sample)
+        return self._decided()
+
+    def heightmap(self, stamp_ns: int, heightmap: Any) -> None:
+        """A valid heightmap; it comes into use at the first tick one control period after its stamp."""
+        self._pending_heightmaps.append(Stamped(stamp_ns, heightmap))
+
+    def answered(self, stamp_ns: int) -> None:
+        """A command stamped ``stamp_ns`` was sent (the driver may repeat that state until it gets it)."""
+        self._answered_ns = stamp_ns
+
+    # -- what a tick became --------------------------------------------------------------------------------
+    def tick_done(self, fallback: bool) -> bool:
+        """A normal tick was computed (``fallback``: by the QP's fallback); returns whether it left safe mode."""
+        left = self.mode is Mode.SAFE
+        self.mode = Mode.FALLBACK if fallback else Mode.NORMAL
+        self.counters.ticks += 1
+        return left
+
+    def enter_safe_mode(self) -> bool:
+        """A safe-mode command is sent (stale state, bad state, watchdog); returns whether it entered safe mode."""
+        entered = self.mode is not Mode.SAFE
+        self.mode = Mode.SAFE
+        return entered
+
+    # -- watchdog ------------------------------------------------------------------------------------------
+    def feed_watchdog(self) -> None:
+        """A joint state was handled (and maybe its tick computed): the silence counts from now."""
+        self._fed_s = self.clock()
+
+    def watchdog(self) -> WatchdogTrip | None:
+        """The watchdog's check (its timer fired): a trip when the driver has been silent for at least
+        ``watchdog_timeout_s`` since the last joint state was handled; None otherwise (or off, or no joint
+        state yet)."""
+        timeout = self.config.watchdog_timeout_s
+        if timeout <= 0.0 or self._joints is None or self._fed_s is None:
+            return None
+        silence_s = self.clock() - self._fed_s
+        if silence_s < timeout:
+            return None
+        self.counters.watchdog_trips += 1
+        return WatchdogTrip(self._joints.stamp_ns, silence_s)
+
+    # -- the decision --------------------------------------------------------------------------------------
+    def expected_base_stamp(self, stamp_ns: int) -> int:
+        """The stamp of the newest base state the source publishes at or before ``stamp_ns``: ground truth
+        comes with every physics step, an estimate on its own tick grid."""
+        period = self.config.base_period_ns
+        if period is None:
+            return stamp_ns
+        return ((stamp_ns + TICK_TOLERANCE_NS) // period) * period
+
+    def _decided(self) -> Arrival:
+        tick, missing = self._decide()
+        return Arrival(tick=tick, feed_watchdog=tick is not None, command_source_missing=missing)
+
+    def _decide(self) -> tuple[Tick | None, bool]:
+        """The tick due now, if its inputs are there (see the module docstring); and whether the wait for
+        a command source just ended without one."""
+        if self._joints is None or self._base is None:
+            return None, False
+        awaiting, missing = self._awaiting_command_source()
+        if awaiting:
+            return None, False
+        stamp = self._joints.stamp_ns
+        if not reaches_tick(stamp, self.next_tick_ns):
+            return None, missing  # not a control tick
+        base_stamp = self._base.stamp_ns
+        deferred_before = self._deferred_tick_ns is not None and stamp > self._deferred_tick_ns
+        contacts_missing = self.config.contacts and (
+            self._contacts is None or self._contacts.stamp_ns < stamp - TICK_TOLERANCE_NS)
+        if ((base_stamp < self.expected_base_stamp(stamp) - TICK_TOLERANCE_NS or contacts_missing)
+                and not deferred_before):
+            self._deferred_tick_ns = stamp
+            self.counters.deferred_ticks += 1
+            return None, missing
+        self._deferred_tick_ns = None
+        self.next_tick_ns = tick_after(stamp, self.config.period_ns)
+        command = self.commands.at_tick(stamp)
+        self._update_heightmap(stamp)
+        age = stamp - base_stamp
+        tick = Tick(stamp, self._joints.value, self._base.value, age, command, heightmap=self._heightmap)
+        if age > self.stale_ns:
+            return replace(tick, safe_reason=f"base state is {age * 1e-6:.1f} ms old"), missing
+        return replace(tick, contacts=self._contacts_for(stamp)), missing
+
+    def _awaiting_command_source(self) -> tuple[bool, bool]:
+        """(whether the first tick still waits for a command source, whether that wait just ran out)."""
+        if self._source_deadline_s is None:
+            return False, False
+        found = self.command_source_found()
+        if found or self.clock() > self._source_deadline_s:
+            self._source_deadline_s = None
+            return False, not found
+        self.counters.command_source_waits += 1
+        return True, False
+
+    def _contacts_for(self, stamp_ns: int) -> Any:
+        if not self.config.contacts:
+            return None
+        if self._contacts is None or stamp_ns - self._contacts.stamp_ns > self.stale_ns:
+            self.counters.ticks_without_contacts += 1
+            return None
+        return self._contacts.value
+
+    def _update_heightmap(self, stamp_ns: int) -> None:
+        """The newest heightmap stamped at least one control period before the tick comes into use.
+
+        A map stamped with the tick itself (or just before it) may arrive before or after the tick's joint
+        state (another topic, no order between them), so using it at once made lockstep runs depend on
+        delivery order; the maps of earlier ticks have been delivered by the time the next tick's joint
+        state comes (the driver waited for this tick's command in between).
+        """
+        cutoff = stamp_ns - self.config.period_ns + TICK_TOLERANCE_NS
+        due = [m for m in self._pending_heightmaps if m.stamp_ns <= cutoff]
+        if due:
+            self._heightmap = max(due, key=lambda m: m.stamp_ns).value
+            self._pending_heightmaps = [m for m in self._pending_heightmaps if m.stamp_ns > cutoff]
+
+    def _restart(self, stamp_ns: int) -> None:
+        """The clock jumped back to ``stamp_ns`` (simulation restarted): forget the inputs and the grid (the
+        heightmap in use stays: the terrain did not move)."""
+        self.counters.restarts += 1
+        self._joints = self._base = None
+        if self._contacts is not None and self._contacts.stamp_ns > stamp_ns:
+            self._contacts = None
+        self.next_tick_ns = 0
+        self._deferred_tick_ns = None
+        self._answered_ns = None
+        self.commands.reset()
+        self._pending_heightmaps.clear()
+

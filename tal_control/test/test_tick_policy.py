@@ -1,0 +1,303 @@
+"""The wbc's tick policy without ROS: when a tick is due, which inputs it uses, restarts, safe mode, the
+watchdog and the wait for a command source."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tal_control.tick_policy import CLOCK_RESET_NS, Mode, TickPolicyConfig, WbcTickPolicy
+from tal_control.velocity_command import VelocityCommandInput
+from tal_core.errors import InputError
+
+MS = 1_000_000
+PERIOD = 4 * MS
+
+
+class FakeClock:
+    """Steady time [s] the test sets."""
+
+    def __init__(self, now_s: float = 100.0) -> None:
+        self.now_s = now_s
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def policy(**config) -> WbcTickPolicy:
+    clock = config.pop("clock", FakeClock())
+    found = config.pop("found", lambda: True)
+    return WbcTickPolicy(TickPolicyConfig(period_ns=PERIOD, **config), VelocityCommandInput(1.0, 1.0),
+                         clock=clock, command_source_found=found)
+
+
+def step(p: WbcTickPolicy, stamp_ns: int, base_ns: int | None = None):
+    """Base state (stamped ``base_ns``, default the same stamp) then joint state at ``stamp_ns``; returns the
+    joint state's arrival."""
+    p.base_state(stamp_ns if base_ns is None else base_ns, f"base@{stamp_ns if base_ns is None else base_ns}")
+    return p.joint_state(stamp_ns, f"joints@{stamp_ns}")
+
+
+# -- the grid -------------------------------------------------------------------------------------------------
+def test_ticks_fall_on_the_grid_and_use_the_samples_of_their_stamp() -> None:
+    p = policy()
+    first = step(p, 0)
+    assert first.tick is not None and first.tick.stamp_ns == 0 and first.feed_watchdog
+    assert (first.tick.joints, first.tick.base, first.tick.base_age_ns) == ("joints@0", "base@0", 0)
+    assert first.tick.safe_reason is None and p.next_tick_ns == PERIOD
+    between = [step(p, k * MS) for k in (1, 2, 3)]  # 1 kHz samples between control ticks
+    assert all(a.tick is None and a.feed_watchdog for a in between)
+    # A stamp just short of the tick (rounding of the physics step) still is the tick.
+    almost = step(p, PERIOD - 50_000)
+    assert almost.tick is not None and almost.tick.stamp_ns == PERIOD - 50_000
+    assert p.next_tick_ns == 2 * PERIOD
+
+
+def test_repeated_and_out_of_order_joint_states_are_dropped() -> None:
+    p = policy()
+    step(p, 0)
+    step(p, 8 * MS)
+    assert p.joint_state(4 * MS, "older").tick is None
+    again = p.joint_state(8 * MS, "same")
+    assert again.tick is None and not again.feed_watchdog and not again.restarted
+
+
+# -- which base state ----------------------------------------------------------------------------------------
+def test_ground_truth_tick_waits_for_the_base_state_of_its_stamp_whatever_the_arrival_order() -> None:
+    p = policy()
+    step(p, 0)
+    p.base_state(3 * MS, "base@3")
+    waiting = p.joint_state(4 * MS, "joints@4")
+    assert waiting.tick is None and p.counters.deferred_ticks == 1
+    done = p.base_state(4 * MS, "base@4")
+    assert done.tick is not None and done.tick.stamp_ns == 4 * MS and done.tick.base == "base@4"
+    assert done.feed_watchdog  # a tick computed on a base state's arrival feeds the watchdog too
+    # The other order: base state first, then the joint state.
+    p.base_state(8 * MS, "base@8")
+    assert p.joint_state(8 * MS, "joints@8").tick.base == "base@8"
+
+
+def test_on_the_estimate_a_tick_waits_for_the_estimators_latest_tick_at_or_before_it() -> None:
+    p = policy(base_period_ns=3 * MS)
+    assert p.expected_base_stamp(4 * MS) == 3 * MS and p.expected_base_stamp(6 * MS) == 6 * MS
+    assert p.expected_base_stamp(6 * MS - 50_000) == 6 * MS  # within the tick tolerance
+    tick = step(p, 0).tick
+    assert tick is not None
+    tick = step(p, 4 * MS, base_ns=3 * MS).tick   # the 3 ms estimate is the one for the 4 ms tick
+    assert tick is not None and tick.base_age_ns == MS
+    assert step(p, 8 * MS, base_ns=3 * MS).tick is None  # the 6 ms estimate is on its way
+    tick = p.base_state(6 * MS, "base@6").tick
+    assert tick is not None and tick.stamp_ns == 8 * MS and tick.base == "base@6"
+
+
+def test_a_deferred_tick_is_decided_by_the_next_joint_state_with_the_base_state_there() -> None:
+    p = policy()
+    step(p, 0)
+    assert p.joint_state(4 * MS, "joints@4").tick is None      # no base state of 4 ms (yet)
+    tick = p.joint_state(8 * MS, "joints@8").tick              # the driver moved on: decide now
+    assert tick is not None and tick.stamp_ns == 8 * MS and tick.base == "base@0" and tick.safe_reason is None
+    assert p.counters.deferred_ticks == 1 and p.next_tick_ns == 12 * MS
+
+
+def test_older_base_states_are_dropped_and_newer_ones_replace_the_held_one() -> None:
+    p = policy()
+    p.base_state(8 * MS, "base@8")
+    assert p.base_state(4 * MS, "base@4").tick is None
+    tick = p.joint_state(8 * MS, "joints@8").tick
+    assert tick is not None and tick.base == "base@8"
+
+
+# -- safe mode -----------------------------------------------------------------------------------------------
+def test_a_stale_base_state_makes_a_safe_mode_tick_and_the_next_fresh_tick_leaves_it() -> None:
+    p = policy(stale_periods=3)
+    step(p, 0)
+    assert p.tick_done(fallback=False) is False and p.mode is Mode.NORMAL
+    p.joint_state(20 * MS, "joints@20")                         # deferred: waits for its base state
+    tick = p.joint_state(24 * MS, "joints@24").tick             # decided: base is 6 periods old
+    assert tick is not None and tick.safe_reason == "base state is 24.0 ms old"
+    assert p.enter_safe_mode() is True and p.mode is Mode.SAFE
+    assert p.enter_safe_mode() is False                         # already in safe mode: say it once
+    fresh = step(p, 28 * MS).tick
+    assert fresh is not None and fresh.safe_reason is None
+    assert p.tick_done(fallback=True) is True and p.mode is Mode.FALLBACK
+    assert p.tick_done(fallback=False) is False and p.mode is Mode.NORMAL
+    assert p.counters.ticks == 3
+
+
+def test_exactly_stale_periods_old_is_still_fresh_and_the_threshold_is_live() -> None:
+    p = policy(stale_periods=3)
+    step(p, 0)
+    assert p.joint_state(4 * MS, "j").tick is None
+    tick = p.joint_state(12 * MS, "j").tick                     # 12 ms = 3 periods: not older than that
+    assert tick is not None and tick.safe_reason is None
+    p.set_stale_periods(1)
+    assert p.stale_ns == PERIOD
+    p.joint_state(16 * MS, "j")
+    assert p.joint_state(20 * MS, "j").tick.safe_reason == "base state is 20.0 ms old"
+    with pytest.raises(InputError, match="stale_periods"):
+        p.set_stale_periods(0)
+
+
+# -- heightmaps ----------------------------------------------------------------------------------------------
+def test_a_heightmap_comes_into_use_one_control_period_after_its_stamp() -> None:
+    p = policy()
+    step(p, 0)
+    p.heightmap(4 * MS, "map@4")              # stamped with the next tick: not used by it
+    p.heightmap(0, "map@0")                   # arrival order does not matter
+    assert step(p, 4 * MS).tick.heightmap == "map@0"
+    assert step(p, 8 * MS).tick.heightmap == "map@4"
+    assert step(p, 12 * MS).tick.heightmap == "map@4"   # kept until a newer one is due
+    p.heightmap(9 * MS, "map@9")
+    p.heightmap(10 * MS, "map@10")
+    assert step(p, 16 * MS).tick.heightmap == "map@10"  # the newest due one
+    assert p.heightmap_in_use == "map@10"
+
+
+# -- contacts ------------------------------------------------------------------------------------------------
+def test_with_contacts_a_tick_waits_for_the_contacts_of_its_stamp_and_goes_on_without_stale_ones() -> None:
+    p = policy(contacts=True)
+    assert step(p, 0).tick is None and p.counters.deferred_ticks == 1
+    flags = np.array([True, True, False, True])
+    tick = p.contacts(0, flags).tick
+    assert tick is not None and tick.contacts is flags
+    step(p, 4 * MS)                                       # no contacts of 4 ms: deferred
+    tick = step(p, 8 * MS).tick                           # decided, with contacts 8 ms old: still fresh
+    assert tick.contacts is flags and p.counters.ticks_without_contacts == 0
+    step(p, 12 * MS)
+    tick = step(p, 16 * MS).tick                          # contacts 16 ms old > 3 periods: the plan
+    assert tick is not None and tick.contacts is None and p.counters.ticks_without_contacts == 1
+
+
+def test_without_contacts_configured_ticks_carry_none() -> None:
+    p = policy()
+    p.contacts(0, "flags")
+    assert step(p, 0).tick.contacts is None and p.counters.ticks_without_contacts == 0
+
+
+# -- restarts and repeats ------------------------------------------------------------------------------------
+def test_a_clock_jump_back_restarts_the_grid_and_forgets_inputs_of_the_old_run() -> None:
+    p = policy()
+    p.commands.stamped(2_100 * MS, (0.5, 0.0, 0.0))       # queued for a tick the old run will not reach
+    p.heightmap(0, "map@0")
+    for k in range(0, 2_001, 4):
+        step(p, k * MS)
+        p.answered(k * MS)
+    p.heightmap(1_999 * MS, "map@1999")                   # pending at the restart: forgotten
+    p.contacts(2_000 * MS, "contacts@2000")
+    assert p.heightmap_in_use == "map@0" and p.next_tick_ns == 2_004 * MS
+    back = p.joint_state(1_400 * MS, "joints@1400")
+    assert back.restarted and back.tick is None           # the base state of the old run is forgotten
+    assert p.next_tick_ns == 0 and p.counters.restarts == 1
+    tick = p.base_state(1_400 * MS, "base@1400").tick     # jumps back too: replaces the held one
+    assert tick is not None and tick.stamp_ns == 1_400 * MS and tick.base == "base@1400"
+    assert tick.heightmap == "map@0"                      # the map in use stays
+    assert tick.command.tolist() == [0.0, 0.0, 0.0]
+    for k in range(1_404, 2_201, 4):                      # the new run passes the old stamps
+        tick = step(p, k * MS).tick
+        assert tick.heightmap == "map@0" and tick.command.tolist() == [0.0, 0.0, 0.0]
+
+
+def test_contacts_from_after_the_restart_stamp_are_forgotten() -> None:
+    p = policy(contacts=True)
+    for k in range(0, 1_001, 4):
+        p.contacts(k * MS, f"contacts@{k}")
+        step(p, k * MS)
+    assert p.joint_state(400 * MS, "joints@400").restarted
+    assert p.base_state(400 * MS, "base@400").tick is None  # waits for the new run's contacts
+    assert p.counters.restarts == 1 and p.counters.deferred_ticks == 1
+    tick = p.contacts(400 * MS, "contacts@400 again").tick
+    assert tick is not None and tick.contacts == "contacts@400 again"
+
+
+def test_a_small_jump_back_is_reordering_not_a_restart() -> None:
+    p = policy()
+    step(p, 1_000 * MS)
+    small = p.joint_state(1_000 * MS - CLOCK_RESET_NS + MS, "late sample")
+    assert not small.restarted and small.tick is None
+    assert p.joint_state(1_000 * MS - CLOCK_RESET_NS - MS, "restarted").restarted
+
+
+def test_the_state_last_answered_is_answered_again_until_the_driver_moves_on() -> None:
+    p = policy()
+    step(p, 0)
+    p.answered(0)
+    again = p.joint_state(0, "repeat")
+    assert again.repeat_answer and again.tick is None and not again.feed_watchdog
+    assert not p.joint_state(MS, "next").repeat_answer
+    # After a restart nothing has been answered yet.
+    for k in range(4, 1_001, 4):
+        step(p, k * MS)
+        p.answered(k * MS)
+    assert p.joint_state(0, "restarted at 0").restarted
+    assert not p.joint_state(0, "repeat of the new first").repeat_answer
+
+
+# -- velocity command at the tick ----------------------------------------------------------------------------
+def test_a_stamped_command_applies_from_its_tick() -> None:
+    p = policy()
+    p.commands.stamped(4 * MS, (0.3, 0.0, 0.0))
+    assert step(p, 0).tick.command.tolist() == [0.0, 0.0, 0.0]
+    assert step(p, 4 * MS).tick.command.tolist() == [0.3, 0.0, 0.0]
+
+
+# -- the watchdog --------------------------------------------------------------------------------------------
+def test_the_watchdog_trips_after_the_timeout_of_silence_from_the_last_handled_joint_state() -> None:
+    clock = FakeClock(100.0)
+    p = policy(watchdog_timeout_s=0.25, clock=clock)
+    clock.now_s = 200.0
+    assert p.watchdog() is None                    # no joint state yet: nothing to guard
+    step(p, 0)
+    step(p, MS)
+    p.feed_watchdog()                              # the node handled the 1 ms joint state at 200 s
+    clock.now_s = 200.125
+    assert p.watchdog() is None and p.counters.watchdog_trips == 0
+    clock.now_s = 200.25                           # exactly the timeout
+    trip = p.watchdog()
+    assert trip is not None and trip.stamp_ns == MS and trip.silence_s == 0.25
+    clock.now_s = 200.5
+    assert p.watchdog().silence_s == 0.5 and p.counters.watchdog_trips == 2
+    p.feed_watchdog()
+    assert p.watchdog() is None
+
+
+def test_the_watchdog_is_off_at_timeout_zero() -> None:
+    clock = FakeClock()
+    p = policy(clock=clock)
+    step(p, 0)
+    p.feed_watchdog()
+    clock.now_s += 1e6
+    assert p.watchdog() is None
+
+
+# -- the wait for a command source ---------------------------------------------------------------------------
+def test_the_first_tick_waits_for_a_command_source_and_retries_on_the_repeated_first_state() -> None:
+    clock, found = FakeClock(10.0), {"value": False}
+    p = policy(command_source_wait_s=60.0, clock=clock, found=lambda: found["value"])
+    first = step(p, 0)
+    assert first.tick is None and p.waiting_for_command_source and p.counters.command_source_waits == 1
+    assert p.joint_state(0, "repeat").tick is None and p.counters.command_source_waits == 2
+    found["value"] = True
+    retry = p.joint_state(0, "repeat")
+    assert retry.tick is not None and retry.tick.stamp_ns == 0 and not retry.command_source_missing
+    assert not retry.feed_watchdog and not p.waiting_for_command_source
+
+
+def test_the_wait_for_a_command_source_ends_at_its_deadline() -> None:
+    clock = FakeClock(10.0)
+    p = policy(command_source_wait_s=5.0, clock=clock, found=lambda: False)
+    assert step(p, 0).tick is None
+    clock.now_s = 15.5
+    late = p.joint_state(0, "repeat")
+    assert late.tick is not None and late.command_source_missing
+    assert not step(p, 4 * MS).command_source_missing  # said once
+
+
+# -- configuration -------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"period_ns": 0}, "period_ns"), ({"stale_periods": 0}, "stale_periods"),
+    ({"base_period_ns": -1}, "base_period_ns"), ({"watchdog_timeout_s": float("nan")}, "watchdog_timeout_s"),
+    ({"command_source_wait_s": -1.0}, "command_source_wait_s"),
+])
+def test_invalid_configurations_are_refused_by_name(changes: dict, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        TickPolicyConfig(**{"period_ns": PERIOD, **changes})

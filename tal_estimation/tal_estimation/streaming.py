@@ -1,0 +1,226 @@
+"""The state estimator's streaming tick (ROS-free): the one place that decides when the estimator ticks,
+which samples a tick uses, when it restarts and which input it rejects. The ``state_estimator`` node and
+every offline runner (tal_lab: bag replay, recorded arrays, the in-process closed loop) feed it samples one
+at a time, so live and offline give the same estimates.
+
+IMU and joint-state samples (1 kHz each) arrive separately and in no fixed order. Ticks fall on the sim-time
+grid k * period_s of the joint-state stamps: the first joint sample at or past the next grid point is that
+tick's sample. It stays *pending* until the IMU sample of its stamp has arrived (the pairing by stamp), or
+until the next grid sample arrives (then it runs with the IMU samples that did come). A tick's IMU input is
+the mean of the IMU samples in (previous tick, tick] (pre-integration); the first tick initialises the
+filter (at a given pose, or standing on flat ground), later ones update it.
+
+Rejected and counted by reason in ``rejections``: IMU samples with NaN or at the sensor range (imu_nan,
+imu_saturated), an IMU stamp going backwards (imu_out_of_order), a joint state that cannot be read
+(joints), a tick with no IMU sample ever (no_imu) and a tick the filter refuses (its reason). A tick whose
+IMU samples were all rejected reuses the previous mean (``held_imu_ticks``). A repeated stamp (a simulator
+resends its first state until a controller answers) is counted in ``duplicates``; a repeated joint sample
+of the last tick gives a "repeat" output so a node can answer it again. A stamp more than CLOCK_RESET_NS
+behind the last one is a restarted clock: the estimator starts again (``restarts``).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from tal_core.errors import InputError
+from tal_core.robot_model import RobotModel
+from tal_core.ticks import CLOCK_RESET_NS, reaches_tick, tick_after
+
+from .leg_odometry import LegImpedance
+from .state_estimator import EstimatorInputError, StateEstimate, StateEstimator, StateEstimatorSettings
+
+JointArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""Joint positions [rad], velocities [rad/s] and measured torques [N m], canonical order."""
+
+
+@dataclass(frozen=True)
+class EstimatorOutput:
+    """What one input produced. kind: "initial" (the filter started at stamp_ns, at rest; ``estimate`` is
+    None), "estimate" (a tick) or "repeat" (a repeated joint sample of the last tick; nothing ran). The
+    joint arrays are the tick's joint state (None for a repeat)."""
+
+    kind: str
+    stamp_ns: int
+    estimate: StateEstimate | None = None
+    joints: JointArrays | None = None
+
+
+class StreamingEstimator:
+    """The estimator's tick logic over a stream of samples (constant memory); see the module docstring.
+
+    Start pose: ``initial_position`` / ``initial_world_R_base`` or ``set_initial_pose`` (e.g. the first
+    ground truth). Without a position the first tick stands the robot on flat ground at ``initial_xy``
+    [m] (attitude ``initial_world_R_base``, level if None), unless ``wait_for_initial_pose``: then the first
+    tick stays pending until a pose is set (and a restart forgets it). ``impedance`` and
+    ``magnetic_field`` are the latest terrain impedance and magnetometer sample (IMU frame) a tick uses.
+    ``on_reject(reason, message)`` and ``on_restart(stamp_ns)`` let a node log them.
+    """
+
+    def __init__(self, model: RobotModel, settings: StateEstimatorSettings | None = None, *,
+                 magnetic_field_world: np.ndarray | None = None, initial_position: np.ndarray | None = None,
+                 initial_world_R_base: np.ndarray | None = None, wait_for_initial_pose: bool = False,
+                 initial_xy: tuple[float, float] = (0.0, 0.0),
+                 on_reject: Callable[[str, str], None] | None = None,
+                 on_restart: Callable[[int], None] | None = None) -> None:
+        self.model = model
+        self._magnetic_field_world = magnetic_field_world
+        self.estimator = StateEstimator(model, settings, magnetic_field_world)
+        self.period_ns = round(self.estimator.settings.period_s * 1e9)
+        self.wait_for_initial_pose = wait_for_initial_pose
+        self.initial_xy = initial_xy
+        self.initial_world_R_base = initial_world_R_base
+        self._initial_pose = None if initial_position is None else (initial_position, initial_world_R_base)
+        self.on_reject = on_reject
+        self.on_restart = on_restart
+        self.impedance: LegImpedance | None = None
+        self.magnetic_field: np.ndarray | None = None
+        self.rejections: Counter[str] = Counter()
+        self.ticks = 0
+        self.restarts = 0
+        self.duplicates = 0
+        self.held_imu_ticks = 0
+        self._last_imu_mean: tuple[np.ndarray, np.ndarray] | None = None
+        self._next_tick_ns = 0
+        self._last_tick_ns: int | None = None
+        self._imu: list[tuple[int, np.ndarray, np.ndarray]] = []   # IMU samples after the last tick
+        self._last_imu_ns: int | None = None
+        self._pending: tuple[int, float, np.ndarray, np.ndarray, np.ndarray] | None = None  # the next tick
+
+    @property
+    def settings(self) -> StateEstimatorSettings:
+        return self.estimator.settings
+
+    @property
+    def has_initial_pose(self) -> bool:
+        return self._initial_pose is not None
+
+    def reconfigure(self, settings: StateEstimatorSettings) -> None:
+        """New settings from the next tick (``StateEstimator.reconfigure``); restarts keep them."""
+        self.estimator.reconfigure(settings)
+
+    # -- inputs -----------------------------------------------------------------------------------------------
+    def set_initial_pose(self, position: np.ndarray, world_R_base: np.ndarray) -> list[EstimatorOutput]:
+        """The start pose (world frame), if none is set yet; releases a tick that waited for it."""
+        if self._initial_pose is not None:
+            return []
+        self._initial_pose = (position, world_R_base)
+        return self._try_tick()
+
+    def add_imu(self, stamp_ns: int, specific_force: np.ndarray, angular_rate: np.ndarray) -> list[EstimatorOutput]:
+        """One IMU sample: specific force [m/s^2] and angular rate [rad/s], IMU frame."""
+        try:
+            f, w = self.estimator.check_imu(specific_force, angular_rate)
+        except EstimatorInputError as exc:
+            self._reject(exc.reason, str(exc))
+            return []
+        if self._last_imu_ns is not None and stamp_ns == self._last_imu_ns:
+            self.duplicates += 1
+            return []
+        if self._last_imu_ns is not None and stamp_ns < self._last_imu_ns:
+            if stamp_ns + CLOCK_RESET_NS < self._last_imu_ns:
+                self._restart(stamp_ns)
+            else:
+                self._reject("imu_out_of_order", f"imu stamp {stamp_ns * 1e-9:.6f} s is not after "
+                             f"{self._last_imu_ns * 1e-9:.6f} s")
+                return []
+        self._last_imu_ns = stamp_ns
+        self._imu.append((stamp_ns, f, w))
+        return self._try_tick()
+
+    def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays],
+                   t_s: float | None = None) -> list[EstimatorOutput]:
+        """One joint-state sample. ``read()`` gives its arrays (called only for a tick's sample, so a node
+        converts only those messages; InputError rejects the sample). ``t_s``: the time [s] the filter sees
+        for it (default stamp_ns * 1e-9; an in-process runner on a float clock passes its own)."""
+        if self._last_tick_ns is not None and stamp_ns + CLOCK_RESET_NS < self._last_tick_ns:
+            self._restart(stamp_ns)
+        if stamp_ns == self._last_tick_ns:
+            self.duplicates += 1
+            return [EstimatorOutput("repeat", stamp_ns)]
+        if not reaches_tick(stamp_ns, self._next_tick_ns):
+            return []
+        try:
+            q, qd, tau = read()
+        except InputError as exc:
+            self._reject("joints", str(exc))
+            return []
+        out = []
+        if self._pending is not None and self._pending[0] < stamp_ns:
+            out += self._tick(self._pending)  # its IMU sample never came: run it with what arrived
+        # The grid point is taken: later samples before the next one are not ticks, whether or not the
+        # IMU sample of this one has arrived yet (topics are delivered in no fixed order).
+        self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
+        self._pending = (stamp_ns, stamp_ns * 1e-9 if t_s is None else t_s, q, qd, tau)
+        return out + self._try_tick()
+
+    def add_sample(self, stamp_ns: int, specific_force: np.ndarray, angular_rate: np.ndarray,
+                   joint_position: np.ndarray, joint_velocity: np.ndarray, joint_torque: np.ndarray,
+                   t_s: float | None = None) -> list[EstimatorOutput]:
+        """The IMU and joint samples of one stamp (a simulator step, a row of recorded arrays)."""
+        out = self.add_imu(stamp_ns, specific_force, angular_rate)
+        return out + self.add_joints(stamp_ns, lambda: (joint_position, joint_velocity, joint_torque), t_s)
+
+    # -- the tick ---------------------------------------------------------------------------------------------
+    def _reject(self, reason: str, message: str) -> None:
+        self.rejections[reason] += 1
+        if self.on_reject is not None:
+            self.on_reject(reason, message)
+
+    def _restart(self, stamp_ns: int) -> None:
+        self.restarts += 1
+        if self.on_restart is not None:
+            self.on_restart(stamp_ns)
+        self.estimator = StateEstimator(self.model, self.estimator.settings, self._magnetic_field_world)
+        self._next_tick_ns = 0
+        self._last_tick_ns = None
+        self._imu.clear()
+        self._last_imu_ns = None
+        self._pending = None
+        if self.wait_for_initial_pose:
+            self._initial_pose = None
+
+    def _try_tick(self) -> list[EstimatorOutput]:
+        if self._pending is None or self._last_imu_ns is None or self._last_imu_ns < self._pending[0]:
+            return []
+        return self._tick(self._pending)
+
+    def _tick(self, pending: tuple[int, float, np.ndarray, np.ndarray, np.ndarray]) -> list[EstimatorOutput]:
+        stamp, t_s, q, qd, tau = pending
+        est = self.estimator
+        if not est.initialised:
+            if self.wait_for_initial_pose and self._initial_pose is None:
+                return []  # the tick stays pending until the pose comes
+            self._pending = None
+            self._imu = [s for s in self._imu if s[0] > stamp]
+            if self._initial_pose is not None:
+                est.initialise(t_s, *self._initial_pose)
+            else:
+                est.initialise_standing(t_s, q, self.initial_xy, world_R_base=self.initial_world_R_base)
+            self._last_tick_ns = stamp
+            return [EstimatorOutput("initial", stamp, None, (q, qd, tau))]
+        self._pending = None
+        samples = [s for s in self._imu if s[0] <= stamp]
+        self._imu = [s for s in self._imu if s[0] > stamp]
+        if samples:
+            f = np.mean([s[1] for s in samples], axis=0)
+            w = np.mean([s[2] for s in samples], axis=0)
+            self._last_imu_mean = (f, w)
+        elif self._last_imu_mean is not None:
+            self.held_imu_ticks += 1  # every sample of the interval was rejected: hold the last mean
+            f, w = self._last_imu_mean
+        else:
+            self._reject("no_imu", f"no IMU sample for the tick at {stamp * 1e-9:.6f} s")
+            return []
+        try:
+            estimate = est.update(t_s, f, w, q, qd, tau, impedance=self.impedance, magnetic_field=self.magnetic_field)
+        except EstimatorInputError as exc:
+            self._reject(exc.reason, str(exc))
+            return []
+        self._last_tick_ns = stamp
+        self.ticks += 1
+        return [EstimatorOutput("estimate", stamp, estimate, (q, qd, tau))]

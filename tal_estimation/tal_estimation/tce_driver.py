@@ -1,0 +1,152 @@
+"""The Terrain Compliance Estimator's per-tick driver (ROS-free): which joint samples are TCE ticks, which
+base state a tick uses, how the robot state for the contact-state estimation is assembled and what happens
+to feet outside the known terrain. The ``tce`` node and every offline runner (tal_lab: the in-process closed
+loop, the bag replay, the estimation experiments) drive ``TerrainComplianceEstimator`` through it.
+
+A tick (``step``) takes the base state (world frame: ground truth as the thesis' motion capture, or the
+state estimate) and the joint state, finite-differences the generalised velocities of consecutive ticks
+for the leg dynamics (none after a gap of more than 1.5 periods), estimates the contact states against the
+undeformed terrain (``height``, optional ``normal``) and refits the stance legs. A stance foot whose
+penetration is unknown (outside the heightmap) gives no sample: it is fed as not in contact and counted in
+``samples_outside_map``.
+
+Streamed (``add_joints``, as the node ticks): ticks fall on the sim-time grid k * period_s of the joint-state
+stamps once a base state and the terrain have arrived, and use the latest base state unless it is older than
+``stale_state_periods`` periods (the tick is skipped, counted in ``stale_ticks``). A joint state that cannot
+be read or a tick the TCE refuses is counted in ``rejected`` and reported to ``on_reject``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from tal_core.errors import InputError
+from tal_core.robot_model import RobotModel
+from tal_core.state import BaseState
+from tal_core.ticks import reaches_tick, tick_after
+
+from .streaming import JointArrays
+from .tce import (
+    ContactSample,
+    FiniteDifferenceAcceleration,
+    HeightFunction,
+    LegEstimate,
+    NormalFunction,
+    TceSettings,
+    TerrainComplianceEstimator,
+)
+
+
+@dataclass(frozen=True)
+class TceTick:
+    """One TCE tick: the contact samples the fit saw (leg order) and a snapshot of the per-leg estimates,
+    normal direction and (estimate_tangential) tangential."""
+
+    t_s: float
+    samples: tuple[ContactSample, ...]
+    estimates: tuple[LegEstimate, ...]
+    tangential: tuple[LegEstimate, ...] | None
+
+    @property
+    def stiffness_n_per_m(self) -> np.ndarray:
+        return np.array([e.stiffness_n_per_m for e in self.estimates])
+
+    @property
+    def damping_ns_per_m(self) -> np.ndarray:
+        return np.array([e.damping_ns_per_m for e in self.estimates])
+
+    @property
+    def confidence(self) -> np.ndarray:
+        return np.array([e.confidence for e in self.estimates])
+
+    @property
+    def valid(self) -> np.ndarray:
+        return np.array([e.valid for e in self.estimates])
+
+    @property
+    def in_contact(self) -> np.ndarray:
+        return np.array([s.in_contact for s in self.samples])
+
+
+class TceDriver:
+    """Drives a TerrainComplianceEstimator tick by tick; see the module docstring. ``period_s`` [s] is the
+    tick period (grid and finite differences), ``stale_state_periods`` [-] the oldest usable base state."""
+
+    def __init__(self, model: RobotModel, settings: TceSettings | None = None, *, period_s: float = 0.004,
+                 stale_state_periods: int = 3, on_reject: Callable[[Exception], None] | None = None) -> None:
+        self.model = model
+        self.tce = TerrainComplianceEstimator(model, settings)
+        self.period_ns = round(period_s * 1e9)
+        self.stale_state_periods = stale_state_periods
+        self.on_reject = on_reject
+        self.height: HeightFunction | None = None
+        self.normal: NormalFunction | None = None
+        self.ticks = 0
+        self.samples_outside_map = 0
+        self.stale_ticks = 0
+        self.rejected = 0
+        self._accelerations = FiniteDifferenceAcceleration(max_gap_s=1.5 * period_s)
+        self._next_tick_ns = 0
+        self._base: tuple[int, BaseState] | None = None
+
+    @property
+    def settings(self) -> TceSettings:
+        return self.tce.settings
+
+    def reconfigure(self, settings: TceSettings) -> None:
+        """New thresholds from the next tick (``TerrainComplianceEstimator.reconfigure``)."""
+        self.tce.reconfigure(settings)
+
+    def set_terrain(self, height: HeightFunction, normal: NormalFunction | None = None) -> None:
+        """The undeformed terrain: height(x, y) [m] (NaN where unknown) and, optionally, the unit normal."""
+        self.height, self.normal = height, normal
+
+    def set_base(self, stamp_ns: int, base: BaseState) -> None:
+        """The latest base state (world frame) and its stamp."""
+        self._base = (stamp_ns, base)
+
+    def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays], t_s: float | None = None) -> TceTick | None:
+        """One joint-state sample; the tick when it is one (see the module docstring). ``read()`` gives the
+        arrays (called only for a tick). ``t_s``: the tick's time [s] (default stamp_ns * 1e-9)."""
+        if not reaches_tick(stamp_ns, self._next_tick_ns) or self._base is None or self.height is None:
+            return None
+        self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
+        base_stamp, base = self._base
+        if stamp_ns - base_stamp > self.stale_state_periods * self.period_ns:
+            self.stale_ticks += 1
+            return None
+        try:
+            q, qd, tau = read()
+            return self.step(stamp_ns * 1e-9 if t_s is None else t_s, base, q, qd, tau)
+        except (InputError, ValueError) as exc:
+            self.rejected += 1
+            if self.on_reject is not None:
+                self.on_reject(exc)
+            return None
+
+    def step(self, t_s: float, base: BaseState, joint_position: np.ndarray, joint_velocity: np.ndarray,
+             joint_torque: np.ndarray) -> TceTick:
+        """One tick at ``t_s`` [s] on ``base`` and the joint state; InputError for unusable input."""
+        if self.height is None:
+            raise InputError("TCE: no terrain (set_terrain) for the tick")
+        m = self.model
+        q = m.make_q(base.position, base.quat_xyzw, joint_position)
+        v = m.make_v(base.linear_velocity, base.angular_velocity, joint_velocity, base.quat_xyzw)
+        samples = self.tce.contact_states(q, v, joint_torque, self.height, self.normal,
+                                          vdot=self._accelerations.update(t_s, v))
+        usable = []
+        for sample in samples:
+            if sample.in_contact and not math.isfinite(sample.penetration_m):
+                self.samples_outside_map += 1
+                usable.append(ContactSample(False, sample.force_n, sample.normal, 0.0, 0.0))
+            else:
+                usable.append(sample)
+        estimates = self.tce.update(usable)
+        tangential = self.tce.tangential_estimates
+        self.ticks += 1
+        return TceTick(t_s, tuple(usable), tuple(replace(e) for e in estimates),
+                       None if tangential is None else tuple(replace(e) for e in tangential))

@@ -1,0 +1,269 @@
+"""Offline replay: run the state estimator (and the TCE) on a recorded bag, in-process, deterministic and
+faster than real time, and write a report.
+
+    python -m tal_lab.estimation_replay BAG [--out DIR] [--leg-odometry rigid|terrain_aware] [--robot hyq]
+
+Reads ``/joint_states`` and ``/imu``, ``/ground_truth/odom`` (initial pose and the errors, when the bag has
+it) and ``/state_estimate`` (the estimate the live graph published, to compare with). The messages go in
+bag order through the nodes' own timing (tal_estimation.streaming and tal_estimation.tce_driver), so the
+estimator ticks, pairs samples by stamp and rejects input exactly as the ``state_estimator`` node does. The
+estimator starts at the bag's first ground truth if it comes before the first tick, else standing at the
+origin. The TCE runs on the replayed estimate over flat ground (causal: its impedance reaches the
+terrain-aware leg odometry at the next tick). Everything is streamed: memory does not grow with the bag's
+length (plots use 20 Hz series).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from tal_core.legs import LEGS, NUM_LEGS
+from tal_core.robot_model import RobotModel
+from tal_core.ros.bag_io import BagReader
+from tal_core.rotations import rotation_from_quat_xyzw
+from tal_estimation.drift_statistics import DriftStatistics
+from tal_estimation.leg_odometry import LegOdometrySettings
+from tal_estimation.messages import joint_state_arrays
+from tal_estimation.state_estimator import StateEstimatorSettings, legs_from_impedance_arrays
+from tal_estimation.streaming import EstimatorOutput, StreamingEstimator
+from tal_estimation.tce_driver import TceDriver
+
+LOG = logging.getLogger("tal_lab.estimation_replay")
+MATCH_WINDOW_NS = 20_000_000     # [ns] an estimate, truth or live sample unmatched for this long is dropped
+PLOT_PERIOD_NS = 50_000_000      # [ns] plot series decimation (20 Hz)
+
+
+def _odometry_state(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(position, world_R_base, world velocity) of a nav_msgs/Odometry (twist in the base frame)."""
+    p, o, v = msg.pose.pose.position, msg.pose.pose.orientation, msg.twist.twist.linear
+    rotation = rotation_from_quat_xyzw(np.array([o.x, o.y, o.z, o.w]))
+    return np.array([p.x, p.y, p.z]), rotation, rotation @ np.array([v.x, v.y, v.z])
+
+
+def _stamp(msg) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
+class BagReplay:
+    """Streams a bag through the estimator (and TCE); see the module docstring."""
+
+    def __init__(self, model: RobotModel, leg_odometry: str = "rigid", run_tce: bool = True) -> None:
+        self.model = model
+        self.joint_index = {name: i for i, name in enumerate(model.description.joint_names)}
+        self.settings = StateEstimatorSettings(leg_odometry=LegOdometrySettings(mode=leg_odometry))
+        self.stream = StreamingEstimator(model, self.settings)
+        self.tce: TceDriver | None = None
+        if run_tce:
+            self.tce = TceDriver(model, period_s=self.settings.period_s)
+            self.tce.set_terrain(lambda x, y: 0.0)
+        self._truth: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._live: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._estimates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.vs_truth = DriftStatistics(align_start=True)
+        self.vs_live = DriftStatistics(align_start=False)
+        self.joint_samples = 0
+        self.imu_samples = 0
+        self.series: dict[str, list] = {k: [] for k in ("t", "position", "velocity", "truth_position",
+                                                        "truth_velocity", "stiffness")}
+        self._next_plot_ns = 0
+
+    @property
+    def counts(self) -> dict[str, object]:
+        """Samples read, and the estimator's (and TCE's) ticks and counters."""
+        stream = self.stream
+        counts: dict[str, object] = {
+            "joint_samples": self.joint_samples, "imu_samples": self.imu_samples, "ticks": stream.ticks,
+            "duplicates": stream.duplicates, "restarts": stream.restarts, "held_imu_ticks": stream.held_imu_ticks,
+            "rejected": sum(stream.rejections.values()), "rejected_by_reason": dict(stream.rejections)}
+        if self.tce is not None:
+            counts.update(tce_ticks=self.tce.ticks, tce_rejected=self.tce.rejected)
+        return counts
+
+    # -- input ------------------------------------------------------------------------------------------------
+    def add(self, topic: str, msg) -> None:
+        if topic == "/joint_states":
+            self.joint_samples += 1
+            self._outputs(self.stream.add_joints(_stamp(msg), lambda: joint_state_arrays(msg, self.joint_index)))
+        elif topic == "/imu":
+            self.imu_samples += 1
+            a, w = msg.linear_acceleration, msg.angular_velocity
+            self._outputs(self.stream.add_imu(_stamp(msg), np.array([a.x, a.y, a.z]), np.array([w.x, w.y, w.z])))
+        elif topic == "/ground_truth/odom":
+            stamp = _stamp(msg)
+            position, rotation, velocity = _odometry_state(msg)
+            self._outputs(self.stream.set_initial_pose(position, rotation))
+            self._truth[stamp] = (position, velocity)
+            self._match(stamp)
+        elif topic == "/state_estimate":
+            position, _, velocity = _odometry_state(msg)
+            self._live[_stamp(msg)] = (position, velocity)
+            self._match(_stamp(msg))
+
+    def _outputs(self, outputs: list[EstimatorOutput]) -> None:
+        for out in outputs:
+            if out.kind == "estimate":
+                self._tick(out)
+
+    def _tick(self, out: EstimatorOutput) -> None:
+        stamp, e = out.stamp_ns, out.estimate
+        assert e is not None and out.joints is not None
+        if self.tce is not None:
+            self.tce.set_base(stamp, e.base_state)
+            tick = self.tce.add_joints(stamp, lambda: out.joints)
+            if tick is not None:
+                self.stream.impedance = legs_from_impedance_arrays(tick.stiffness_n_per_m, tick.damping_ns_per_m,
+                                                                   tick.valid)
+        if stamp >= self._next_plot_ns:
+            self._next_plot_ns = stamp + PLOT_PERIOD_NS
+            truth = self._truth.get(stamp)
+            impedance = self.stream.impedance
+            self.series["t"].append(stamp * 1e-9)
+            self.series["position"].append(e.position)
+            self.series["velocity"].append(e.linear_velocity)
+            self.series["truth_position"].append(truth[0] if truth else np.full(3, np.nan))
+            self.series["truth_velocity"].append(truth[1] if truth else np.full(3, np.nan))
+            self.series["stiffness"].append(np.full(NUM_LEGS, np.nan) if impedance is None else
+                                            np.where(impedance.valid, impedance.stiffness_n_per_m, np.nan))
+        self._estimates[stamp] = (e.position, e.linear_velocity)
+        self._match(stamp)
+
+    def _match(self, stamp: int) -> None:
+        """Compare the replayed estimate with ground truth and the live estimate of the same stamp."""
+        estimate = self._estimates.get(stamp)
+        if estimate is None:
+            return
+        truth = self._truth.pop(stamp, None) if stamp in self._truth else None
+        if truth is not None:
+            self.vs_truth.add(stamp * 1e-9, estimate[0] - truth[0], estimate[1] - truth[1])
+        live = self._live.pop(stamp, None)
+        if live is not None:
+            self.vs_live.add(stamp * 1e-9, estimate[0] - live[0], estimate[1] - live[1])
+        # Keep the buffers bounded: anything older than the match window is not coming any more.
+        horizon = stamp - MATCH_WINDOW_NS
+        for buffer in (self._estimates, self._truth, self._live):
+            for s in [s for s in buffer if s < horizon]:
+                del buffer[s]
+
+    # -- output -----------------------------------------------------------------------------------------------
+    def summary(self) -> dict[str, object]:
+        estimates = self.tce.tce.estimates if self.tce is not None else []
+        return {
+            "counts": self.counts, "leg_odometry": self.settings.leg_odometry.mode,
+            "vs_ground_truth": self.vs_truth.summary(), "vs_live_estimate": self.vs_live.summary(),
+            "tce_final_stiffness_n_per_m": {leg.name: (round(e.stiffness_n_per_m, 1) if math.isfinite(
+                e.stiffness_n_per_m) else None) for leg, e in zip(LEGS, estimates)},
+        }
+
+
+def replay_bag(bag: str | Path, model: RobotModel, *, leg_odometry: str = "rigid", run_tce: bool = True,
+               progress: bool = False) -> tuple[BagReplay, dict[str, object]]:
+    """Replay ``bag`` and return the replay (with its plot series) and its summary."""
+    reader = BagReader(bag)
+    replay = BagReplay(model, leg_odometry, run_tce)
+    topics = ("/joint_states", "/imu", "/ground_truth/odom", "/state_estimate")
+    wall = time.perf_counter()
+    last_report = wall
+    for message in reader.messages(topics):
+        replay.add(message.topic, message.message)
+        if progress and time.perf_counter() - last_report > 2.0:
+            last_report = time.perf_counter()
+            sys.stderr.write(f"[replay] t = {message.log_time_ns * 1e-9:.1f} s, {replay.counts['ticks']} ticks\n")
+    wall = time.perf_counter() - wall
+    summary = replay.summary()
+    span = (replay.series["t"][-1] - replay.series["t"][0]) if len(replay.series["t"]) > 1 else 0.0
+    summary.update(bag=str(bag), read_complete=reader.report.complete, read_error=reader.report.error,
+                   wall_time_s=round(wall, 3), bag_time_s=round(span, 3),
+                   real_time_factor=round(span / wall, 2) if wall > 0 else None)
+    return replay, summary
+
+
+def write_report(replay: BagReplay, summary: dict[str, object], out: Path) -> None:
+    """summary.json, report.md and the plots (position, velocity, stiffness)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    lines = [f"# Offline replay of {summary['bag']}", "",
+             f"Leg odometry {summary['leg_odometry']}; {summary['counts']['ticks']} estimator ticks from "
+             f"{summary['counts']['joint_samples']} joint samples in {summary['wall_time_s']} s "
+             f"({summary['real_time_factor']}x real time).", ""]
+    for key, title in (("vs_ground_truth", "against ground truth (start aligned)"),
+                       ("vs_live_estimate", "against the live state_estimate in the bag")):
+        errors = summary[key]
+        if errors:
+            lines += [f"## Estimate {title}", "", "| | x | y | z |", "|---|---|---|---|"]
+            for name, label in (("final_drift_m", "final [m]"), ("rms_drift_m", "RMS [m]"),
+                                ("velocity_rmse_m_s", "velocity RMSE [m/s]")):
+                lines.append(f"| {label} | " + " | ".join(f"{v:+.3g}" for v in errors[name]) + " |")
+            lines.append(f"\nMax abs difference: position {errors['max_abs_position_m']:.3g} m, velocity "
+                         f"{errors['max_abs_velocity_m_s']:.3g} m/s over {errors['samples']} ticks.\n")
+    stiffness = summary["tce_final_stiffness_n_per_m"]
+    if stiffness:
+        lines += ["## TCE (on the replayed estimate)", "", "| leg | stiffness [N/m] |", "|---|---|"]
+        lines += [f"| {leg} | {k if k is not None else 'n/a'} |" for leg, k in stiffness.items()]
+    if not summary["read_complete"]:
+        lines += ["", f"The bag ended early: {summary['read_error']}"]
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    _plot(replay, out)
+
+
+def _plot(replay: BagReplay, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = {k: np.array(v) for k, v in replay.series.items()}
+    if s["t"].size == 0:
+        return
+    fig, axes = plt.subplots(2, 3, figsize=(14, 6), sharex=True)
+    for i, axis in enumerate("xyz"):
+        for row, (key, unit) in enumerate((("position", "m"), ("velocity", "m/s"))):
+            ax = axes[row, i]
+            ax.plot(s["t"], s[f"truth_{key}"][:, i], "k", lw=1, label="ground truth")
+            ax.plot(s["t"], s[key][:, i], "C0", lw=1, label="replayed estimate")
+            ax.set_title(f"{key} {axis}")
+            ax.set_ylabel(f"[{unit}]")
+            ax.set_xlabel("t [s]")
+    axes[0, 0].legend()
+    fig.suptitle("Offline replay: estimate vs ground truth (world frame)")
+    fig.tight_layout()
+    fig.savefig(out / "replay_state.png", dpi=100)
+    plt.close(fig)
+    if np.any(np.isfinite(s["stiffness"])):
+        fig, ax = plt.subplots(figsize=(10, 3.5))
+        for leg in range(NUM_LEGS):
+            ax.semilogy(s["t"], s["stiffness"][:, leg], label=LEGS[leg].name)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("TCE stiffness [N/m]")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "replay_stiffness.png", dpi=100)
+        plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("bag", type=Path, help="bag folder or .mcap file")
+    parser.add_argument("--out", type=Path, help="report folder (default: <bag>/replay)")
+    parser.add_argument("--leg-odometry", choices=("rigid", "terrain_aware"), default="rigid")
+    parser.add_argument("--robot", default="hyq")
+    parser.add_argument("--no-tce", action="store_true", help="skip the TCE")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    replay, summary = replay_bag(args.bag, RobotModel.from_name(args.robot), leg_odometry=args.leg_odometry,
+                                 run_tce=not args.no_tce, progress=True)
+    out = args.out or (args.bag / "replay" if args.bag.is_dir() else args.bag.with_suffix(".replay"))
+    write_report(replay, summary, out)
+    sys.stdout.write((out / "report.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

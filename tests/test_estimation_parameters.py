@@ -1,0 +1,155 @@
+"""Parameters of the estimation nodes (state_estimator, tce) at run time, as `ros2 param set` sends them: a
+live one is validated and takes effect from the next tick, a read-only one is refused with a reason, an
+invalid live value is refused with the reason and changes nothing. Messages go to the handlers directly
+(no DDS); what the nodes publish is caught at the publisher."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from nav_msgs.msg import Odometry
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Imu, JointState
+
+from tal_core.ros.node_utils import stamp_from_ns
+from tal_estimation.state_estimator_node import StateEstimatorNode
+from tal_estimation.tce_node import TceNode
+from tal_msgs.msg import HeightMap
+
+pytestmark = pytest.mark.ros
+
+MS = 1_000_000  # [ns]
+
+
+class Caught:
+    """Stands in for a publisher: keeps what the node publishes."""
+
+    def __init__(self) -> None:
+        self.messages: list = []
+
+    def publish(self, msg) -> None:
+        self.messages.append(msg)
+
+
+def set_one(node, name: str, value):
+    return node.set_parameters([Parameter(name, value=value)])[0]
+
+
+def standing_joints(node, stamp_ns: int) -> JointState:
+    """The robot standing on its nominal joints with the torques holding its weight on four feet."""
+    model = node.model
+    q = np.asarray(model.description.nominal_joint_positions_rad, float)
+    model.update(model.make_q(np.array([0.0, 0.0, model.nominal_base_height_m]), np.array([0.0, 0.0, 0.0, 1.0]), q),
+                 np.zeros(model.nv))
+    h = model.nonlinear_effects()
+    grf = np.array([0.0, 0.0, model.total_mass_kg * 9.81 / 4.0])
+    tau = np.concatenate([h[model.leg_joint_v_indices(leg)] + model.leg_torques_for_foot_force(leg, grf)
+                          for leg in range(4)])
+    names = list(model.description.joint_names)
+    msg = JointState(name=names, position=q.tolist(), velocity=[0.0] * len(names), effort=tau.tolist())
+    msg.header.stamp = stamp_from_ns(stamp_ns)
+    return msg
+
+
+def imu_at_rest(stamp_ns: int) -> Imu:
+    msg = Imu()
+    msg.header.stamp = stamp_from_ns(stamp_ns)
+    msg.linear_acceleration.z = 9.81
+    return msg
+
+
+def feed(node: StateEstimatorNode, ks) -> None:
+    for k in ks:
+        node._on_imu(imu_at_rest(k * MS))
+        node._on_joints(standing_joints(node, k * MS))
+
+
+@pytest.mark.parametrize(("node_class", "name", "value"), [
+    (StateEstimatorNode, "robot", "solo12"), (StateEstimatorNode, "period_s", 0.004),
+    (StateEstimatorNode, "leg_odometry", "terrain_aware"), (StateEstimatorNode, "initial_pose_source", "standing"),
+    (StateEstimatorNode, "use_magnetometer", True), (TceNode, "robot", "solo12"), (TceNode, "base_source", "estimate"),
+    (TceNode, "control_period_s", 0.002), (TceNode, "window", 100), (TceNode, "estimate_tangential", True)])
+def test_structural_parameters_are_read_only(context, node_class, name: str, value) -> None:
+    """Robot, topics, rates, sources and buffer shapes are fixed at start-up: a set is refused with a reason."""
+    node = node_class(context=context)
+    try:
+        before = node.get_parameter(name).value
+        result = set_one(node, name, value)
+        assert not result.successful and "read-only" in result.reason
+        assert node.get_parameter(name).value == before
+    finally:
+        node.destroy_node()
+
+
+def test_state_estimator_live_parameters_take_effect_from_the_next_tick(context, tmp_path: Path) -> None:
+    node = StateEstimatorNode(context=context, parameter_overrides=[Parameter("initial_pose_source", value="standing")])
+    contacts = node.pub_contact = Caught()
+    try:
+        feed(node, range(0, 4))
+        assert [list(c.in_contact) for c in contacts.messages] == [[True] * 4]   # a quarter of the weight each
+
+        # 30 % of the weight per leg: the standing legs are not in contact any more.
+        result = set_one(node, "contact_threshold_weight_fraction", 0.3)
+        assert result.successful, result.reason
+        feed(node, range(4, 7))
+        assert list(contacts.messages[-1].in_contact) == [False] * 4
+
+        # A 5 m/s^2 accelerometer range: the IMU at rest (9.81 m/s^2) is rejected as saturated.
+        assert not node.rejections
+        assert set_one(node, "accel_range_m_s2", 5.0).successful
+        feed(node, [7])
+        assert node.rejections == {"imu_saturated": 1} and node.estimator.settings.accel_range_m_s2 == 5.0
+
+        # Invalid live values are refused with the reason and change nothing.
+        refused = set_one(node, "accel_range_m_s2", -1.0)
+        assert not refused.successful and "out of range" in refused.reason and node.estimator.settings.accel_range_m_s2 == 5.0
+        refused = set_one(node, "initial_xy_m", [1.0])
+        assert not refused.successful and "2 values" in refused.reason and node.stream.initial_xy == (0.0, 0.0)
+
+        assert set_one(node, "summary_path", str(tmp_path / "estimator.json")).successful
+    finally:
+        node.destroy_node()
+    assert json.loads((tmp_path / "estimator.json").read_text())["rejected"] == {"imu_saturated": 1}
+
+
+def heightmap(stamp_ns: int) -> HeightMap:
+    """4 m x 4 m of flat ground at z = 0 around the origin."""
+    msg = HeightMap(resolution=0.1, rows=40, cols=40, heights=[0.0] * 1600)
+    msg.header.stamp = stamp_from_ns(stamp_ns)
+    return msg
+
+
+def base_at_rest(node: TceNode, stamp_ns: int) -> Odometry:
+    msg = Odometry()
+    msg.header.stamp = stamp_from_ns(stamp_ns)
+    msg.pose.pose.position.z = node.model.nominal_base_height_m
+    msg.pose.pose.orientation.w = 1.0
+    return msg
+
+
+def test_tce_live_parameters_take_effect_from_the_next_tick(context) -> None:
+    node = TceNode(context=context)
+    published = node.pub = Caught()
+    try:
+        node._on_heightmap(heightmap(0))
+        node._on_base(base_at_rest(node, 0))
+        node._on_joints(standing_joints(node, 100 * MS))          # the base state is 25 periods old: skipped
+        assert published.messages == [] and node.driver.stale_ticks == 1
+
+        assert set_one(node, "stale_state_periods", 1000).successful
+        node._on_joints(standing_joints(node, 200 * MS))
+        assert len(published.messages) == 1 and list(published.messages[0].samples) == [1, 1, 1, 1]
+
+        # A contact threshold above the quarter weight (213 N): the feet stop feeding their windows.
+        assert set_one(node, "contact_force_threshold_n", 300.0).successful
+        node._on_joints(standing_joints(node, 204 * MS))
+        assert list(published.messages[-1].samples) == [1, 1, 1, 1]
+
+        refused = set_one(node, "min_samples", 1000)            # more than the window holds
+        assert not refused.successful and "min_samples" in refused.reason and node.tce.settings.min_samples == 50
+        assert node.get_parameter("min_samples").value == 50
+    finally:
+        node.destroy_node()
