@@ -192,6 +192,16 @@ class WbcTickPolicy:
         return self._heightmap
 
     # -- arrivals ------------------------------------------------------------------------------------------
+    def wants_joint_state(self, stamp_ns: int) -> bool:
+        """Whether ``joint_state`` would act on a sample stamped ``stamp_ns`` beyond keeping it as the newest: a
+        restart, a repeat to answer, the first sample, a control tick, a deferred tick or the wait for a command
+        source. A node may skip deserialising the others (``tal_core.ros.cdr.subscribe_stamped``): a skipped
+        sample would only have replaced the newest one, which no decision reads before the next tick."""
+        last = self._joints
+        return (last is None or stamp_ns + CLOCK_RESET_NS < last.stamp_ns or stamp_ns == self._answered_ns
+                or reaches_tick(stamp_ns, self.next_tick_ns) or self._deferred_tick_ns is not None
+                or self._source_deadline_s is not None)
+
     def joint_state(self, stamp_ns: int, sample: Any) -> Arrival:
         """A valid joint state stamped ``stamp_ns``: restart, repeat, drop, or store it and decide the tick."""
         restarted = self._joints is not None and stamp_ns + CLOCK_RESET_NS < self._joints.stamp_ns

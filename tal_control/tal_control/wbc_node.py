@@ -49,6 +49,7 @@ from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError, TalCoreError
 from tal_core.robot_model import RobotModel
+from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid, heightmap_normal
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_msgs.msg import (
@@ -68,7 +69,7 @@ from .map_alignment import HeightmapAligner
 from .motion.footholds import DEFAULT_K_FEEDBACK
 from .motion.gait import PRESETS as GAITS
 from .motion.generator import MotionParameters
-from .msg_conversions import gait_state_message, wbc_diagnostics_message
+from .msg_conversions import GaitStateWriter, JointCommandWriter, wbc_diagnostics_message
 from .tick_policy import Arrival, Mode, Tick, TickPolicyConfig, WbcTickPolicy
 from .tracking_stats import TrackingStats
 from .velocity_command import VelocityCommandInput
@@ -117,7 +118,9 @@ class WbcNode(Node):
                                                                        **_pose_filter_parameters(p)))
         self.joint_names = list(self.model.description.joint_names)
         self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
-        self._last_command: JointCommand | None = None
+        self._last_command: bytes | None = None  # serialised: answered again when the driver repeats a state
+        self._gait_writer = GaitStateWriter()
+        self._command_writer = JointCommandWriter(self.joint_names)
         self.command_input = VelocityCommandInput(p["max_linear_velocity_m_s"], p["max_yaw_rate_rad_s"])
         # The simulator's heightmap is in the true world frame; the estimate drifts in z (map_alignment).
         self.map_aligner = (HeightmapAligner(p["map_alignment_time_constant_s"])
@@ -141,7 +144,10 @@ class WbcNode(Node):
         self.pub_gait = self.create_publisher(GaitState, "gait_state", 10)
         self.pub_diag = self.create_publisher(WbcDiagnostics, "wbc/diagnostics", 10)
         state_topic = "ground_truth/odom" if p["state_source"] == "ground_truth" else "state_estimate"
-        self.create_subscription(JointState, "joint_states", self._on_joints, 10)
+        # 1 kHz in, 250 Hz used: only the samples the tick policy acts on are deserialised.
+        subscribe_stamped(self, JointState, "joint_states", self._on_joints, 10,
+                          wants=lambda stamp: self.policy.wants_joint_state(stamp),
+                          on_error=lambda exc: self._reject("joint_states", exc))
         self.create_subscription(Odometry, state_topic, self._on_base, 10)
         self.create_subscription(Twist, "cmd_vel", self._on_cmd_vel, 10)
         self.create_subscription(TwistStamped, "cmd_vel_stamped", self._on_cmd_vel_stamped, STAMPED_COMMAND_QOS)
@@ -450,7 +456,7 @@ class WbcNode(Node):
         self._publish_command(stamp_ns, effort=out.tau)
         self.stats.add(stamp_ns * 1e-9, base, out)
         stamp = self._joints_stamp_msg(stamp_ns)
-        self.pub_gait.publish(gait_state_message(out, stamp))
+        self.pub_gait.publish(self._gait_writer(out, stamp_ns))
         self.pub_diag.publish(wbc_diagnostics_message(stamp, self.mode, self.p["contact_model"], self.rejected_inputs,
                                                       self.controller.wbc.failed_solves, out=out,
                                                       joint_names=self.joint_names))
@@ -487,13 +493,7 @@ class WbcNode(Node):
 
     def _publish_command(self, stamp_ns: int, effort: np.ndarray, velocity: np.ndarray | None = None,
                          kd: np.ndarray | None = None) -> None:
-        cmd = JointCommand()
-        cmd.header.stamp = self._joints_stamp_msg(stamp_ns)
-        cmd.name = self.joint_names
-        cmd.effort = effort.tolist()
-        if kd is not None:
-            cmd.velocity = (velocity if velocity is not None else np.zeros(len(effort))).tolist()
-            cmd.kd = kd.tolist()
+        cmd = self._command_writer(stamp_ns, effort, velocity, kd)
         self.pub_command.publish(cmd)
         self._last_command = cmd
         self.policy.answered(stamp_ns)

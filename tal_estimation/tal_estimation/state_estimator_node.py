@@ -34,6 +34,7 @@ from sensor_msgs.msg import Imu, JointState, MagneticField
 
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
+from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.conversions import base_state_from_odometry
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_core.rotations import quat_xyzw_from_rotation, rotation_from_quat_xyzw
@@ -110,7 +111,8 @@ class StateEstimatorNode(Node):
         self.pub_state = self.create_publisher(Odometry, "state_estimate", 10)
         self.pub_contact = self.create_publisher(ContactState, "contact_estimate", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "state_estimator/diagnostics", 10)
-        self.create_subscription(JointState, "joint_states", self._on_joints, 50)
+        subscribe_stamped(self, JointState, "joint_states", self._on_joints, 50, wants=self.stream.wants_joints,
+                          on_error=lambda exc: self._reject("joints", str(exc)))
         self.create_subscription(Imu, "imu", self._on_imu, 50)
         if mode == "terrain_aware":
             self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)

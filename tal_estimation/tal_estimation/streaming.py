@@ -132,6 +132,12 @@ class StreamingEstimator:
         self._imu.append((stamp_ns, f, w))
         return self._try_tick()
 
+    def wants_joints(self, stamp_ns: int) -> bool:
+        """Whether ``add_joints`` would do anything with a sample stamped ``stamp_ns`` (a restart, a repeat, a
+        tick): a node may skip deserialising the others (``tal_core.ros.cdr.subscribe_stamped``)."""
+        return (self._last_tick_ns is not None and stamp_ns + CLOCK_RESET_NS < self._last_tick_ns) \
+            or stamp_ns == self._last_tick_ns or reaches_tick(stamp_ns, self._next_tick_ns)
+
     def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays],
                    t_s: float | None = None) -> list[EstimatorOutput]:
         """One joint-state sample. ``read()`` gives its arrays (called only for a tick's sample, so a node

@@ -109,6 +109,10 @@ class TceDriver:
         """The latest base state (world frame) and its stamp."""
         self._base = (stamp_ns, base)
 
+    def wants_joints(self, stamp_ns: int) -> bool:
+        """Whether ``add_joints`` would tick on a sample stamped ``stamp_ns`` (a node may skip the others)."""
+        return reaches_tick(stamp_ns, self._next_tick_ns)
+
     def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays], t_s: float | None = None) -> TceTick | None:
         """One joint-state sample; the tick when it is one (see the module docstring). ``read()`` gives the
         arrays (called only for a tick). ``t_s``: the tick's time [s] (default stamp_ns * 1e-9)."""

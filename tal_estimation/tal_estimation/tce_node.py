@@ -23,6 +23,7 @@ from sensor_msgs.msg import JointState
 from tal_core.errors import InputError
 from tal_core.legs import LEGS
 from tal_core.robot_model import RobotModel
+from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.conversions import base_state_from_odometry, heightmap_grid
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_msgs.msg import HeightMap, TerrainImpedance
@@ -77,7 +78,8 @@ class TceNode(Node):
         self.history: list[list[float]] = []    # [t [s], k x4 [N/m], valid x4] every HISTORY_DECIMATION ticks
         self.pub = self.create_publisher(TerrainImpedance, "terrain_impedance", 10)
         topic = "ground_truth/odom" if base_source == "ground_truth" else "state_estimate"
-        self.create_subscription(JointState, "joint_states", self._on_joints, 10)
+        subscribe_stamped(self, JointState, "joint_states", self._on_joints, 10, wants=self.driver.wants_joints,
+                          on_error=lambda exc: self._reject("joint_states", exc))
         self.create_subscription(Odometry, topic, self._on_base, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
 

@@ -19,7 +19,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from rclpy.clock import Clock, ClockType
-from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -115,9 +114,7 @@ class BagRecorderNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    # rclpy's EventsExecutor dispatches a message in a fraction of the SingleThreadedExecutor's time (it
-    # does not rebuild a wait set per callback): 45 % -> see bench/bench_bags.py for the measured share.
-    return run_node(lambda: BagRecorderNode(), args, name="bag_recorder", executor_factory=EventsExecutor)
+    return run_node(lambda: BagRecorderNode(), args, name="bag_recorder")
 
 
 if __name__ == "__main__":
