@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 
 from tal_core.ros.node_utils import stamp_from_ns
 from tal_estimation.state_estimator_node import StateEstimatorNode
 from tal_estimation.tce_node import TceNode
-from tal_msgs.msg import HeightMap
+from tal_msgs.msg import ContactState, HeightMap, TerrainImpedance
 
 pytestmark = pytest.mark.ros
 
@@ -25,13 +26,15 @@ MS = 1_000_000  # [ns]
 
 
 class Caught:
-    """Stands in for a publisher: keeps what the node publishes."""
+    """Stands in for a publisher: keeps what the node publishes (serialised outputs deserialised as
+    ``msg_type``, as a subscriber would get them)."""
 
-    def __init__(self) -> None:
+    def __init__(self, msg_type) -> None:
+        self.msg_type = msg_type
         self.messages: list = []
 
     def publish(self, msg) -> None:
-        self.messages.append(msg)
+        self.messages.append(deserialize_message(msg, self.msg_type) if isinstance(msg, bytes) else msg)
 
 
 def set_one(node, name: str, value):
@@ -86,7 +89,7 @@ def test_structural_parameters_are_read_only(context, node_class, name: str, val
 
 def test_state_estimator_live_parameters_take_effect_from_the_next_tick(context, tmp_path: Path) -> None:
     node = StateEstimatorNode(context=context, parameter_overrides=[Parameter("initial_pose_source", value="standing")])
-    contacts = node.pub_contact = Caught()
+    contacts = node.pub_contact = Caught(ContactState)
     try:
         feed(node, range(0, 4))
         assert [list(c.in_contact) for c in contacts.messages] == [[True] * 4]   # a quarter of the weight each
@@ -132,7 +135,7 @@ def base_at_rest(node: TceNode, stamp_ns: int) -> Odometry:
 
 def test_tce_live_parameters_take_effect_from_the_next_tick(context) -> None:
     node = TceNode(context=context)
-    published = node.pub = Caught()
+    published = node.pub = Caught(TerrainImpedance)
     try:
         node._on_heightmap(heightmap(0))
         node._on_base(base_at_rest(node, 0))

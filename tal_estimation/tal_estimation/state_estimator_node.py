@@ -20,14 +20,12 @@ limits, gains, the contact threshold, initial_xy_m and summary_path are live par
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Vector3
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState, MagneticField
@@ -37,14 +35,14 @@ from tal_core.robot_model import RobotModel
 from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.conversions import base_state_from_odometry
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
-from tal_core.rotations import quat_xyzw_from_rotation, rotation_from_quat_xyzw
+from tal_core.rotations import rotation_from_quat_xyzw
 from tal_msgs.msg import ContactState, TerrainImpedance
 
 from .attitude import AttitudeSettings
 from .drift_statistics import DriftStatistics
 from .leg_odometry import LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
 from .live_settings import with_field
-from .messages import joint_state_arrays
+from .messages import EstimateWriters, joint_state_arrays
 from .state_estimator import StateEstimate, StateEstimator, StateEstimatorSettings
 from .streaming import EstimatorOutput, StreamingEstimator
 
@@ -103,7 +101,8 @@ class StateEstimatorNode(Node):
             on_restart=self._log_restart)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
         self.period_ns = self.stream.period_ns
-        self._last_output: tuple[Odometry, ContactState | None] | None = None
+        self._last_output: tuple[bytes, bytes | None] | None = None  # serialised: repeated on a repeated sample
+        self.writers = EstimateWriters(GYRO_VARIANCE_RAD2_S2)
         self._truth: tuple[int, object] | None = None
         self._truth_subscription = None
         self._vs_truth = DriftStatistics(align_start=True)  # constant memory: the node may run for hours
@@ -233,65 +232,19 @@ class StateEstimatorNode(Node):
         est = self.estimator
         assert est.kf is not None and est.attitude is not None
         x = est.kf.x.ravel()
-        odom = self._odometry(stamp, x[:3], est.attitude.world_R_base, x[3:], np.zeros(3), est.kf.P[:3, :3],
-                              est.kf.P[3:, 3:], est.attitude.attitude_covariance)
+        odom = self.writers.odometry(stamp, x[:3], est.attitude.world_R_base, x[3:], np.zeros(3), est.kf.P[:3, :3],
+                                     est.kf.P[3:, 3:], est.attitude.attitude_covariance)
         self.pub_state.publish(odom)
         self._last_output = (odom, None)
 
-    def _odometry(self, stamp: int, position: np.ndarray, world_R_base: np.ndarray, velocity: np.ndarray,
-                  angular_velocity_base: np.ndarray, position_cov: np.ndarray, velocity_cov: np.ndarray,
-                  attitude_cov: np.ndarray) -> Odometry:
-        """nav_msgs/Odometry: pose in world, twist in base (ROS convention), covariances."""
-        odom = Odometry()
-        odom.header.stamp = stamp_from_ns(stamp)
-        odom.header.frame_id = "world"
-        odom.child_frame_id = "base"
-        p = odom.pose.pose
-        p.position.x, p.position.y, p.position.z = (float(v) for v in position)
-        quat = quat_xyzw_from_rotation(world_R_base)
-        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (float(v) for v in quat)
-        pose_cov = np.zeros((6, 6))
-        pose_cov[:3, :3] = position_cov
-        pose_cov[3:, 3:] = attitude_cov
-        odom.pose.covariance = pose_cov.ravel().tolist()
-        t = odom.twist.twist
-        t.linear.x, t.linear.y, t.linear.z = (float(v) for v in world_R_base.T @ velocity)
-        t.angular.x, t.angular.y, t.angular.z = (float(v) for v in angular_velocity_base)
-        twist_cov = np.zeros((6, 6))
-        twist_cov[:3, :3] = world_R_base.T @ velocity_cov @ world_R_base
-        twist_cov[3:, 3:] = np.eye(3) * GYRO_VARIANCE_RAD2_S2
-        odom.twist.covariance = twist_cov.ravel().tolist()
-        return odom
-
     def _publish(self, stamp: int, e: StateEstimate) -> None:
-        header_stamp = stamp_from_ns(stamp)
-        odom = self._odometry(stamp, e.position, e.world_R_base, e.linear_velocity, e.angular_velocity_base,
-                              e.position_covariance, e.velocity_covariance, e.attitude_covariance)
+        odom = self.writers.odometry(stamp, e.position, e.world_R_base, e.linear_velocity, e.angular_velocity_base,
+                                     e.position_covariance, e.velocity_covariance, e.attitude_covariance)
         self.pub_state.publish(odom)
-        self._publish_contacts(header_stamp, e, odom)
-
-    def _publish_contacts(self, header_stamp, e: StateEstimate, odom: Odometry) -> None:
-        legs = e.legs
-        contact = ContactState()
-        contact.header.stamp = header_stamp
-        contact.header.frame_id = "world"
         impedance = self.stream.impedance
         normals = impedance.normal if impedance is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
-        for leg in range(4):
-            contact.in_contact[leg] = bool(legs.in_contact[leg])
-            contact.probability[leg] = float(legs.probability[leg])
-            contact.force[leg] = Vector3(x=float(legs.force[leg, 0]), y=float(legs.force[leg, 1]),
-                                         z=float(legs.force[leg, 2]))
-            foot = e.position + legs.foot_offset[leg]
-            contact.foot_position[leg] = Point(x=float(foot[0]), y=float(foot[1]), z=float(foot[2]))
-            foot_velocity = e.linear_velocity - legs.leg_velocity[leg] + legs.foot_velocity[leg]
-            contact.foot_velocity[leg] = Vector3(x=float(foot_velocity[0]), y=float(foot_velocity[1]),
-                                                 z=float(foot_velocity[2]))
-            n = normals[leg]
-            contact.normal[leg] = Vector3(x=float(n[0]), y=float(n[1]), z=float(n[2]))
-            aware = self.estimator.settings.leg_odometry.mode == "terrain_aware"
-            contact.penetration[leg] = float(legs.penetration[leg]) if aware else math.nan
-            contact.penetration_rate[leg] = float(-(legs.foot_velocity[leg] @ n)) if aware else math.nan
+        contact = self.writers.contacts(stamp, e, normals,
+                                        self.estimator.settings.leg_odometry.mode == "terrain_aware")
         self.pub_contact.publish(contact)
         self._last_output = (odom, contact)
 

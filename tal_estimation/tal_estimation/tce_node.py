@@ -15,7 +15,6 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from geometry_msgs.msg import Vector3
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -25,11 +24,11 @@ from tal_core.legs import LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.conversions import base_state_from_odometry, heightmap_grid
-from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
 from tal_msgs.msg import HeightMap, TerrainImpedance
 
 from .live_settings import with_field
-from .messages import joint_state_arrays
+from .messages import ImpedanceWriter, joint_state_arrays
 from .tce import TceSettings, TerrainComplianceEstimator
 from .tce_driver import TceDriver
 
@@ -77,6 +76,7 @@ class TceNode(Node):
                                     on_change=lambda value: setattr(self, "summary_path", value))
         self.history: list[list[float]] = []    # [t [s], k x4 [N/m], valid x4] every HISTORY_DECIMATION ticks
         self.pub = self.create_publisher(TerrainImpedance, "terrain_impedance", 10)
+        self._writer = ImpedanceWriter()
         topic = "ground_truth/odom" if base_source == "ground_truth" else "state_estimate"
         subscribe_stamped(self, JointState, "joint_states", self._on_joints, 10, wants=self.driver.wants_joints,
                           on_error=lambda exc: self._reject("joint_states", exc))
@@ -125,20 +125,7 @@ class TceNode(Node):
         tick = self.driver.add_joints(stamp, lambda: joint_state_arrays(msg, self.joint_index))
         if tick is None:
             return
-        out = TerrainImpedance()
-        out.header.stamp = stamp_from_ns(stamp)
-        out.header.frame_id = "world"
-        tangential = tick.tangential
-        for leg, (sample, est) in enumerate(zip(tick.samples, tick.estimates)):
-            out.stiffness_normal[leg] = est.stiffness_n_per_m
-            out.damping_normal[leg] = est.damping_ns_per_m
-            out.stiffness_tangential[leg] = tangential[leg].stiffness_n_per_m if tangential else float("nan")
-            out.damping_tangential[leg] = tangential[leg].damping_ns_per_m if tangential else float("nan")
-            n = sample.normal
-            out.normal[leg] = Vector3(x=float(n[0]), y=float(n[1]), z=float(n[2]))
-            out.confidence[leg] = est.confidence
-            out.samples[leg] = est.samples
-            out.valid[leg] = est.valid
+        out = self._writer(stamp, tick)
         self.pub.publish(out)
         if (self.ticks - 1) % HISTORY_DECIMATION == 0:
             self.history.append([stamp * 1e-9] + [e.stiffness_n_per_m for e in tick.estimates]
