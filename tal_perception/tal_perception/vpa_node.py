@@ -28,6 +28,7 @@ from rclpy.node import Node
 
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
+from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.node_utils import declare, run_node, write_summary
 from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
 
@@ -93,7 +94,10 @@ class VpaNode(Node):
 
         self.pub_pose = self.create_publisher(BodyPoseReference, "body_pose_reference", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "vpa/diagnostics", 10)
-        self.create_subscription(GaitState, "gait_state", self._on_gait_state, 10)
+        # 250 Hz in, an update every update_period_s: only the gait states the planner uses are deserialised.
+        subscribe_stamped(self, GaitState, "gait_state", self._on_gait_state, 10,
+                          wants=lambda stamp: self.planner.wants(stamp),
+                          on_error=lambda exc: self._reject("gait_state", str(exc)))
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
         self.create_timer(self.diagnostics_period_s, self._publish_diagnostics)

@@ -111,6 +111,14 @@ class PosePlanner:
             self._footholds = np.full((NUM_LEGS, 3), np.nan)
         self._footholds[int(leg)] = point
 
+    def wants(self, stamp_ns: int) -> bool:
+        """Whether ``update`` would do more than skip a gait state stamped ``stamp_ns`` (an update is due, or the
+        stamp is behind the last one: a restart or an out-of-order sample to reject). A node may leave the
+        others undeserialised (the gait state comes at 250 Hz, an update every ``update_period_s``)."""
+        stamp = stamp_ns * 1e-9
+        return (self._last_update_s is None or (self._last_stamp_s is not None and stamp < self._last_stamp_s)
+                or stamp - self._last_update_s >= self.update_period_s - 1e-9)
+
     def update(self, gait: GaitSnapshot, targets_world: ArrayLike | None = None) -> PoseReference | None:
         """A new reference when ``update_period_s`` of gait-state time passed since the last one, else None.
         ``targets_world`` (4, 3) [m]: the gait state's touchdown targets (TBR without vfa footholds)."""
