@@ -39,13 +39,7 @@ from .bridge_core import BridgeCore, ImuModel
 from .effects import ModelEffects
 from .errors import CommandRejectedError
 from .physics import Simulation
-from .sensor_messages import (
-    contact_state_message,
-    heightmap_message,
-    imu_message,
-    joint_state_message,
-    odometry_message,
-)
+from .sensor_messages import SensorWriters, heightmap_message
 from .stepping import LockstepGate, OutputSchedule, RealtimePacer
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
@@ -83,7 +77,9 @@ class SimBridgeNode(Node):
         self.params = p
         self.steps_per_control = max(1, round(p["control_period_s"] * p["physics_rate_hz"]))
         self.schedule = OutputSchedule.from_rates(p["physics_rate_hz"], p["sensor_rate_hz"], p["contact_rate_hz"],
-                                                  p["heightmap_rate_hz"])
+                                                  p["heightmap_rate_hz"], p["clock_rate_hz"])
+        self.writers = SensorWriters(sim.description.joint_names, p["imu_gyro_noise_std_rad_s"],
+                                     p["imu_accel_noise_std_m_s2"])
         self._set_duration(p["duration_s"])
         self.finished = False
         self.initial_state_repeats = 0  # re-sends of the initial state while waiting for a controller
@@ -134,7 +130,10 @@ class SimBridgeNode(Node):
                                           "[-] realtime: most physics steps per timer call", low=1, high=1000,
                                           on_change=self._set_catch_up),
             "sensor_rate_hz": declare(self, "sensor_rate_hz", 1000.0,
-                                      "[Hz] clock, joint_states, imu, ground_truth/odom", low=1.0, high=10000.0),
+                                      "[Hz] joint_states, imu, ground_truth/odom", low=1.0, high=10000.0),
+            "clock_rate_hz": declare(self, "clock_rate_hz", 250.0,
+                                     "[Hz] clock (sim time for use_sim_time nodes; every node ticks on message "
+                                     "stamps, so the control rate is enough)", low=1.0, high=10000.0),
             "contact_rate_hz": declare(self, "contact_rate_hz", 250.0, "[Hz] ground_truth/contacts",
                                        low=1.0, high=10000.0),
             "heightmap_rate_hz": declare(self, "heightmap_rate_hz", 20.0, "[Hz] terrain/heightmap",
@@ -241,31 +240,27 @@ class SimBridgeNode(Node):
 
     def _publish_step_outputs(self, force_all: bool = False, record: bool = True, state=None) -> None:
         step = self.core.sim.step_count
-        stamp = stamp_from_ns(self.core.sim.time_ns)
-        self.pub_clock.publish(ClockMsg(clock=stamp))
+        stamp_ns = self.core.sim.time_ns
+        due = self.schedule.due(step, force_all)
+        if due.clock:
+            self.pub_clock.publish(self.writers.clock(stamp_ns))
         if state is None:
             state = self.core.sim.robot_state()
-        due = self.schedule.due(step, force_all)
         if due.sensors:
-            self._publish_sensors(stamp, state)
+            self._publish_sensors(stamp_ns, state)
         if due.contacts:
             contacts = self.core.sim.foot_contacts()
-            self._publish_contacts(stamp, contacts)
+            self.pub_contacts.publish(self.writers.contact_state(stamp_ns, contacts))
             if record:
                 self.core.record_statistics(state, contacts)
         if due.heightmap:
-            self._publish_heightmap(stamp, state)
+            self._publish_heightmap(stamp_from_ns(stamp_ns), state)
 
-    def _publish_sensors(self, stamp, state) -> None:
-        self.pub_joints.publish(joint_state_message(stamp, self.core.sim.description.joint_names, state))
+    def _publish_sensors(self, stamp_ns: int, state) -> None:
+        self.pub_joints.publish(self.writers.joint_state(stamp_ns, state))
         specific_force, angular_rate = self.core.imu.measure(state)
-        self.pub_imu.publish(imu_message(stamp, specific_force, angular_rate,
-                                         self.params["imu_gyro_noise_std_rad_s"],
-                                         self.params["imu_accel_noise_std_m_s2"]))
-        self.pub_odom.publish(odometry_message(stamp, state))
-
-    def _publish_contacts(self, stamp, contacts) -> None:
-        self.pub_contacts.publish(contact_state_message(stamp, contacts))
+        self.pub_imu.publish(self.writers.imu(stamp_ns, specific_force, angular_rate))
+        self.pub_odom.publish(self.writers.odometry(stamp_ns, state))
 
     def _publish_heightmap(self, stamp, state) -> None:
         p = self.params

@@ -18,6 +18,7 @@ from .errors import BridgeConfigError
 class DueOutputs:
     """What to publish after one physics step."""
 
+    clock: bool  # clock
     sensors: bool  # joint_states, imu, ground_truth/odom
     contacts: bool  # ground_truth/contacts
     heightmap: bool  # terrain/heightmap
@@ -25,29 +26,30 @@ class DueOutputs:
 
 @dataclass(frozen=True)
 class OutputSchedule:
-    """Every output as a whole number of physics steps; the clock goes out at every step."""
+    """Every output as a whole number of physics steps."""
 
     sensor_every: int = 1
     contact_every: int = 4
     heightmap_every: int = 50
+    clock_every: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("sensor_every", "contact_every", "heightmap_every"):
+        for name in ("sensor_every", "contact_every", "heightmap_every", "clock_every"):
             if int(getattr(self, name)) < 1:
                 raise BridgeConfigError(f"OutputSchedule.{name} must be >= 1 step, got {getattr(self, name)}")
 
     @classmethod
     def from_rates(cls, physics_rate_hz: float, sensor_rate_hz: float, contact_rate_hz: float,
-                   heightmap_rate_hz: float) -> OutputSchedule:
-        """Rates [Hz] rounded to whole physics steps (at least one)."""
+                   heightmap_rate_hz: float, clock_rate_hz: float | None = None) -> OutputSchedule:
+        """Rates [Hz] rounded to whole physics steps (at least one); the clock at every step by default."""
         if physics_rate_hz <= 0.0:
             raise BridgeConfigError(f"physics_rate_hz must be > 0, got {physics_rate_hz}")
-        return cls(*(max(1, round(physics_rate_hz / rate)) for rate in (sensor_rate_hz, contact_rate_hz,
-                                                                         heightmap_rate_hz)))
+        rates = (sensor_rate_hz, contact_rate_hz, heightmap_rate_hz, clock_rate_hz or physics_rate_hz)
+        return cls(*(max(1, round(physics_rate_hz / rate)) for rate in rates))
 
     def due(self, step: int, force_all: bool = False) -> DueOutputs:
-        return DueOutputs(force_all or step % self.sensor_every == 0, force_all or step % self.contact_every == 0,
-                          force_all or step % self.heightmap_every == 0)
+        return DueOutputs(force_all or step % self.clock_every == 0, force_all or step % self.sensor_every == 0,
+                          force_all or step % self.contact_every == 0, force_all or step % self.heightmap_every == 0)
 
 
 class LockstepGate:

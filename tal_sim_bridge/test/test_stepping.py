@@ -16,6 +16,9 @@ def test_schedule_from_the_node_default_rates() -> None:
     assert [i for i, d in enumerate(due) if d.contacts][:3] == [0, 4, 8]
     assert [i for i, d in enumerate(due) if d.heightmap] == [0, 50]
     assert schedule.due(7, force_all=True) == schedule.due(0)
+    assert all(d.clock for d in due)  # the clock at every physics step unless its rate is given
+    clocked = OutputSchedule.from_rates(1000.0, 1000.0, 250.0, 20.0, clock_rate_hz=250.0)
+    assert [step for step in range(12) if clocked.due(step).clock] == [0, 4, 8]
 
 
 def test_schedule_rejects_a_zero_period() -> None:
