@@ -3,6 +3,7 @@ rates in sim time, bad joint commands, start-up errors."""
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
 
@@ -71,6 +72,11 @@ def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(contex
     assert 250 <= summary["commands_accepted"] <= 252
     assert summary["sim_time_s"] == pytest.approx(1.0)
     assert summary["body_ground_contact"] == []
+    assert summary["fell"] is False and summary["stopped_on_fall"] is False
+    # Command latency: every tick after the initial state was timed once (a second answer is not).
+    latency = summary["command_latency_ms"]
+    assert 245 <= latency["count"] <= 250, latency
+    assert 0.0 < latency["median_ms"] <= latency["p99_ms"] <= latency["max_ms"]
     # Rates in sim time: 1 kHz sensors, 250 Hz clock and contacts, 20 Hz heightmap, plus the initial state and its
     # re-sends while the bridge waited for the controller (DDS discovery); a late-joining probe may miss
     # the very first ones.
@@ -94,7 +100,8 @@ def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(contex
 
 def test_bad_joint_commands_are_rejected_counted_and_the_bridge_keeps_damping(context, spin_until) -> None:
     bridge = SimBridgeNode(context=context, parameter_overrides=[
-        Parameter("mode", value="realtime"), Parameter("course", value="flat_rigid")])
+        Parameter("mode", value="realtime"), Parameter("course", value="flat_rigid"),
+        Parameter("stop_on_fall", value=False)])  # it collapses under damping and must go on stepping
     probe = Probe(context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(bridge)
@@ -132,6 +139,33 @@ def test_bad_joint_commands_are_rejected_counted_and_the_bridge_keeps_damping(co
     # real-time catch-up steps): bound it by the joint speed limit (12 rad/s), far below any command.
     for effort in joints.effort:
         assert abs(effort) <= damping * 12.0
+
+
+def test_a_fall_ends_the_run_with_a_summary_saying_when_and_where(context, spin_until, tmp_path) -> None:
+    """No controller: HyQ collapses under the bridge's joint damping, a fall, which ends the run long before
+    duration_s (as duration_s would: summary written, ``finished``)."""
+    path = tmp_path / "bridge_summary.json"
+    bridge = SimBridgeNode(context=context, parameter_overrides=[
+        Parameter("mode", value="realtime"), Parameter("course", value="flat_t4"), Parameter("duration_s", value=20.0),
+        Parameter("summary_path", value=str(path))])
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(bridge)
+    try:
+        assert spin_until(executor, lambda: bridge.finished, 60.0), "the bridge did not stop at the fall"
+        step_at_finish = bridge.core.sim.step_count
+        spin_until(executor, lambda: False, 0.2)
+        assert bridge.core.sim.step_count == step_at_finish  # no step after the run ended
+    finally:
+        executor.shutdown()
+        bridge.destroy_node()
+    summary = json.loads(path.read_text())
+    assert summary == json.loads(json.dumps(bridge.final_summary))
+    assert summary["fell"] is True and summary["stopped_on_fall"] is True
+    assert 0.0 < summary["fall_time_s"] < summary["sim_time_s"] < 5.0
+    assert summary["sim_time_s"] == pytest.approx(summary["fall_time_s"] + 0.2, abs=0.01)   # fall_confirm_s
+    assert summary["fall_position_m"][2] < 0.6 * bridge.core.sim.nominal_base_height_m + 0.01
+    assert isinstance(summary["fall_links"], list) and summary["fall_reason"]
+    assert summary["command_latency_ms"]["count"] == 0  # no controller
 
 
 def test_invalid_course_fails_at_start_up_naming_file_patch_and_field(context, tmp_path) -> None:

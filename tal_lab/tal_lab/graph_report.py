@@ -15,6 +15,11 @@ bridge's real-time factor (lockstep runs as fast as the slowest node lets it; re
 
 Stiffness per patch: an estimate of a leg counts for a patch when every ground-truth contact sample of that
 leg in the preceding ``lookback_s`` (longer than the TCE's window of stance samples) was on that patch.
+
+A run in which the robot fell (the bridge summary's ``fell``) is marked INVALID at the top; the base track,
+the estimator's drift and the stiffness estimates are cut at the fall's onset (the distance travelled and the
+drift are then those at the fall, from the bag), the wbc's tracking errors and the estimator summary's drift
+are left out (``run_report.format_report``). Rates cover the whole recording.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 from tal_core.course_io import load_course
 from tal_core.legs import LEG_NAMES
 from tal_core.ros.bag_io import BagReader
-from tal_lab.run_report import TRUNK_LINKS, format_estimator, format_report
+from tal_lab.run_report import FallInfo, fall_of, format_estimator, format_report
 
 SOFT_N_PER_M = 1e5  # [N/m] patches softer than this are shaded in the trajectory plot
 LOOKBACK_S = 2.5  # [s] the TCE window is 250 stance samples at 250 Hz: ~1.7 s of trot at duty factor 0.6
@@ -103,6 +108,28 @@ class BagSeries:
     stamps: dict[str, list[int]]
     stiffness: dict[str, list[tuple[float, str, float, float, float]]]   # patch -> (t [s], leg, x [m], k [N/m],
     #                                                                    confidence [-])
+
+    def until(self, t_s: float) -> BagSeries:
+        """The base tracks and stiffness samples up to sim time ``t_s`` [s] (a fall's onset); stamps stay whole."""
+        truth, estimate = self.t_s <= t_s, self.estimate_t_s <= t_s
+        stiffness = {patch: kept for patch, samples in self.stiffness.items()
+                     if (kept := [sample for sample in samples if sample[0] <= t_s])}
+        return BagSeries(self.t_s[truth], self.position[truth], self.estimate_t_s[estimate],
+                         self.estimate_position[estimate], self.stamps, stiffness)
+
+    def distance_m(self) -> float | None:
+        """Horizontal ground-truth distance [m] from the first to the last sample."""
+        if not self.position.size:
+            return None
+        return float(np.linalg.norm(self.position[-1, :2] - self.position[0, :2]))
+
+    def final_drift_m(self) -> np.ndarray | None:
+        """Estimate - ground truth [m] (x, y, z) at the last estimate (truth interpolated at its stamp)."""
+        if not self.estimate_position.size or self.t_s.size < 2:
+            return None
+        t = self.estimate_t_s[-1]
+        truth = np.array([np.interp(t, self.t_s, self.position[:, j]) for j in range(3)])
+        return self.estimate_position[-1] - truth
 
 
 def read_bag(bag: Path, course_name: str, lookback_s: float = LOOKBACK_S) -> BagSeries:
@@ -201,8 +228,9 @@ def format_graph_sections(rates: list[RateResult], stiffness: list[dict], resour
 
 
 def plot_run(series: BagSeries, course_name: str, rates: list[RateResult],
-             resources: dict | None, out_dir: Path) -> list[Path]:
-    """trajectory.png (side view over the terrain, estimator drift), stiffness.png, rates_resources.png."""
+             resources: dict | None, out_dir: Path, fall: FallInfo | None = None) -> list[Path]:
+    """trajectory.png (side view over the terrain, estimator drift), stiffness.png, rates_resources.png. With a
+    fall, ``series`` ends at its onset and the trajectory marks it."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -219,6 +247,9 @@ def plot_run(series: BagSeries, course_name: str, rates: list[RateResult],
             ax_side.axvspan(patch.region.x_min, patch.region.x_max, alpha=0.15, color=f"C{i + 2}",
                             label=f"{patch.name} ({patch.stiffness_n_per_m:.0f} N/m)")
         ax_side.plot(series.position[:, 0], series.position[:, 2], label="base, ground truth")
+        if fall is not None and fall.position_m is not None:
+            ax_side.plot(fall.position_m[0], fall.position_m[2], "rx", ms=10,
+                         label=f"fall at t = {fall.time_s:.2f} s (series end here)")
     if series.estimate_position.size:
         ax_side.plot(series.estimate_position[:, 0], series.estimate_position[:, 2], "--", label="base, estimate")
         gt_at = np.column_stack([np.interp(series.estimate_t_s, series.t_s, series.position[:, j]) for j in range(3)])
@@ -298,26 +329,40 @@ def build_report(run_dir: Path, title: str) -> str:
     wbc = load_json(run_dir / "wbc_summary.json")
     if bridge is None or wbc is None:
         raise FileNotFoundError(f"{run_dir}: no bridge_summary.json / wbc_summary.json (did the graph finish?)")
-    report = format_report(bridge, wbc, title)
+    fall = fall_of(bridge)
     series = read_bag(run_dir / "bag", bridge["course"])
-    if series.position.size:
-        report += (f"| final base position (ground truth) | x {series.position[-1, 0]:.2f} m, "
-                   f"z {series.position[-1, 2]:.2f} m |\n")
+    fall_time_s = None if fall is None else fall.time_s
+    cut = fall_time_s is not None
+    if fall_time_s is not None:
+        series = series.until(fall_time_s)
+    distance = series.distance_m() if cut else None
+    report = format_report(bridge, wbc, title, distance_to_fall_m=distance)
+    if series.position.size and (cut or fall is None):  # after a fall of unknown time: meaningless
+        report += (f"| {'base position at the fall' if cut else 'final base position'} (ground truth) | "
+                   f"x {series.position[-1, 0]:.2f} m, z {series.position[-1, 2]:.2f} m |\n")
     estimator = load_json(run_dir / "estimator_summary.json")
     if estimator is not None:
-        report += format_estimator(estimator)
+        report += format_estimator(estimator, fell=fall is not None, drift_at_fall_m=series.final_drift_m() if cut
+                                   else None)
     rates = topic_rates(series.stamps, bridge.get("real_time_factor"))
     stiffness = stiffness_table(series, bridge["course"])
     resources = load_json(run_dir / "resources.json")
     report += format_graph_sections(rates, stiffness, resources, load_json(run_dir / "vfa_summary.json"),
                                     load_json(run_dir / "vpa_summary.json"))
-    plots = plot_run(series, bridge["course"], rates, resources, run_dir)
+    if cut:
+        report += (f"\nThe base track, the estimator drift and the stiffness estimates end at the fall's onset "
+                   f"(t = {fall_time_s:.2f} s); the rates cover the whole recording.\n")
+    plots = plot_run(series, bridge["course"], rates, resources, run_dir, fall)
     report += "\nPlots: " + ", ".join(f"[{p.name}]({p.name})" for p in plots) + "\n"
     summary = {"rates": [r.__dict__ for r in rates], "stiffness": stiffness,
                "peak_total_rss_mb": None if resources is None else resources["peak_total_rss_mb"],
                "real_time_factor": bridge.get("real_time_factor"), "mode": bridge.get("mode"),
-               "fell": bool(TRUNK_LINKS & set(bridge["body_ground_contact"])),
-               "links_touching_terrain": bridge["body_ground_contact"], "distance_m": wbc.get("distance_m")}
+               "fell": fall is not None, "fall_time_s": fall_time_s,
+               "fall_position_m": None if fall is None else fall.position_m,
+               "fall_links": [] if fall is None else list(fall.links),
+               "links_touching_terrain": bridge["body_ground_contact"],
+               "distance_m": distance if cut else (wbc.get("distance_m") if fall is None else None),
+               "command_latency_ms": bridge.get("command_latency_ms")}
     (run_dir / "graph_summary.json").write_text(json.dumps(summary, indent=1))
     return report
 

@@ -1,12 +1,15 @@
-"""graph_report: rates and missed ticks from stamps, stiffness attributed to the patch under the foot."""
+"""graph_report: rates and missed ticks from stamps, stiffness attributed to the patch under the foot, a run
+that fell reported invalid and cut at the fall."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from tal_lab.graph_report import read_bag, stiffness_table, topic_rates
+from nav_msgs.msg import Odometry
+from tal_lab.graph_report import build_report, read_bag, stiffness_table, topic_rates
 
 from tal_core.ros.bag_io import BagWriter
 from tal_core.ros.node_utils import stamp_from_ns
@@ -29,13 +32,23 @@ def test_rates_count_the_missed_ticks_of_each_gap() -> None:
     assert rates["footholds"].target_hz is None
 
 
-def _write_walk(path: Path) -> None:
+def _write_walk(path: Path, base: bool = False) -> None:
     """Every foot walks along x at 0.1 m/s from x = 1.0 (stance_course: rigid up to 2, T1 3500 N/m on
-    [2, 4]); the estimate reported is the true stiffness under the foot, except LF's which is doubled."""
+    [2, 4]); the estimate reported is the true stiffness under the foot, except LF's which is doubled. With
+    ``base``: ground_truth/odom (the base 0.55 m above the ground, sinking at 10 m/s from FALL_S on) and a
+    state_estimate 0.05 m ahead in x."""
     with BagWriter(path) as bag:
         for k in range(0, 25_000, 20):                  # 25 s at 50 Hz
             t_ns = k * MS
             x = 1.0 + 0.1e-3 * k
+            if base:
+                truth, estimate = Odometry(), Odometry()
+                truth.header.stamp = estimate.header.stamp = stamp_from_ns(t_ns)
+                z = 0.55 - 10.0 * max(0.0, k * 1e-3 - FALL_S)
+                truth.pose.pose.position.x, truth.pose.pose.position.z = x, z
+                estimate.pose.pose.position.x, estimate.pose.pose.position.z = x + 0.05, z
+                bag.write("/ground_truth/odom", truth, t_ns)
+                bag.write("/state_estimate", estimate, t_ns)
             contacts, impedance = ContactState(), TerrainImpedance()
             contacts.header.stamp = impedance.header.stamp = stamp_from_ns(t_ns)
             for i in range(4):
@@ -65,3 +78,79 @@ def test_an_estimate_counts_for_a_patch_only_once_the_lookback_lies_on_it(tmp_pa
     assert rows["soft_t1"]["confident_median_n_per_m"] == 3500.0                 # LH, RH exact, LF doubled
     assert rows["default"]["true_n_per_m"] == 2.0e6
     assert rows["soft_t1"]["samples"] == len(t1) == pytest.approx(4 * (25.0 - 12.5) / 0.020, abs=8)
+
+
+# --- a run in which the robot fell ----------------------------------------------------------------------
+FALL_S = 12.0  # [s] onset of the synthetic fall
+
+
+def bridge_summary(fell: bool) -> dict:
+    """A bridge summary as the node writes it (trimmed to what the reports read)."""
+    summary = {"sim_time_s": FALL_S + 0.2 if fell else 25.0, "wall_time_s": 50.0, "real_time_factor": 0.5,
+               "course": "stance_course", "robot": "hyq", "mode": "lockstep", "commands_accepted": 3000,
+               "commands_rejected": {}, "lockstep_timeouts": 0, "body_ground_contact": ["trunk"] if fell else [],
+               "fell": False, "fall_time_s": None, "fall_confirmed_s": None, "fall_position_m": None,
+               "fall_links": [], "fall_reason": None, "stop_on_fall": True, "stopped_on_fall": fell,
+               "command_latency_ms": {"count": 3000, "untimed": 1, "median_ms": 4.25, "p99_ms": 11.5,
+                                      "max_ms": 40.0}}
+    if fell:
+        summary.update(fell=True, fall_time_s=FALL_S, fall_confirmed_s=FALL_S + 0.2,
+                       fall_position_m=[2.2, 0.01, 0.3], fall_links=["lf_upperleg", "trunk"],
+                       fall_reason="body-ground contact")
+    return summary
+
+
+WBC = {"gait": "crawl", "distance_m": 9.5, "height_error_mean_abs_m": 5.1, "velocity_error_mean_abs_m_s": 0.24,
+       "yaw_rate_error_mean_abs_rad_s": 0.2, "ticks": 3000, "qp_fallbacks": 3, "safe_mode_ticks": 0,
+       "rejected_inputs": 0}
+ESTIMATOR = {"leg_odometry": "terrain_aware", "final_drift_m": [0.0, 0.0, 113.0], "rms_drift_m": [0.0, 0.0, 50.0],
+             "velocity_rmse_m_s": [0.1, 0.1, 3.0], "compared_s": 25.0, "ticks": 8000, "rejected": {}, "restarts": 0,
+             "reinitialisations": 0}
+
+
+def _write_run(run_dir: Path, fell: bool) -> None:
+    """The walk of ``_write_walk`` plus the nodes' summaries; the ground-truth base walks at 0.1 m/s from
+    x = 1 and, from FALL_S on, sinks through the ground (as the old bridge let it, to -117 m)."""
+    _write_walk(run_dir / "bag", base=True)
+    (run_dir / "bridge_summary.json").write_text(json.dumps(bridge_summary(fell)))
+    (run_dir / "wbc_summary.json").write_text(json.dumps(WBC))
+    (run_dir / "estimator_summary.json").write_text(json.dumps(ESTIMATOR))
+
+
+def test_a_run_that_fell_is_reported_invalid_and_cut_at_the_fall(tmp_path: Path) -> None:
+    _write_run(tmp_path, fell=True)
+    report = build_report(tmp_path, "tour")
+    lines = report.splitlines()
+    assert lines[0] == "# tour"
+    assert lines[2] == "**INVALID RUN: HyQ fell at t = 12.00 s, x = 2.20 m (links lf_upperleg, trunk).**"
+    assert "left out" in lines[4] and "height, velocity and yaw-rate errors" in lines[4]
+    # The figures the fall voids are gone; the distance and the base position are those at the fall.
+    for gone in ("body height error", "velocity error (mean", "final drift [m]", "RMS drift [m]", "113", "9.500 m"):
+        assert gone not in report, gone
+    assert "| distance travelled to the fall (ground truth) | 1.200 m |" in report     # 0.1 m/s for 12 s
+    assert "| base position at the fall (ground truth) | x 2.20 m, z 0.55 m |" in report
+    assert "| drift at the fall's onset [m] | +0.0500 | +0.0000 | +0.0000 |" in report
+    assert "| joint state -> command latency, wall time (median / p99 / max) | 4.25 / 11.50 / 40.00 ms " \
+           "(3000 commands) |" in report
+    summary = json.loads((tmp_path / "graph_summary.json").read_text())
+    assert summary["fell"] is True and summary["fall_time_s"] == FALL_S
+    assert summary["fall_links"] == ["lf_upperleg", "trunk"]
+    assert summary["distance_m"] == pytest.approx(1.2, abs=1e-3)
+    assert summary["command_latency_ms"]["p99_ms"] == 11.5
+    # Stiffness estimates after the fall's onset no longer count: T1 ([2, 4] m) entered at 10 s, counted from
+    # 12.5 s (lookback) on, i.e. none before the fall.
+    assert {row["patch"] for row in summary["stiffness"]} == {"default"}
+
+
+def test_a_run_that_did_not_fall_keeps_every_figure(tmp_path: Path) -> None:
+    _write_run(tmp_path, fell=False)
+    report = build_report(tmp_path, "tour")
+    assert "INVALID" not in report and "left out" not in report
+    assert "| fell | no |" in report
+    assert "| distance travelled | 9.500 m |" in report
+    assert "| body height error (mean abs, after 2 s) | 5100.0 mm |" in report
+    assert "| final drift [m] | +0.0000 | +0.0000 | +113.0000 |" in report
+    assert "4.25 / 11.50 / 40.00 ms" in report
+    summary = json.loads((tmp_path / "graph_summary.json").read_text())
+    assert summary["fell"] is False and summary["distance_m"] == 9.5
+    assert {row["patch"] for row in summary["stiffness"]} == {"default", "soft_t1"}

@@ -1,7 +1,7 @@
 """The robot-driver side of the bridge without ROS: commands in, physics stepped, sensors out.
 
-``BridgeCore`` owns a ``Simulation``, the zero-order hold of joint commands, the IMU model and the
-statistics for the end-of-run summary. The ROS node converts messages and decides *when* to step
+``BridgeCore`` owns a ``Simulation``, the zero-order hold of joint commands, the IMU model, the fall detector
+and the statistics for the end-of-run summary. The ROS node converts messages and decides *when* to step
 (lockstep or real time); everything that decides *what* happens in a step lives here and is testable
 without a ROS graph.
 """
@@ -18,6 +18,7 @@ from tal_core.rotations import rotation_from_quat_xyzw
 
 from .command_hold import JointCommandHold
 from .effects import ModelEffects
+from .fall import Fall, FallDetector
 from .physics import GRAVITY_M_S2, FootContact, RobotState, Simulation
 
 
@@ -72,12 +73,14 @@ class BridgeCore:
     """Applies held commands to the simulation, one physics step at a time, and reports on the run."""
 
     def __init__(self, simulation: Simulation, *, imu: ImuModel | None = None,
-                 safe_damping_nms_per_rad: float = 5.0, summary_window_steps: int = 1000) -> None:
+                 safe_damping_nms_per_rad: float = 5.0, summary_window_steps: int = 1000,
+                 fall_detector: FallDetector | None = None) -> None:
         self.sim = simulation
         self.commands = JointCommandHold(simulation.description.joint_names, safe_damping_nms_per_rad)
         self.imu = imu or ImuModel(simulation.effects)
         self.stats = TrailingStatistics(summary_window_steps)
         self.max_body_contacts: set[str] = set()
+        self.fall_detector = fall_detector or FallDetector.for_robot(simulation.nominal_base_height_m)
 
     def step(self) -> RobotState:
         """One physics step with the held command (or joint damping if none arrived yet)."""
@@ -86,14 +89,23 @@ class BridgeCore:
         return self.sim.robot_state()
 
     def record_statistics(self, state: RobotState, contacts: list[FootContact]) -> None:
-        """Feed the summary statistics (called at the contact publishing rate)."""
+        """Feed the summary statistics and the fall detector (called at the contact publishing rate)."""
         feet = np.array([c.position_m for c in contacts])
-        stiffness = np.asarray(self.sim.course.properties_array(feet[:, 0], feet[:, 1]).stiffness_n_per_m)
-        self.stats.add(float(state.base_position_m[2]), contacts, stiffness)
-        self.max_body_contacts.update(self.sim.body_ground_contact())
+        course = self.sim.course
+        stiffness = np.asarray(course.properties_array(feet[:, 0], feet[:, 1]).stiffness_n_per_m)
+        base = state.base_position_m
+        self.stats.add(float(base[2]), contacts, stiffness)
+        body = self.sim.body_ground_contact()
+        self.max_body_contacts.update(body)
+        self.fall_detector.update(self.sim.time_s, base, course.height(base[0], base[1]), body)
+
+    @property
+    def fall(self) -> Fall | None:
+        """The run's first confirmed fall (None: the robot is up)."""
+        return self.fall_detector.fall
 
     def summary(self, wall_time_s: float) -> dict[str, object]:
-        """End-of-run figures: base height, per-foot penetration vs the static expectation, RTF."""
+        """End-of-run figures: base height, per-foot penetration vs the static expectation, RTF, the fall."""
         stats = self.stats
         mass = self.sim.total_mass_kg
         result: dict[str, object] = {
@@ -101,10 +113,12 @@ class BridgeCore:
             "wall_time_s": round(wall_time_s, 3),
             "real_time_factor": round(self.sim.time_s / wall_time_s, 3) if wall_time_s > 0 else None,
             "course": self.sim.course.name,
+            "robot": self.sim.description.name,
             "robot_mass_kg": round(mass, 3),
             "commands_accepted": self.commands.accepted,
             "commands_rejected": dict(self.commands.rejections),
             "body_ground_contact": sorted(self.max_body_contacts),
+            **self.fall_detector.summary(),
         }
         if stats.base_height:
             force = np.mean(stats.normal_force, axis=0)

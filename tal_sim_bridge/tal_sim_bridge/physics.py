@@ -267,6 +267,9 @@ class Simulation:
         self._reset_base_pose([initial_xy[0], initial_xy[1], 0.0], quat)
         feet = np.array([self.client.getLinkState(self.robot, f, computeForwardKinematics=1)[4]
                          for f in self.foot_links])
+        if joint_positions_rad is None:
+            # [m] base origin above flat ground in the nominal pose, level base (the base is at z = 0 here)
+            self.nominal_base_height_m = self.description.foot_radius_m - float(np.min(feet[:, 2]))
         ground = np.array([float(self.course.height(x, y)) for x, y in feet[:, :2]])
         if not np.all(np.isfinite(ground)):
             raise BridgeConfigError(f"initial position {initial_xy} puts a foot outside the course extent")

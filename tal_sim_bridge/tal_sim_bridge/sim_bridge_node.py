@@ -11,6 +11,11 @@ Modes:
   * realtime: physics follows the wall clock (steady time), catching up at most max_catch_up_steps per
     timer call; falling behind is counted as overruns.
 
+A fall (``fall.py``: trunk, hip or thigh on the ground, or the base low over the terrain, held for
+fall_confirm_s) ends the run as duration_s does (summary written, ``finished``), logged as an error with its
+time, place and links, unless stop_on_fall is false. The summary also gives the command latency: wall time
+from a joint state's publication to the arrival of the joint_command stamped with it (``latency.py``).
+
 The bridge is the clock source: its own timers run on the steady clock, never on sim time.
 """
 
@@ -38,6 +43,8 @@ from tal_msgs.msg import ContactState, HeightMap, JointCommand
 from .bridge_core import BridgeCore, ImuModel
 from .effects import ModelEffects
 from .errors import CommandRejectedError
+from .fall import DEFAULT_CONFIRM_S, DEFAULT_MIN_HEIGHT_RATIO, FallDetector
+from .latency import CommandLatency
 from .physics import Simulation
 from .sensor_messages import SensorWriters, heightmap_message
 from .stepping import LockstepGate, OutputSchedule, RealtimePacer
@@ -72,8 +79,10 @@ class SimBridgeNode(Node):
                          gui=p["gui"], initial_xy=(p["initial_x_m"], p["initial_y_m"]),
                          initial_yaw_rad=p["initial_yaw_rad"])
         imu = ImuModel(effects, p["imu_gyro_noise_std_rad_s"], p["imu_accel_noise_std_m_s2"], p["seed"])
+        fall = FallDetector.for_robot(sim.nominal_base_height_m, p["fall_min_base_height_ratio"],
+                                      p["fall_confirm_s"])
         self.core = BridgeCore(sim, imu=imu, safe_damping_nms_per_rad=p["safe_damping_nms_per_rad"],
-                               summary_window_steps=max(1, int(p["contact_rate_hz"])))
+                               summary_window_steps=max(1, int(p["contact_rate_hz"])), fall_detector=fall)
         self.params = p
         self.steps_per_control = max(1, round(p["control_period_s"] * p["physics_rate_hz"]))
         self.schedule = OutputSchedule.from_rates(p["physics_rate_hz"], p["sensor_rate_hz"], p["contact_rate_hz"],
@@ -82,9 +91,15 @@ class SimBridgeNode(Node):
                                      p["imu_accel_noise_std_m_s2"])
         self._set_duration(p["duration_s"])
         self.finished = False
+        self.fall_logged = False
+        self.stopped_on_fall = False
+        self.latency = CommandLatency()
         self.initial_state_repeats = 0  # re-sends of the initial state while waiting for a controller
         self.gate = LockstepGate(p["lockstep_timeout_s"], p["startup_timeout_s"])
         self.pacer = RealtimePacer(p["physics_rate_hz"], p["max_catch_up_steps"], time.monotonic())
+        # The run's wall-clock start for the summary's real-time factor: the pacer's start moves forward when it
+        # drops a backlog (sim time then falls behind), this one does not.
+        self._run_start_s = self.pacer.start_s
         self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
 
         qos_sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -160,6 +175,17 @@ class SimBridgeNode(Node):
                                   low=0.0, high=1e6, on_change=self._set_duration),
             "summary_path": declare(self, "summary_path", "", "JSON file for the end-of-run summary ('' = none)",
                                     on_change=lambda value: self.params.__setitem__("summary_path", value)),
+            "stop_on_fall": declare(self, "stop_on_fall", True,
+                                    "end the run at a fall (summary written, the node finishes) as at duration_s",
+                                    on_change=lambda value: self.params.__setitem__("stop_on_fall", value)),
+            "fall_min_base_height_ratio": declare(
+                self, "fall_min_base_height_ratio", DEFAULT_MIN_HEIGHT_RATIO,
+                "[-] a fall: base origin above the terrain under it below this fraction of the robot's nominal "
+                "base height (0 = off; trunk, hip or thigh contact with the ground always counts)",
+                low=0.0, high=1.0),
+            "fall_confirm_s": declare(self, "fall_confirm_s", DEFAULT_CONFIRM_S,
+                                      "[s] sim time a fall condition must hold (a graze does not count)",
+                                      low=0.0, high=10.0),
         }
         for name, (default, description) in EFFECT_PARAMETERS.items():
             declare(self, f"effects.{name}", default, description)
@@ -183,6 +209,7 @@ class SimBridgeNode(Node):
 
     # -- commands ---------------------------------------------------------------------------------------
     def _on_command(self, msg: JointCommand) -> None:
+        arrived_s = time.monotonic()
         stamp_ns = ns_from_stamp(msg.header.stamp)
         try:
             self.core.commands.submit(stamp_ns, list(msg.name), msg.effort, msg.position, msg.velocity,
@@ -192,8 +219,9 @@ class SimBridgeNode(Node):
                 f"rejected joint_command ({exc.reason}, {self.core.commands.rejected_total} so far): {exc}",
                 throttle_duration_sec=1.0)
             return
+        self.latency.command(stamp_ns, arrived_s)
         if self.core.commands.accepted == 1 and self.mode == "lockstep":
-            self.pacer.start_s = time.monotonic()  # the run starts now: discovery time is not sim time
+            self.pacer.start_s = self._run_start_s = time.monotonic()  # discovery time is not sim time
         if self.gate.releases(stamp_ns):
             self._advance_control_period()
 
@@ -233,6 +261,8 @@ class SimBridgeNode(Node):
         """One physics step plus the outputs due at it; returns True when the run is finished."""
         state = self.core.step()
         self._publish_step_outputs(state=state)
+        if self.core.fall is not None and self._fall_ends_run():
+            return True
         if self.duration_steps is not None and self.core.sim.step_count >= self.duration_steps:
             self._finish()
             return True
@@ -248,6 +278,7 @@ class SimBridgeNode(Node):
             state = self.core.sim.robot_state()
         if due.sensors:
             self._publish_sensors(stamp_ns, state)
+            self.latency.published(stamp_ns, time.monotonic())
         if due.contacts:
             contacts = self.core.sim.foot_contacts()
             self.pub_contacts.publish(self.writers.contact_state(stamp_ns, contacts))
@@ -271,6 +302,24 @@ class SimBridgeNode(Node):
         self.pub_heightmap.publish(heightmap_message(stamp, grid))
 
     # -- end of run -------------------------------------------------------------------------------------
+    def _fall_ends_run(self) -> bool:
+        """Log the fall once; finish the run on it when stop_on_fall is set (True then)."""
+        fall = self.core.fall
+        assert fall is not None
+        stop = bool(self.params["stop_on_fall"])
+        if not self.fall_logged:
+            self.fall_logged = True
+            self.get_logger().error(
+                f"{self.core.sim.description.name} fell {fall.describe()}; "
+                + ("stopping the run (stop_on_fall)" if stop else
+                   "the run goes on (stop_on_fall is false): what follows is not locomotion"))
+        elif stop:
+            self.get_logger().error("stop_on_fall set after the fall: stopping the run")
+        if stop:
+            self.stopped_on_fall = True
+            self._finish()
+        return stop
+
     def _finish(self) -> None:
         self.finished = True
         summary = self.final_summary = self.summary()
@@ -281,10 +330,11 @@ class SimBridgeNode(Node):
             Path(path).write_text(json.dumps(summary, indent=2) + "\n")
 
     def summary(self) -> dict[str, object]:
-        summary = self.core.summary(time.monotonic() - self.pacer.start_s)
+        summary = self.core.summary(time.monotonic() - self._run_start_s)
         summary.update(mode=self.mode, lockstep_timeouts=self.gate.timeouts,
                        initial_state_repeats=self.initial_state_repeats,
-                       realtime_overruns=self.pacer.overruns)
+                       realtime_overruns=self.pacer.overruns, stop_on_fall=bool(self.params["stop_on_fall"]),
+                       stopped_on_fall=self.stopped_on_fall, command_latency_ms=self.latency.summary())
         return summary
 
     def destroy_node(self) -> None:
