@@ -18,7 +18,8 @@ test: bootstrap
 bench: bootstrap
 	@$(ENV) && python bench/bench_bridge.py && python bench/bench_wbc.py && python bench/bench_stance.py \
 		&& python bench/bench_estimator.py && python bench/bench_bags.py && python bench/bench_vfa.py \
-		&& python bench/bench_vfa_cnn.py && python bench/bench_vpa.py && python bench/report.py
+		&& python bench/bench_vfa_cnn.py && python bench/bench_vpa.py && python bench/bench_graph.py \
+		&& python bench/report.py
 
 datasets: bootstrap
 	@$(ENV) && python -m tal_lab.datasets --out data --duration-s $(or $(DURATION),70)
