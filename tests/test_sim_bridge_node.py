@@ -101,6 +101,8 @@ def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(contex
 def test_bad_joint_commands_are_rejected_counted_and_the_bridge_keeps_damping(context, spin_until) -> None:
     bridge = SimBridgeNode(context=context, parameter_overrides=[
         Parameter("mode", value="realtime"), Parameter("course", value="flat_rigid"),
+        # No valid command ever comes: physics starts after the start-up timeout, with the safe damping.
+        Parameter("startup_timeout_s", value=0.2),
         Parameter("stop_on_fall", value=False)])  # it collapses under damping and must go on stepping
     probe = Probe(context)
     executor = SingleThreadedExecutor(context=context)
@@ -183,3 +185,17 @@ def test_invalid_parameter_fails_at_start_up_naming_it(context) -> None:
         SimBridgeNode(context=context, parameter_overrides=[Parameter("mode", value="fast")])
     with pytest.raises(ValueError, match="torque_gain"):
         SimBridgeNode(context=context, parameter_overrides=[Parameter("effects.torque_gain", value=0.0)])
+
+
+def test_realtime_physics_waits_for_the_first_command(context, spin_until) -> None:
+    """A robot does not walk before its controller runs: in realtime mode the bridge re-sends its initial state
+    and steps no physics until a command arrives (or the start-up timeout passes)."""
+    bridge = SimBridgeNode(context=context, parameter_overrides=[Parameter("mode", value="realtime")])
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(bridge)
+    try:
+        spin_until(executor, lambda: False, 0.5)
+        assert bridge.core.sim.step_count == 0 and bridge.initial_state_repeats >= 3
+    finally:
+        executor.shutdown()
+        bridge.destroy_node()

@@ -1,6 +1,6 @@
 """Node ``sim_bridge``: PyBullet HyQ on a compliant course, standing in for the robot hardware.
 
-Publishes (relative names): clock, joint_states, imu, ground_truth/odom (1 kHz by default),
+Publishes (relative names): joint_states, imu, ground_truth/odom (1 kHz by default), clock and
 ground_truth/contacts (250 Hz), terrain/heightmap (20 Hz). Subscribes: joint_command.
 
 Modes:
@@ -8,8 +8,9 @@ Modes:
     at (or after) the current control tick arrives, so results do not depend on machine speed. If no
     command arrives within lockstep_timeout_s of wall time the bridge advances anyway with the held
     command and counts a lockstep timeout (a controller that never starts cannot freeze the graph).
-  * realtime: physics follows the wall clock (steady time), catching up at most max_catch_up_steps per
-    timer call; falling behind is counted as overruns.
+  * realtime: physics follows the wall clock (steady time) from the first command (the initial state is
+    re-sent until a controller answers, at most startup_timeout_s), catching up at most max_catch_up_steps
+    per timer call; falling behind is counted as overruns.
 
 A fall (``fall.py``: trunk, hip or thigh on the ground, or the base low over the terrain, held for
 fall_confirm_s) ends the run as duration_s does (summary written, ``finished``), logged as an error with its
@@ -100,6 +101,8 @@ class SimBridgeNode(Node):
         # The run's wall-clock start for the summary's real-time factor: the pacer's start moves forward when it
         # drops a backlog (sim time then falls behind), this one does not.
         self._run_start_s = self.pacer.start_s
+        self._started_without_command = False
+        self._last_resend_s = self._run_start_s
         self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
 
         qos_sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -220,8 +223,9 @@ class SimBridgeNode(Node):
                 throttle_duration_sec=1.0)
             return
         self.latency.command(stamp_ns, arrived_s)
-        if self.core.commands.accepted == 1 and self.mode == "lockstep":
-            self.pacer.start_s = self._run_start_s = time.monotonic()  # discovery time is not sim time
+        if self.core.commands.accepted == 1:
+            # The run starts now (in both modes): discovery and the controllers' start-up are not sim time.
+            self.pacer.start_s = self._run_start_s = time.monotonic()
         if self.gate.releases(stamp_ns):
             self._advance_control_period()
 
@@ -253,7 +257,21 @@ class SimBridgeNode(Node):
     def _realtime_tick(self) -> None:
         if self.finished:
             return
-        for _ in range(self.pacer.steps_due(time.monotonic(), self.core.sim.step_count)):
+        now = time.monotonic()
+        if self.core.commands.accepted == 0 and not self._started_without_command:
+            # A robot does not walk before its controller runs: physics starts with the first command (or after
+            # startup_timeout_s without one); until then the initial state is re-sent at 20 Hz for late joiners.
+            if now - self._run_start_s > self.params["startup_timeout_s"]:
+                self.get_logger().warn(f"realtime: no joint_command within {self.params['startup_timeout_s']} s; "
+                                       "starting with the held command")
+                self._started_without_command = True
+                self.pacer.start_s = self._run_start_s = now
+            elif now - self._last_resend_s >= 0.05:
+                self._publish_step_outputs(force_all=True, record=False)
+                self.initial_state_repeats += 1
+                self._last_resend_s = now
+            return
+        for _ in range(self.pacer.steps_due(now, self.core.sim.step_count)):
             if self._step_once():
                 return
 
