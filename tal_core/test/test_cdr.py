@@ -89,3 +89,42 @@ def test_stamp_is_read_from_the_bytes() -> None:
     assert stamp_ns_of(serialize_message(msg)) == 3_004_000_000
     with pytest.raises(InputError, match="too short"):
         stamp_ns_of(b"\x00\x01\x00\x00")
+
+
+@pytest.mark.ros
+def test_subscribe_stamped_skips_unwanted_and_reports_corrupt_samples() -> None:
+    """Over DDS: only wanted stamps reach the callback; bytes that are no message go to on_error, the node
+    keeps running."""
+    import time
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from tal_core.ros.cdr import subscribe_stamped
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("cdr_probe", context=context)
+    got, errors = [], []
+    subscribe_stamped(node, JointState, "cdr_test/joint_states", got.append, 50,
+                      wants=lambda stamp: stamp % 4_000_000 == 0, on_error=errors.append)
+    pub = node.create_publisher(JointState, "cdr_test/joint_states", 50)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + 10.0
+        while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        for k in range(1, 9):
+            msg = JointState(name=NAMES, position=[float(k)] * 12)
+            msg.header.stamp = stamp_from_ns(k * 1_000_000)
+            pub.publish(msg)
+        pub.publish(b"\x00\x01\x00\x00")  # an encapsulation header and nothing else
+        while (len(got) < 2 or not errors) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    assert [m.position[0] for m in got] == [4.0, 8.0]
+    assert len(errors) == 1 and "too short" in str(errors[0])
