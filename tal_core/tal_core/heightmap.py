@@ -84,8 +84,12 @@ class HeightMapGrid:
         """Bilinear height [m] at world points (x, y) [m] between the surrounding cell centres.
 
         Within half a cell of the border the edge cells are extended; outside the grid, or next to a NaN
-        cell, the result is NaN.
+        cell, the result is NaN. A scalar (x, y) takes a scalar path with the same arithmetic in the same
+        order (a float, bit-identical to the array path's value): controllers query a few points per tick,
+        where numpy's per-call overhead was 17 us a point.
         """
+        if np.ndim(x) == 0 and np.ndim(y) == 0:
+            return self._height_at_point(float(x), float(y))
         rows, cols = self.fractional_index(x, y)
         inside = self._inside(rows, cols)
         rows = np.clip(rows, 0.0, self.rows - 1.0)
@@ -98,6 +102,23 @@ class HeightMapGrid:
         top = (1.0 - wc) * h[r0, c0] + wc * h[r0, c1]
         bottom = (1.0 - wc) * h[r1, c0] + wc * h[r1, c1]
         return np.where(inside, (1.0 - wr) * top + wr * bottom, np.nan)
+
+    def _height_at_point(self, x: float, y: float) -> float:
+        cos_yaw, sin_yaw = math.cos(self.yaw), math.sin(self.yaw)
+        offset_x, offset_y = x - float(self.center_xy[0]), y - float(self.center_xy[1])
+        rows = (cos_yaw * offset_x + sin_yaw * offset_y) / self.resolution_m + 0.5 * (self.rows - 1)
+        cols = (-sin_yaw * offset_x + cos_yaw * offset_y) / self.resolution_m + 0.5 * (self.cols - 1)
+        if not (-0.5 <= rows < self.rows - 0.5 and -0.5 <= cols < self.cols - 0.5):
+            return math.nan
+        rows = min(max(rows, 0.0), self.rows - 1.0)
+        cols = min(max(cols, 0.0), self.cols - 1.0)
+        r0, c0 = min(math.floor(rows), max(self.rows - 2, 0)), min(math.floor(cols), max(self.cols - 2, 0))
+        r1, c1 = min(r0 + 1, self.rows - 1), min(c0 + 1, self.cols - 1)
+        wr, wc = rows - r0, cols - c0
+        h = self.heights
+        top = (1.0 - wc) * float(h[r0, c0]) + wc * float(h[r0, c1])
+        bottom = (1.0 - wc) * float(h[r1, c0]) + wc * float(h[r1, c1])
+        return (1.0 - wr) * top + wr * bottom
 
     def _inside(self, rows: FloatArray, cols: FloatArray) -> NDArray[np.bool_]:
         return (rows >= -0.5) & (rows < self.rows - 0.5) & (cols >= -0.5) & (cols < self.cols - 0.5)

@@ -114,3 +114,18 @@ def test_bad_arguments(kwargs: dict, message: str) -> None:
 def test_bad_heights_shape() -> None:
     with pytest.raises(InputError, match=r"non-empty \(rows, cols\) array, got shape \(3,\)"):
         HeightMapGrid(center_xy=(0.0, 0.0), yaw=0.0, resolution_m=0.1, heights=np.zeros(3))
+
+
+def test_scalar_queries_are_bit_identical_to_array_queries() -> None:
+    """The scalar path (controllers query a few points per tick) gives exactly the array path's values,
+    NaN next to unknown cells and outside the grid included."""
+    rng = np.random.default_rng(5)
+    heights = rng.random((41, 33)).astype(np.float32)
+    heights[3, 4] = np.nan
+    for yaw in (0.0, 0.3, -2.0):
+        grid = HeightMapGrid(center_xy=(0.3, -0.2), yaw=yaw, resolution_m=0.02, heights=heights)
+        xy = rng.uniform(-0.6, 0.6, (2000, 2))
+        batch = grid.height_at(xy[:, 0], xy[:, 1])
+        one_by_one = np.array([grid.height_at(float(x), float(y)) for x, y in xy])
+        assert np.isnan(batch).any() and np.isfinite(batch).any()
+        np.testing.assert_array_equal(one_by_one, batch)
