@@ -17,6 +17,7 @@
 #   trot            HyQ trots forward at 0.3 m/s on rigid ground for 20 s of sim time (lockstep):
 #                   sim_bridge + state_estimator + wbc (sWBC on the estimate) + cmd_vel_script; prints
 #                   tracking errors, estimator drift and whether it fell
+#   trot_realtime   the same following the wall clock (five nodes: the smallest walking graph in real time)
 #   crawl           the same with a crawl at 0.1 m/s
 #   stairs          ViTAL's VFA: HyQ trots at 0.3 m/s over the stairs course (5 steps up, rise 0.1 m, go 0.3 m,
 #                   plateau, 5 steps down) for 30 s of sim time (lockstep): the trot graph on the ground-truth
@@ -56,10 +57,11 @@ walk() {
              -s "vfa.use_sim_time:=true" -s "vfa.summary_path:=$dir/vfa_summary.json")
         topics="${topics%]}, 'footholds']"
     fi
-    echo "[run] $SCENARIO: HyQ ${gait}s at $speed m/s on '$course' for $duration s of sim time (lockstep)," \
+    local mode="${MODE:-lockstep}"
+    echo "[run] $SCENARIO: HyQ ${gait}s at $speed m/s on '$course' for $duration s of sim time ($mode)," \
          "base state from $state_source, vfa ${VFA:-0}"
     bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge \
-        -s "sim_bridge.course:=$course" -s "sim_bridge.duration_s:=$duration" \
+        -s "sim_bridge.course:=$course" -s "sim_bridge.duration_s:=$duration" -s "sim_bridge.mode:=$mode" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" -s "wbc.state_source:=$state_source" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
@@ -159,11 +161,12 @@ case "$SCENARIO" in
     tour_realtime) MODE=realtime tour ;;
     stance) stance ;;
     trot) walk trot 0.3 ;;
+    trot_realtime) MODE=realtime walk trot 0.3 ;;
     crawl) walk crawl 0.1 ;;
     stairs) VFA="${VFA:-1}" DURATION_S="${DURATION_S:-30.0}" walk trot 0.3 stairs ground_truth ;;
     stand) stand lockstep ;;
     stand_realtime) stand realtime ;;
-    *) echo "unknown SCENARIO '$SCENARIO'; known: tour, tour_realtime, stance, trot, crawl, stairs, stand, stand_realtime" >&2; exit 2 ;;
+    *) echo "unknown SCENARIO '$SCENARIO'; known: tour, tour_realtime, stance, trot, trot_realtime, crawl, stairs, stand, stand_realtime" >&2; exit 2 ;;
 esac
 echo "[run] report: $RUN_ROOT/report.md"
 if [ -d "$RUN_ROOT/bag" ]; then echo "[run] bag (rosbag2 MCAP): $RUN_ROOT/bag"; fi
