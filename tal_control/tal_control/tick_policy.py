@@ -55,7 +55,10 @@ class TickPolicyConfig:
     mode. base_period_ns: the base state's publishing period [ns] (None: one with every joint state, as
     ground truth). contacts: a tick also waits for the foot contacts of its stamp. command_source_wait_s
     [s] (wall time): the first tick waits this long for a command source (0: no wait).
-    watchdog_timeout_s [s] (steady time): silence of the driver before safe mode (0: off)."""
+    watchdog_timeout_s [s] (steady time): silence of the driver before safe mode (0: off).
+    max_defer_ns: a tick deferred for its base state (or contacts) runs anyway on the first joint sample more
+    than this past it (0: the next sample, which in lockstep only comes after a lockstep timeout; on the wall
+    clock the next sample comes 1 ms later, before the estimator's answer, so real-time runs wait longer)."""
 
     period_ns: int
     stale_periods: int = 3
@@ -63,12 +66,15 @@ class TickPolicyConfig:
     contacts: bool = False
     command_source_wait_s: float = 0.0
     watchdog_timeout_s: float = 0.0
+    max_defer_ns: int = 0
 
     def __post_init__(self) -> None:
         if self.period_ns <= 0:
             raise InputError(f"tick policy: period_ns must be > 0, got {self.period_ns!r}")
         if self.stale_periods < 1:
             raise InputError(f"tick policy: stale_periods must be >= 1, got {self.stale_periods!r}")
+        if self.max_defer_ns < 0:
+            raise InputError(f"tick policy: max_defer_ns must be >= 0, got {self.max_defer_ns!r}")
         if self.base_period_ns is not None and self.base_period_ns <= 0:
             raise InputError(f"tick policy: base_period_ns must be > 0 or None, got {self.base_period_ns!r}")
         for name in ("command_source_wait_s", "watchdog_timeout_s"):
@@ -198,9 +204,11 @@ class WbcTickPolicy:
         source. A node may skip deserialising the others (``tal_core.ros.cdr.subscribe_stamped``): a skipped
         sample would only have replaced the newest one, which no decision reads before the next tick."""
         last = self._joints
+        deferred = self._deferred_tick_ns
+        waiting = deferred is not None and deferred < stamp_ns <= deferred + self.config.max_defer_ns
         return (last is None or stamp_ns + CLOCK_RESET_NS < last.stamp_ns or stamp_ns == self._answered_ns
-                or reaches_tick(stamp_ns, self.next_tick_ns) or self._deferred_tick_ns is not None
-                or self._source_deadline_s is not None)
+                or (reaches_tick(stamp_ns, self.next_tick_ns) and not waiting)
+                or (deferred is not None and not waiting) or self._source_deadline_s is not None)
 
     def joint_state(self, stamp_ns: int, sample: Any) -> Arrival:
         """A valid joint state stamped ``stamp_ns``: restart, repeat, drop, or store it and decide the tick."""
@@ -209,6 +217,9 @@ class WbcTickPolicy:
             self._restart(stamp_ns)
         if self._answered_ns is not None and stamp_ns == self._answered_ns:
             return Arrival(restarted=restarted, repeat_answer=True)
+        deferred, max_defer = self._deferred_tick_ns, self.config.max_defer_ns
+        if max_defer and deferred is not None and deferred < stamp_ns <= deferred + max_defer:
+            return Arrival(restarted=restarted, feed_watchdog=True)  # the deferred tick keeps its sample, waiting
         if self._joints is not None and stamp_ns <= self._joints.stamp_ns:
             if stamp_ns == self._joints.stamp_ns and self.waiting_for_command_source:
                 # The driver repeats its first state while we wait for the command source: try again.
@@ -298,12 +309,14 @@ class WbcTickPolicy:
         if not reaches_tick(stamp, self.next_tick_ns):
             return None, missing  # not a control tick
         base_stamp = self._base.stamp_ns
-        deferred_before = self._deferred_tick_ns is not None and stamp > self._deferred_tick_ns
+        deferred_before = (self._deferred_tick_ns is not None
+                           and stamp > self._deferred_tick_ns + self.config.max_defer_ns)
         contacts_missing = self.config.contacts and (
             self._contacts is None or self._contacts.stamp_ns < stamp - TICK_TOLERANCE_NS)
         if ((base_stamp < self.expected_base_stamp(stamp) - TICK_TOLERANCE_NS or contacts_missing)
                 and not deferred_before):
-            self._deferred_tick_ns = stamp
+            if self._deferred_tick_ns is None:
+                self._deferred_tick_ns = stamp
             self.counters.deferred_ticks += 1
             return None, missing
         self._deferred_tick_ns = None

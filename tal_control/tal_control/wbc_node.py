@@ -136,7 +136,8 @@ class WbcNode(Node):
                                              else round(p["estimate_period_s"] * 1e9)),
                              contacts=p["contact_source"] != "none",
                              command_source_wait_s=p["command_source_wait_s"],
-                             watchdog_timeout_s=p["watchdog_timeout_s"]),
+                             watchdog_timeout_s=p["watchdog_timeout_s"],
+                             max_defer_ns=round(p["max_defer_s"] * 1e9)),
             self.command_input, command_source_found=lambda: self.count_publishers("cmd_vel_stamped") > 0)
         self.stats = TrackingStats()
 
@@ -202,6 +203,9 @@ class WbcNode(Node):
                                            "[-] base state older than this many periods: safe mode", low=1,
                                            high=1000, on_change=self._live("stale_state_periods",
                                                                            self._set_stale_periods)),
+            "max_defer_s": declare(self, "max_defer_s", 0.0,
+                                   "[s] sim time a tick waits for its base state before running on a later joint "
+                                   "sample (0: the next sample; real-time runs: a few ms)", low=0.0, high=0.1),
             "command_source_wait_s": declare(self, "command_source_wait_s", 0.0,
                                              "[s] wall time the first tick waits for a cmd_vel_stamped "
                                              "publisher to be discovered (lockstep: sim time starts with the "

@@ -99,6 +99,25 @@ def test_a_deferred_tick_is_decided_by_the_next_joint_state_with_the_base_state_
     assert p.counters.deferred_ticks == 1 and p.next_tick_ns == 12 * MS
 
 
+def test_on_the_wall_clock_a_deferred_tick_waits_max_defer_for_its_base_state() -> None:
+    """Real time: the next joint samples come 1 ms apart, before the estimator's answer; with max_defer_ns
+    the deferred tick keeps its own sample and waits for its base state instead of running on the old one."""
+    p = policy(max_defer_ns=3 * MS)
+    step(p, 0)
+    assert p.joint_state(4 * MS, "joints@4").tick is None       # deferred
+    assert not p.wants_joint_state(5 * MS)                      # within max_defer: not even deserialised
+    assert p.joint_state(5 * MS, "joints@5").tick is None       # and ignored if handed over
+    assert p.joint_state(7 * MS, "joints@7").tick is None
+    tick = p.base_state(4 * MS, "base@4").tick                  # the answer comes: the tick of 4 ms runs
+    assert tick is not None and tick.base == "base@4" and tick.joints == "joints@4" and tick.safe_reason is None
+    assert p.counters.deferred_ticks == 1
+    q = policy(max_defer_ns=3 * MS)
+    step(q, 0)
+    q.joint_state(4 * MS, "joints@4")
+    late = q.joint_state(8 * MS, "joints@8").tick               # past max_defer: run on the base state there is
+    assert late is not None and late.base == "base@0"
+
+
 def test_older_base_states_are_dropped_and_newer_ones_replace_the_held_one() -> None:
     p = policy()
     p.base_state(8 * MS, "base@8")
