@@ -15,13 +15,12 @@ and writes ``bench/out/bench_graph.json`` (``bench/report.py`` turns it into row
    rate on the wall clock (its main output's sim-time rate times the bridge's real-time factor) against its
    target (bridge 1 kHz, estimator 333 Hz, TCE and WBC 250 Hz, VPA >= 5 Hz with a design goal of 20 Hz) and
    its missed deadlines: missed ticks (stamp gaps of n periods miss n - 1) / expected ticks (received + missed),
-   goal <= 1 %. Whether HyQ fell (the trunk touched the terrain) and its distance against the lockstep run's
-   (goal: within 5 %). The bridge's ``command_latency_ms`` (joint state to command) when its summary has it.
+   goal <= 1 %. Whether HyQ fell (``tal_lab.run_report.fall_of``: the bridge's fall detection) and its distance
+   against the lockstep run's (goal: within 5 %). The bridge's ``command_latency_ms`` (joint state to command)
+   when its summary has it.
 
-The bridge's real-time factor in realtime mode leaves out the wall time its pacer drops when it falls more than
-``max_catch_up_steps`` behind (each drop is a ``realtime_overruns``), so each real-time run also records a
-lower bound from the bridge's log: sim time over the wall time from "sim_bridge ready" to "run finished" (which
-includes the wait for the first command, 1-2 s).
+Each real-time run also records a cross-check of the bridge's real-time factor from its log: sim time over the
+wall time from "sim_bridge ready" to "run finished", a lower bound (it includes the wait for the first command).
 
 ``--skip-lockstep`` / ``--skip-realtime`` reuse the newest ``runs/*-tour`` / ``runs/*-tour_realtime`` folder
 instead (marked ``reused``). Graphs run one at a time (the machine has 2 cores); each run's console output goes
@@ -44,10 +43,10 @@ from machine import add_wait_quiet_option, cpu_snapshot, machine_record, other_c
 
 with requires_env("bench_graph"):
     from tal_lab.graph_report import bench_rates
+    from tal_lab.run_report import fall_of
 
 DEFAULT_DURATION_S = 40.0  # the tour's sim time (scripts/run_scenario.sh)
 DEFAULT_RUNS = 3
-TRUNK_LINKS = {"trunk", "base"}  # tal_lab.run_report: the floating base's names in the bridge's contact report
 GOALS = {
     "graph_cpu_s_per_sim_s": 1.5,
     "node_cpu_s_per_sim_s": 0.4,
@@ -120,26 +119,12 @@ def bridge_log_span(log: Path) -> float | None:
     return None
 
 
-def latency(value: object) -> dict | None:
-    """The bridge's ``command_latency_ms`` as {median, p99, max, n}: a dict with median/p50, p99 and max keys
-    (optionally suffixed _ms; ``tal_sim_bridge.latency``: median_ms, p99_ms, max_ms, count), or samples [ms]."""
-    if isinstance(value, dict):
-
-        def pick(*keys: str) -> float | None:
-            for key in keys:
-                if isinstance(value.get(key), (int, float)):
-                    return float(value[key])
-            return None
-
-        out = {"median": pick("median", "median_ms", "p50", "p50_ms"), "p99": pick("p99", "p99_ms"),
-               "max": pick("max", "max_ms"), "n": value.get("count", value.get("n", value.get("samples")))}  # fmt: skip
-        return out if out["median"] is not None or out["p99"] is not None else None
-    if isinstance(value, list) and value:
-        import numpy as np
-
-        x = np.asarray(value, dtype=float)
-        return {"median": float(np.median(x)), "p99": float(np.percentile(x, 99)), "n": int(x.size)}
-    return None
+def latency(value: dict | None) -> dict | None:
+    """The bridge's ``command_latency_ms`` (``tal_sim_bridge.latency``: median_ms, p99_ms, max_ms, count) as
+    {median, p99, max, n}; None when the summary has none or no command was timed."""
+    if not value or not value.get("count"):
+        return None
+    return {"median": value["median_ms"], "p99": value["p99_ms"], "max": value["max_ms"], "n": value["count"]}
 
 
 def read_run(run: dict) -> dict:
@@ -155,8 +140,8 @@ def read_run(run: dict) -> dict:
         return run
     sim_s = float(bridge["sim_time_s"])
     touched = list(bridge.get("body_ground_contact", []))
-    # The bridge's fall detection when it has one, else graph_report's, else the trunk on the terrain.
-    fell = bridge.get("fell", (summary or {}).get("fell", bool(TRUNK_LINKS & set(touched))))
+    fall = fall_of(bridge)  # the reports' own reading of the bridge summary
+    fell = fall is not None
     # Distance: the bridge's if it reports one, else graph_report's (to the fall's onset after a fall), else the
     # wbc's (ground-truth base, start to end).
     if bridge.get("distance_m") is not None:
@@ -177,8 +162,8 @@ def read_run(run: dict) -> dict:
         lockstep_timeouts=bridge.get("lockstep_timeouts"),
         commands_accepted=bridge.get("commands_accepted"),
         fell=bool(fell),
-        fall_time_s=bridge.get("fall_time_s", (summary or {}).get("fall_time_s")),
-        fall_reason=bridge.get("fall_reason"),
+        fall_time_s=None if fall is None else fall.time_s,
+        fall_reason=None if fall is None else fall.reason,
         links_touching_terrain=touched,
         distance_m=distance,
         distance_source=source,

@@ -53,10 +53,9 @@ class EstimateWriters:
         t = self._odometry
         t.set_stamp(stamp_ns)
         quat = quat_xyzw_from_rotation(world_R_base)
-        for axis, p, v, w in zip("xyz", position, world_R_base.T @ velocity, angular_velocity_base):
-            t.field(f"pose.pose.position.{axis}")[0] = p
-            t.field(f"twist.twist.linear.{axis}")[0] = v
-            t.field(f"twist.twist.angular.{axis}")[0] = w
+        t.set_xyz("pose.pose.position", position)
+        t.set_xyz("twist.twist.linear", world_R_base.T @ velocity)
+        t.set_xyz("twist.twist.angular", angular_velocity_base)
         for axis, q in zip("xyzw", quat):
             t.field(f"pose.pose.orientation.{axis}")[0] = q
         pose_cov = t.field("pose.covariance").reshape(6, 6)

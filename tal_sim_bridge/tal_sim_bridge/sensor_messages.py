@@ -146,19 +146,19 @@ class SensorWriters:
     def imu(self, stamp_ns: int, specific_force_m_s2: np.ndarray, angular_rate_rad_s: np.ndarray) -> bytes:
         t = self._imu
         t.set_stamp(stamp_ns)
-        _xyz(t, "angular_velocity", angular_rate_rad_s)
-        _xyz(t, "linear_acceleration", specific_force_m_s2)
+        t.set_xyz("angular_velocity", angular_rate_rad_s)
+        t.set_xyz("linear_acceleration", specific_force_m_s2)
         return t.data()
 
     def odometry(self, stamp_ns: int, state: RobotState) -> bytes:
         t = self._odometry
         t.set_stamp(stamp_ns)
-        _xyz(t, "pose.pose.position", state.base_position_m)
+        t.set_xyz("pose.pose.position", state.base_position_m)
         for name, value in zip("xyzw", state.base_quat_xyzw):
             t.field(f"pose.pose.orientation.{name}")[0] = value
         base_R_world = rotation_from_quat_xyzw(state.base_quat_xyzw).T
-        _xyz(t, "twist.twist.linear", base_R_world @ state.base_lin_vel_m_s)
-        _xyz(t, "twist.twist.angular", base_R_world @ state.base_ang_vel_rad_s)
+        t.set_xyz("twist.twist.linear", base_R_world @ state.base_lin_vel_m_s)
+        t.set_xyz("twist.twist.angular", base_R_world @ state.base_ang_vel_rad_s)
         return t.data()
 
     def contact_state(self, stamp_ns: int, contacts: Sequence[FootContact]) -> bytes:
@@ -183,7 +183,3 @@ class SensorWriters:
         t.field("clock.nanosec")[0] = nanosec
         return t.data()
 
-
-def _xyz(template: CdrTemplate, path: str, value: np.ndarray) -> None:
-    for axis, v in zip("xyz", value):
-        template.field(f"{path}.{axis}")[0] = v

@@ -100,6 +100,11 @@ class CdrTemplate:
             view = self._views[path] = self._view(path)
         return view
 
+    def set_xyz(self, path: str, value) -> None:
+        """The x, y, z leaves of a nested geometry_msgs/Point or Vector3 field (``"pose.pose.position"``)."""
+        for axis, v in zip("xyz", value):
+            self.field(f"{path}.{axis}")[0] = v
+
     def set_stamp(self, stamp_ns: int) -> None:
         """``header.stamp`` [ns]."""
         sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
