@@ -122,7 +122,7 @@ tour() {
          "wbc ($contact_model contact model), vfa, vpa, bag_recorder, cmd_vel_script"
     bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge -m "$dir/resources.json" \
         -s "sim_bridge.course:=graph_tour" -s "sim_bridge.duration_s:=$duration" -s "sim_bridge.mode:=$mode" \
-        -s "wbc.max_defer_s:=$(max_defer "$mode")" \
+        -s "wbc.max_defer_s:=$(max_defer "$mode")" -s "tce.max_defer_s:=$(max_defer "$mode")" \
         -s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \
@@ -131,8 +131,7 @@ tour() {
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=$odometry" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
-        -s "vfa.use_sim_time:=true" -s "vfa.summary_path:=$dir/vfa_summary.json" \
-        -s "vpa.use_sim_time:=true" -s "vpa.summary_path:=$dir/vpa_summary.json" \
+        -s "vfa.summary_path:=$dir/vfa_summary.json" -s "vpa.summary_path:=$dir/vpa_summary.json" \
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
         -s "bag_recorder.topics:=$topics" -s "bag_recorder.summary_path:=$dir/recorder_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \

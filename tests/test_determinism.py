@@ -94,7 +94,7 @@ def test_the_same_lockstep_trot_twice_once_under_cpu_load_gives_the_same_traject
     common = sorted(set(a) & set(b))
     # The recorder subscribes once it has discovered a topic, and is stopped when the bridge ends: it may
     # miss the first and the last messages of a run.
-    assert len(common) >= 0.9 * DURATION_S * 1000 and common[-1] >= round((DURATION_S - 0.1) * 1e9)
+    assert len(common) >= 0.9 * DURATION_S * 250 and common[-1] >= round((DURATION_S - 0.1) * 1e9)
     deviation = np.array([np.linalg.norm(a[k] - b[k]) for k in common])
     ca, cb = commands(tmp_path / "quiet" / "bag"), commands(tmp_path / "loaded" / "bag")
     common_commands = sorted(set(ca) & set(cb))

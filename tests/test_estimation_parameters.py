@@ -134,7 +134,8 @@ def base_at_rest(node: TceNode, stamp_ns: int) -> Odometry:
 
 
 def test_tce_live_parameters_take_effect_from_the_next_tick(context) -> None:
-    node = TceNode(context=context)
+    # wait_for_base false: a tick takes the latest base state as it arrives (the stale check at work).
+    node = TceNode(context=context, parameter_overrides=[Parameter("wait_for_base", value=False)])
     published = node.pub = Caught(TerrainImpedance)
     try:
         node._on_heightmap(heightmap(0))
@@ -154,5 +155,24 @@ def test_tce_live_parameters_take_effect_from_the_next_tick(context) -> None:
         refused = set_one(node, "min_samples", 1000)            # more than the window holds
         assert not refused.successful and "min_samples" in refused.reason and node.tce.settings.min_samples == 50
         assert node.get_parameter("min_samples").value == 50
+    finally:
+        node.destroy_node()
+
+
+def test_tce_node_waits_for_the_base_state_of_its_tick(context) -> None:
+    """The default: a tick whose joint state comes before its base state is published when the base state
+    arrives, stamped with the tick."""
+    node = TceNode(context=context)
+    published = node.pub = Caught(TerrainImpedance)
+    try:
+        node._on_heightmap(heightmap(0))
+        node._on_joints(standing_joints(node, 0))
+        assert published.messages == []
+        node._on_base(base_at_rest(node, 0))
+        assert len(published.messages) == 1 and published.messages[0].header.stamp.nanosec == 0
+        node._on_base(base_at_rest(node, 4 * MS))  # the base first this time
+        node._on_joints(standing_joints(node, 4 * MS))
+        assert [m.header.stamp.nanosec for m in published.messages] == [0, 4 * MS]
+        assert node.summary()["late_base_ticks"] == 0
     finally:
         node.destroy_node()

@@ -14,6 +14,11 @@ Stamps are integer nanoseconds of sim time. Ticks lie on the grid k * period_ns 
   damping hold); the first normal tick after it leaves safe mode.
 - A heightmap comes into use at the first tick at least one control period after its stamp (one stamped
   with the tick itself may arrive before or after the tick's joint state).
+- Inputs computed from an earlier tick (``lagged``: terrain impedance, footholds, body pose references,
+  stamped with the tick they answer) are held and handed to the first tick at least one control period
+  after their stamp, in stamp order. A tick also waits for the answer to the previous tick of every input
+  named in ``waited_inputs`` (a newer one will do: the producer skipped a tick), so what it uses does not
+  depend on how fast the producer was; the first tick waits for nothing.
 - A joint state more than ``CLOCK_RESET_NS`` older than the last one is a restarted clock: every input is
   forgotten and the grid starts again (the node starts its controller afresh). Base states and contacts
   that jump back likewise replace the held ones.
@@ -58,7 +63,8 @@ class TickPolicyConfig:
     watchdog_timeout_s [s] (steady time): silence of the driver before safe mode (0: off).
     max_defer_ns: a tick deferred for its base state (or contacts) runs anyway on the first joint sample more
     than this past it (0: the next sample, which in lockstep only comes after a lockstep timeout; on the wall
-    clock the next sample comes 1 ms later, before the estimator's answer, so real-time runs wait longer)."""
+    clock the next sample comes 1 ms later, before the estimator's answer, so real-time runs wait longer).
+    waited_inputs: lagged inputs (``WbcTickPolicy.lagged``) a tick waits for, the previous tick's answer."""
 
     period_ns: int
     stale_periods: int = 3
@@ -67,6 +73,7 @@ class TickPolicyConfig:
     command_source_wait_s: float = 0.0
     watchdog_timeout_s: float = 0.0
     max_defer_ns: int = 0
+    waited_inputs: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.period_ns <= 0:
@@ -106,6 +113,7 @@ class Tick:
     heightmap: Any = None
     contacts: Any = None
     safe_reason: str | None = None
+    inputs: tuple[tuple[str, Any], ...] = ()  # lagged inputs released to this tick: (name, value), stamp order
 
 
 @dataclass(frozen=True)
@@ -142,6 +150,7 @@ def _accepts(held: Stamped | None, stamp_ns: int) -> bool:
 class _Counters:
     ticks: int = 0                   # normal ticks computed
     deferred_ticks: int = 0          # ticks whose base state (or contacts) had not arrived with their joint state
+    ticks_without_waited: int = 0    # ticks run (past max_defer) without the previous tick's waited input
     ticks_without_contacts: int = 0  # contacts expected, none fresh for the tick (the plan used)
     watchdog_trips: int = 0          # safe-mode commands asked for by the watchdog
     command_source_waits: int = 0    # ticks held back waiting for a command source
@@ -175,6 +184,8 @@ class WbcTickPolicy:
         self._answered_ns: int | None = None
         self._heightmap: Any = None
         self._pending_heightmaps: list[Stamped] = []  # received, not yet in use
+        self._lagged: list[tuple[int, str, Any]] = []  # (stamp, name, value): received, not yet released
+        self._newest_lagged: dict[str, int] = {}
         self._fed_s: float | None = None
         self._source_deadline_s = (None if config.command_source_wait_s <= 0.0
                                    else clock() + config.command_source_wait_s)
@@ -243,6 +254,19 @@ class WbcTickPolicy:
             return Arrival()
         self._contacts = Stamped(stamp_ns, sample)
         return self._decided()
+
+    def lagged(self, name: str, stamp_ns: int, value: Any) -> Arrival:
+        """An input computed for the tick ``stamp_ns`` (see the module docstring): held until the first tick one
+        control period later; a waited one may complete a deferred tick."""
+        newest = self._newest_lagged.get(name)
+        if newest is not None and stamp_ns + CLOCK_RESET_NS < newest:
+            self._lagged = [item for item in self._lagged if item[1] != name]  # the producer restarted
+            newest = None
+        self._lagged.append((int(stamp_ns), name, value))
+        self._newest_lagged[name] = int(stamp_ns) if newest is None else max(newest, int(stamp_ns))
+        if name in self.config.waited_inputs:
+            return self._decided()
+        return Arrival()
 
     def heightmap(self, stamp_ns: int, heightmap: Any) -> None:
         """A valid heightmap; it comes into use at the first tick one control period after its stamp."""
@@ -313,18 +337,22 @@ class WbcTickPolicy:
                            and stamp > self._deferred_tick_ns + self.config.max_defer_ns)
         contacts_missing = self.config.contacts and (
             self._contacts is None or self._contacts.stamp_ns < stamp - TICK_TOLERANCE_NS)
-        if ((base_stamp < self.expected_base_stamp(stamp) - TICK_TOLERANCE_NS or contacts_missing)
-                and not deferred_before):
+        waited_missing = self._waited_missing(stamp)
+        if ((base_stamp < self.expected_base_stamp(stamp) - TICK_TOLERANCE_NS or contacts_missing
+             or waited_missing) and not deferred_before):
             if self._deferred_tick_ns is None:
                 self._deferred_tick_ns = stamp
             self.counters.deferred_ticks += 1
             return None, missing
         self._deferred_tick_ns = None
+        if waited_missing:
+            self.counters.ticks_without_waited += 1
         self.next_tick_ns = tick_after(stamp, self.config.period_ns)
         command = self.commands.at_tick(stamp)
         self._update_heightmap(stamp)
         age = stamp - base_stamp
-        tick = Tick(stamp, self._joints.value, self._base.value, age, command, heightmap=self._heightmap)
+        tick = Tick(stamp, self._joints.value, self._base.value, age, command, heightmap=self._heightmap,
+                    inputs=self._release_lagged(stamp))
         if age > self.stale_ns:
             return replace(tick, safe_reason=f"base state is {age * 1e-6:.1f} ms old"), missing
         return replace(tick, contacts=self._contacts_for(stamp)), missing
@@ -347,6 +375,24 @@ class WbcTickPolicy:
             self.counters.ticks_without_contacts += 1
             return None
         return self._contacts.value
+
+    def _waited_missing(self, stamp_ns: int) -> bool:
+        """Whether a waited input has not yet answered the tick one period before ``stamp_ns``."""
+        previous = stamp_ns - self.config.period_ns
+        if previous < -TICK_TOLERANCE_NS:
+            return False  # the first tick: there is no earlier one to answer
+        newest = self._newest_lagged
+        return any(name not in newest or newest[name] < previous - TICK_TOLERANCE_NS
+                   for name in self.config.waited_inputs)
+
+    def _release_lagged(self, stamp_ns: int) -> tuple[tuple[str, Any], ...]:
+        """The held inputs stamped at least one period before the tick, in (stamp, name) order."""
+        cutoff = stamp_ns - self.config.period_ns + TICK_TOLERANCE_NS
+        due = sorted((item for item in self._lagged if item[0] <= cutoff), key=lambda item: (item[0], item[1]))
+        if not due:
+            return ()
+        self._lagged = [item for item in self._lagged if item[0] > cutoff]
+        return tuple((name, value) for _, name, value in due)
 
     def _update_heightmap(self, stamp_ns: int) -> None:
         """The newest heightmap stamped at least one control period before the tick comes into use.
@@ -374,4 +420,6 @@ class WbcTickPolicy:
         self._answered_ns = None
         self.commands.reset()
         self._pending_heightmaps.clear()
+        self._lagged = [item for item in self._lagged if item[0] <= stamp_ns]
+        self._newest_lagged = {name: stamp for name, stamp in self._newest_lagged.items() if stamp <= stamp_ns}
 

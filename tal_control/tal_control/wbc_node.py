@@ -20,9 +20,12 @@ sizes or unknown joints is rejected and counted; a QP that fails falls back to t
 solution and is counted (MODE_FALLBACK); nothing raises out of the loop.
 
 Lockstep determinism: inputs without a fixed arrival order relative to the tick's joint state are tied to
-sim time: a stamped command applies from its stamp's tick, a heightmap from the first tick one control
-period after its stamp. (footholds, body_pose_reference and terrain_impedance are still used as they
-arrive.)
+sim time: a stamped command applies from its stamp's tick; a heightmap, footholds, body pose references and
+terrain impedance (each stamped with the tick it was computed for) from the first tick one control period
+after their stamp, in stamp order. With wait_for_impedance (c3WBC on the tce) a tick also waits for the
+TCE's answer to the previous tick, so a TCE-fed graph repeats itself bit for bit; footholds and pose
+references that come later than one period are used at the next tick (the vfa and vpa answer only some
+ticks, so no tick can wait for them).
 
 Live parameters (``ros2 param set``, validated, effective from the next tick unless said otherwise): the
 task gains K_* and D_*, friction_coefficient, min/max_normal_force_n, touchdown_depth_m,
@@ -137,7 +140,9 @@ class WbcNode(Node):
                              contacts=p["contact_source"] != "none",
                              command_source_wait_s=p["command_source_wait_s"],
                              watchdog_timeout_s=p["watchdog_timeout_s"],
-                             max_defer_ns=round(p["max_defer_s"] * 1e9)),
+                             max_defer_ns=round(p["max_defer_s"] * 1e9),
+                             waited_inputs=(("impedance",) if p["wait_for_impedance"] and p["contact_model"]
+                                            == "compliant" and p["impedance_source"] == "tce" else ())),
             self.command_input, command_source_found=lambda: self.count_publishers("cmd_vel_stamped") > 0)
         self.stats = TrackingStats()
 
@@ -265,6 +270,9 @@ class WbcNode(Node):
             "terrain_damping_ns_per_m": declare(self, "terrain_damping_ns_per_m", 400.0,
                                                 "[N s/m] c3WBC damping when fixed or not estimated", low=0.0,
                                                 high=1e6),
+            "wait_for_impedance": declare(self, "wait_for_impedance", True,
+                                          "c3WBC on the tce: a tick waits for the TCE's answer to the previous "
+                                          "tick (up to max_defer_s on the wall clock; lockstep: deterministic)"),
             "impedance_min_confidence": declare(self, "impedance_min_confidence", 0.1,
                                                 "[-] a TCE estimate is adopted per leg from this confidence on; "
                                                 "below it the leg keeps its last adopted value",
@@ -391,6 +399,9 @@ class WbcNode(Node):
                                    f"({self.command_input.late} late)", throttle_duration_sec=1.0)
 
     def _on_footholds(self, msg: FootholdArray) -> None:
+        self._act(self.policy.lagged("footholds", ns_from_stamp(msg.header.stamp), msg))
+
+    def _apply_footholds(self, msg: FootholdArray) -> None:
         for foothold in msg.footholds:
             point = (foothold.selected.x, foothold.selected.y, foothold.selected.z)
             try:
@@ -403,13 +414,23 @@ class WbcNode(Node):
         if not all(np.isfinite(values)):
             self._reject("body_pose_reference", InputError("body pose reference has NaN or inf"))
             return
-        self.controller.motion.set_body_pose_reference(*values)
+        self._act(self.policy.lagged("body_pose", ns_from_stamp(msg.header.stamp), values))
 
     def _on_impedance(self, msg: TerrainImpedance) -> None:
-        """Per leg, the estimate when valid and confident enough, else the last adopted (``ImpedanceGate``)."""
-        self._impedance = self.impedance_gate.update(
-            np.array(msg.stiffness_normal, dtype=float), np.array(msg.damping_normal, dtype=float),
-            np.array(msg.valid, dtype=bool), np.array(msg.confidence, dtype=float))
+        arrays = (np.array(msg.stiffness_normal, dtype=float), np.array(msg.damping_normal, dtype=float),
+                  np.array(msg.valid, dtype=bool), np.array(msg.confidence, dtype=float))
+        self._act(self.policy.lagged("impedance", ns_from_stamp(msg.header.stamp), arrays))
+
+    def _apply_inputs(self, inputs: tuple[tuple[str, Any], ...]) -> None:
+        """The lagged inputs released to a tick, in stamp order. Impedance: per leg, the estimate when valid and
+        confident enough, else the last adopted (``ImpedanceGate``)."""
+        for name, value in inputs:
+            if name == "impedance":
+                self._impedance = self.impedance_gate.update(*value)
+            elif name == "footholds":
+                self._apply_footholds(value)
+            elif name == "body_pose":
+                self.controller.motion.set_body_pose_reference(*value)
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
@@ -431,6 +452,7 @@ class WbcNode(Node):
             self.get_logger().warn(f"no cmd_vel_stamped publisher after {self.p['command_source_wait_s']} s: "
                                    "starting without one")
         if arrival.tick is not None:
+            self._apply_inputs(arrival.tick.inputs)
             if arrival.tick.safe_reason is not None:
                 self._safe_mode(arrival.tick.stamp_ns, arrival.tick.safe_reason)
             else:
@@ -514,6 +536,8 @@ class WbcNode(Node):
     watchdog_trips = _policy_counter("watchdog_trips", "Safe-mode commands sent by the wall-clock watchdog.")
     ticks_without_contacts = _policy_counter("ticks_without_contacts", "contact_source set, but no fresh "
                                              "contacts for the tick (the gait plan used).")
+    ticks_without_waited = _policy_counter("ticks_without_waited", "Ticks run (past max_defer_s) without the "
+                                           "previous tick's terrain impedance (wait_for_impedance).")
     command_source_waits = _policy_counter("command_source_waits", "Ticks held back waiting for a cmd_vel_stamped "
                                            "publisher.")
 
@@ -528,6 +552,7 @@ class WbcNode(Node):
         return {**self.stats.summary(), "rejected_inputs": self.rejected_inputs,
                 "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
                 "ticks_without_contacts": self.ticks_without_contacts,
+                "ticks_without_waited": self.ticks_without_waited,
                 "touchdown_searches_per_leg": self.controller.touchdown_search.searches.tolist(),
                 "early_touchdowns_per_leg": self.controller.touchdown_search.early_touchdowns.tolist(),
                 "command_source_waits": self.command_source_waits,

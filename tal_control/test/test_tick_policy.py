@@ -320,3 +320,42 @@ def test_the_wait_for_a_command_source_ends_at_its_deadline() -> None:
 def test_invalid_configurations_are_refused_by_name(changes: dict, message: str) -> None:
     with pytest.raises(InputError, match=message):
         TickPolicyConfig(**{"period_ns": PERIOD, **changes})
+
+
+# -- lagged inputs (impedance, footholds, body pose) -----------------------------------------------------------
+def test_lagged_inputs_reach_the_first_tick_one_period_after_their_stamp_in_stamp_order() -> None:
+    """A foothold answer stamped with tick 4 ms arrives before or after the joint state of 8 ms: either way it
+    is used from the tick at 8 ms, never at 4 ms, and several are handed over in stamp order."""
+    for early in (True, False):
+        p = policy()
+        assert step(p, 0).tick.inputs == ()
+        assert p.lagged("footholds", 4 * MS, "f@4").tick is None  # not waited: no decision
+        tick4 = step(p, 4 * MS).tick
+        assert tick4 is not None and tick4.inputs == ()  # stamped with this tick: the next one uses it
+        p.lagged("body_pose", 0, "pose@0")
+        if early:
+            p.lagged("footholds", 8 * MS, "f@8")
+        tick8 = step(p, 8 * MS).tick
+        assert tick8.inputs == (("body_pose", "pose@0"), ("footholds", "f@4"))
+        if not early:
+            p.lagged("footholds", 8 * MS, "f@8")
+        assert step(p, 12 * MS).tick.inputs == (("footholds", "f@8"),)
+
+
+def test_a_tick_waits_for_the_previous_ticks_waited_input() -> None:
+    """waited_inputs: the tick at 8 ms is computed only once the impedance answering 4 ms is in; a producer
+    that skipped 4 ms and answered 8 ms releases it too; past max_defer the tick runs without it (counted)."""
+    p = policy(waited_inputs=("impedance",))
+    assert step(p, 0).tick is not None  # the first tick waits for nothing
+    p.lagged("impedance", 0, "k@0")
+    assert step(p, 4 * MS).tick.inputs == (("impedance", "k@0"),)
+    assert step(p, 8 * MS).tick is None and p.counters.deferred_ticks == 1  # no answer to 4 ms yet
+    late = p.lagged("impedance", 4 * MS, "k@4")
+    assert late.tick is not None and late.tick.stamp_ns == 8 * MS and late.tick.inputs == (("impedance", "k@4"),)
+    assert step(p, 12 * MS).tick is None
+    skipped = p.lagged("impedance", 12 * MS, "k@12")  # 8 ms skipped: the answer to 12 ms will do
+    assert skipped.tick is not None and skipped.tick.inputs == ()  # ... but it is not used before 16 ms
+    bounded = policy(waited_inputs=("impedance",), max_defer_ns=2 * MS)
+    step(bounded, 0)
+    assert step(bounded, 4 * MS).tick is None and step(bounded, 6 * MS).tick is None
+    assert step(bounded, 7 * MS).tick is not None and bounded.counters.ticks_without_waited == 1

@@ -54,3 +54,35 @@ class DriftStatistics:
                 "velocity_rmse_m_s": np.round(np.sqrt(self.sq_velocity / self.n), decimals).tolist(),
                 "max_abs_position_m": self.max_abs_position, "max_abs_velocity_m_s": self.max_abs_velocity,
                 "compared_s": round(float(self.last_t_s - self.first_t_s), 3)}
+
+
+class StampMatcher:
+    """Pairs estimates with references of exactly the same stamp, whichever arrives first, in bounded memory
+    (the ``keep`` newest unmatched of each side). An estimator on its own tick grid and ground truth on
+    another (333 and 250 Hz: every 12 ms) are compared at their common stamps only, so the statistics do not
+    depend on arrival order."""
+
+    def __init__(self, keep: int = 64) -> None:
+        if keep < 1:
+            raise ValueError(f"StampMatcher: keep must be >= 1, got {keep}")
+        self.keep = int(keep)
+        self._estimates: dict[int, object] = {}
+        self._references: dict[int, object] = {}
+
+    def add_estimate(self, stamp_ns: int, estimate: object) -> tuple[object, object] | None:
+        """(estimate, reference) when the reference of ``stamp_ns`` is already here, else None (held)."""
+        return self._add(int(stamp_ns), estimate, self._estimates, self._references, estimate_first=True)
+
+    def add_reference(self, stamp_ns: int, reference: object) -> tuple[object, object] | None:
+        """(estimate, reference) when the estimate of ``stamp_ns`` is already here, else None (held)."""
+        return self._add(int(stamp_ns), reference, self._references, self._estimates, estimate_first=False)
+
+    def _add(self, stamp: int, item: object, mine: dict[int, object], theirs: dict[int, object],
+             estimate_first: bool) -> tuple[object, object] | None:
+        other = theirs.pop(stamp, None)
+        if other is not None:
+            return (item, other) if estimate_first else (other, item)
+        mine[stamp] = item
+        while len(mine) > self.keep:
+            del mine[min(mine)]
+        return None

@@ -39,7 +39,7 @@ from tal_core.rotations import rotation_from_quat_xyzw
 from tal_msgs.msg import ContactState, TerrainImpedance
 
 from .attitude import AttitudeSettings
-from .drift_statistics import DriftStatistics
+from .drift_statistics import DriftStatistics, StampMatcher
 from .leg_odometry import LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
 from .live_settings import with_field
 from .messages import EstimateWriters, joint_state_arrays
@@ -103,9 +103,9 @@ class StateEstimatorNode(Node):
         self.period_ns = self.stream.period_ns
         self._last_output: tuple[bytes, bytes | None] | None = None  # serialised: repeated on a repeated sample
         self.writers = EstimateWriters(GYRO_VARIANCE_RAD2_S2)
-        self._truth: tuple[int, object] | None = None
         self._truth_subscription = None
         self._vs_truth = DriftStatistics(align_start=True)  # constant memory: the node may run for hours
+        self._truth_pairs = StampMatcher()  # estimate and truth at their common stamps, in any arrival order
 
         self.pub_state = self.create_publisher(Odometry, "state_estimate", 10)
         self.pub_contact = self.create_publisher(ContactState, "contact_estimate", 10)
@@ -170,6 +170,7 @@ class StateEstimatorNode(Node):
     def _log_restart(self, stamp_ns: int) -> None:
         self.get_logger().warn(f"time jumped back to {stamp_ns * 1e-9:.3f} s: restarting the estimator")
         self._last_output = None
+        self._truth_pairs = StampMatcher()
 
     # -- inputs ---------------------------------------------------------------------------------------------
     def _on_truth(self, msg: Odometry) -> None:
@@ -178,7 +179,9 @@ class StateEstimatorNode(Node):
         except InputError as exc:
             self._reject("ground_truth", str(exc))
             return
-        self._truth = (ns_from_stamp(msg.header.stamp), base)
+        stamp = ns_from_stamp(msg.header.stamp)
+        if self.summary_path:
+            self._add_drift(stamp, self._truth_pairs.add_reference(stamp, base))
         if self.init_source == "ground_truth":
             self._output(self.stream.set_initial_pose(base.position, rotation_from_quat_xyzw(base.quat_xyzw)))
 
@@ -262,10 +265,13 @@ class StateEstimatorNode(Node):
         self.pub_diag.publish(msg)
 
     def _compare_with_truth(self, stamp: int, e: StateEstimate) -> None:
-        if not self.summary_path or self._truth is None or abs(self._truth[0] - stamp) > self.period_ns:
-            return
-        truth = self._truth[1]
-        self._vs_truth.add(stamp * 1e-9, e.position - truth.position, e.linear_velocity - truth.linear_velocity)
+        if self.summary_path:
+            self._add_drift(stamp, self._truth_pairs.add_estimate(stamp, e))
+
+    def _add_drift(self, stamp: int, pair: tuple | None) -> None:
+        if pair is not None:
+            e, truth = pair
+            self._vs_truth.add(stamp * 1e-9, e.position - truth.position, e.linear_velocity - truth.linear_velocity)
 
     def summary(self) -> dict:
         """Counters and, when ground truth was seen, drift [m] and velocity RMSE [m/s] per axis."""

@@ -14,6 +14,13 @@ Streamed (``add_joints``, as the node ticks): ticks fall on the sim-time grid k 
 stamps once a base state and the terrain have arrived, and use the latest base state unless it is older than
 ``stale_state_periods`` periods (the tick is skipped, counted in ``stale_ticks``). A joint state that cannot
 be read or a tick the TCE refuses is counted in ``rejected`` and reported to ``on_reject``.
+
+With ``base_period_s`` (the base state's publishing period; a node's default) a tick waits for the base state
+of its own stamp, the newest on the base publisher's grid at or before it, so the result does not depend on
+whether the joint state or the base state arrives first (lockstep runs repeat bit for bit). A waiting tick
+is computed when that base state arrives (``set_base`` returns it) or, with whatever base state is there
+(counted in ``late_base_ticks``), on the first joint sample more than ``max_defer_s`` after it: the robot
+moved on.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ import numpy as np
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
 from tal_core.state import BaseState
-from tal_core.ticks import reaches_tick, tick_after
+from tal_core.ticks import TICK_TOLERANCE_NS, reaches_tick, tick_after
 
 from .streaming import JointArrays
 from .tce import (
@@ -50,6 +57,7 @@ class TceTick:
     samples: tuple[ContactSample, ...]
     estimates: tuple[LegEstimate, ...]
     tangential: tuple[LegEstimate, ...] | None
+    stamp_ns: int | None = None  # the joint sample's stamp, streamed ticks only
 
     @property
     def stiffness_n_per_m(self) -> np.ndarray:
@@ -77,21 +85,30 @@ class TceDriver:
     tick period (grid and finite differences), ``stale_state_periods`` [-] the oldest usable base state."""
 
     def __init__(self, model: RobotModel, settings: TceSettings | None = None, *, period_s: float = 0.004,
-                 stale_state_periods: int = 3, on_reject: Callable[[Exception], None] | None = None) -> None:
+                 stale_state_periods: int = 3, on_reject: Callable[[Exception], None] | None = None,
+                 base_period_s: float | None = None, max_defer_s: float = 0.0) -> None:
+        if base_period_s is not None and base_period_s <= 0.0:
+            raise InputError(f"TceDriver: base_period_s must be > 0 or None, got {base_period_s!r}")
+        if max_defer_s < 0.0:
+            raise InputError(f"TceDriver: max_defer_s must be >= 0, got {max_defer_s!r}")
         self.model = model
         self.tce = TerrainComplianceEstimator(model, settings)
         self.period_ns = round(period_s * 1e9)
         self.stale_state_periods = stale_state_periods
         self.on_reject = on_reject
+        self.base_period_ns = None if base_period_s is None else round(base_period_s * 1e9)
+        self.max_defer_ns = round(max_defer_s * 1e9)
         self.height: HeightFunction | None = None
         self.normal: NormalFunction | None = None
         self.ticks = 0
         self.samples_outside_map = 0
         self.stale_ticks = 0
+        self.late_base_ticks = 0
         self.rejected = 0
         self._accelerations = FiniteDifferenceAcceleration(max_gap_s=1.5 * period_s)
         self._next_tick_ns = 0
         self._base: tuple[int, BaseState] | None = None
+        self._pending: tuple[int, float, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
     @property
     def settings(self) -> TceSettings:
@@ -105,32 +122,75 @@ class TceDriver:
         """The undeformed terrain: height(x, y) [m] (NaN where unknown) and, optionally, the unit normal."""
         self.height, self.normal = height, normal
 
-    def set_base(self, stamp_ns: int, base: BaseState) -> None:
-        """The latest base state (world frame) and its stamp."""
+    def set_base(self, stamp_ns: int, base: BaseState) -> TceTick | None:
+        """The latest base state (world frame) and its stamp; the waiting tick it completes, if any."""
         self._base = (stamp_ns, base)
+        if self._pending is not None and stamp_ns >= self._expected_base_stamp(self._pending[0]):
+            return self._run_pending()
+        return None
 
     def wants_joints(self, stamp_ns: int) -> bool:
-        """Whether ``add_joints`` would tick on a sample stamped ``stamp_ns`` (a node may skip the others)."""
-        return reaches_tick(stamp_ns, self._next_tick_ns)
+        """Whether ``add_joints`` would do anything with a sample stamped ``stamp_ns`` (a tick, or the end of
+        a waiting tick's wait): a node may skip the others."""
+        return reaches_tick(stamp_ns, self._next_tick_ns) or self._overdue(stamp_ns)
 
     def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays], t_s: float | None = None) -> TceTick | None:
-        """One joint-state sample; the tick when it is one (see the module docstring). ``read()`` gives the
-        arrays (called only for a tick). ``t_s``: the tick's time [s] (default stamp_ns * 1e-9)."""
-        if not reaches_tick(stamp_ns, self._next_tick_ns) or self._base is None or self.height is None:
-            return None
+        """One joint-state sample; the tick computed on it, if any (see the module docstring): its own, or a
+        waiting one whose base state did not come in time. ``read()`` gives the arrays (called only for a
+        tick). ``t_s``: the tick's time [s] (default stamp_ns * 1e-9)."""
+        late = self._run_pending(late=True) if self._overdue(stamp_ns) else None
+        waits = self.base_period_ns is not None
+        if not reaches_tick(stamp_ns, self._next_tick_ns) or self.height is None or (self._base is None and not waits):
+            return late
         self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
-        base_stamp, base = self._base
-        if stamp_ns - base_stamp > self.stale_state_periods * self.period_ns:
+        t = stamp_ns * 1e-9 if t_s is None else t_s
+        if self._base is None or self._base[0] < self._expected_base_stamp(stamp_ns):
+            arrays = self._read(read)
+            if arrays is not None:
+                self._pending = (stamp_ns, t, arrays)
+            return late
+        arrays = self._read(read)
+        return self._tick(stamp_ns, t, arrays) if arrays is not None else late
+
+    def _expected_base_stamp(self, stamp_ns: int) -> int:
+        """The base state a tick at ``stamp_ns`` waits for (its stamp; 0 when it takes the latest)."""
+        if self.base_period_ns is None:
+            return 0
+        return ((stamp_ns + TICK_TOLERANCE_NS) // self.base_period_ns) * self.base_period_ns
+
+    def _overdue(self, stamp_ns: int) -> bool:
+        return self._pending is not None and stamp_ns - self._pending[0] > self.max_defer_ns
+
+    def _run_pending(self, late: bool = False) -> TceTick | None:
+        assert self._pending is not None
+        stamp_ns, t_s, arrays = self._pending
+        self._pending = None
+        if late:
+            self.late_base_ticks += 1
+        return self._tick(stamp_ns, t_s, arrays)
+
+    def _read(self, read: Callable[[], JointArrays]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        try:
+            return read()
+        except (InputError, ValueError) as exc:
+            self._rejected(exc)
+            return None
+
+    def _rejected(self, exc: Exception) -> None:
+        self.rejected += 1
+        if self.on_reject is not None:
+            self.on_reject(exc)
+
+    def _tick(self, stamp_ns: int, t_s: float, arrays: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TceTick | None:
+        if self._base is None or stamp_ns - self._base[0] > self.stale_state_periods * self.period_ns:
             self.stale_ticks += 1
             return None
         try:
-            q, qd, tau = read()
-            return self.step(stamp_ns * 1e-9 if t_s is None else t_s, base, q, qd, tau)
+            tick = self.step(t_s, self._base[1], *arrays)
         except (InputError, ValueError) as exc:
-            self.rejected += 1
-            if self.on_reject is not None:
-                self.on_reject(exc)
+            self._rejected(exc)
             return None
+        return replace(tick, stamp_ns=stamp_ns)
 
     def step(self, t_s: float, base: BaseState, joint_position: np.ndarray, joint_velocity: np.ndarray,
              joint_torque: np.ndarray) -> TceTick:

@@ -4,8 +4,10 @@ Subscribes: joint_states (positions, velocities, measured torques), the base sta
 or ``state_estimate``, parameter base_source: the thesis measured the base with motion capture, so
 experiments that reproduce it use ground truth), terrain/heightmap (the undeformed surface under the
 feet). When it ticks and what a tick does is ``tal_estimation.tce_driver.TceDriver`` (shared with the
-offline runners): ticks lie on the sim-time grid k * control_period_s and use the latest base state if it
-is not older than ``stale_state_periods``; feet outside the heightmap give no sample (counted). This node
+offline runners): ticks lie on the sim-time grid k * control_period_s and wait for the base state of their
+own stamp (ground truth comes at the control rate, the estimate every estimate_period_s; wait_for_base false:
+the latest as it arrives), up to max_defer_s past the tick on the wall clock; a base state older than
+``stale_state_periods`` skips the tick; feet outside the heightmap give no sample (counted). This node
 converts messages and publishes. Thresholds, stale_state_periods and summary_path are live parameters.
 """
 
@@ -30,7 +32,7 @@ from tal_msgs.msg import HeightMap, TerrainImpedance
 from .live_settings import with_field
 from .messages import ImpedanceWriter, joint_state_arrays
 from .tce import TceSettings, TerrainComplianceEstimator
-from .tce_driver import TceDriver
+from .tce_driver import TceDriver, TceTick
 
 
 class TceNode(Node):
@@ -42,6 +44,14 @@ class TceNode(Node):
         period = declare(self, "control_period_s", 0.004, "[s] estimation tick", low=0.0005, high=0.1)
         stale_periods = declare(self, "stale_state_periods", 3, "[-] older base state: skip the tick",
                                 low=1, high=1000, on_change=self._set_stale_periods)
+        estimate_period = declare(self, "estimate_period_s", 0.003,
+                                  "[s] with base_source estimate: the estimator's tick (the base state a tick "
+                                  "waits for)", low=0.0005, high=0.1)
+        wait_for_base = declare(self, "wait_for_base", True,
+                                "a tick waits for the base state of its own stamp (false: the latest as it arrives)")
+        max_defer = declare(self, "max_defer_s", 0.0,
+                            "[s] sim time a tick waits for its base state past the next joint sample (0: lockstep; "
+                            "on the wall clock the next sample comes 1 ms later)", low=0.0, high=0.1)
         settings = TceSettings(
             window=declare(self, "window", 250, "[-] samples per leg (thesis: 250 at 250 Hz)", low=2, high=100000),
             min_samples=declare(self, "min_samples", 50, "[-] stance samples before a first estimate", low=1,
@@ -67,8 +77,10 @@ class TceNode(Node):
                                           "[N] force std a window needs to be called rigid", low=0.0, high=1e4,
                                           on_change=self._setting("min_force_variation_n")))
         self.model = RobotModel.from_name(robot)
+        base_period = (period if base_source == "ground_truth" else estimate_period) if wait_for_base else None
         self.driver = TceDriver(self.model, settings, period_s=period, stale_state_periods=stale_periods,
-                                on_reject=lambda exc: self._reject("joint_states", exc))
+                                on_reject=lambda exc: self._reject("joint_states", exc),
+                                base_period_s=base_period, max_defer_s=max_defer)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
         self.rejected_inputs = 0
         self.summary_path = declare(self, "summary_path", "", "JSON file for the end-of-run summary (final "
@@ -108,9 +120,11 @@ class TceNode(Node):
 
     def _on_base(self, msg: Odometry) -> None:
         try:
-            self.driver.set_base(ns_from_stamp(msg.header.stamp), base_state_from_odometry(msg))
+            base = base_state_from_odometry(msg)
         except InputError as exc:
             self._reject("base state", exc)
+            return
+        self._publish(self.driver.set_base(ns_from_stamp(msg.header.stamp), base))
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
@@ -121,12 +135,15 @@ class TceNode(Node):
         self.driver.set_terrain(lambda x, y: float(grid.height_at(x, y)))
 
     def _on_joints(self, msg: JointState) -> None:
-        stamp = ns_from_stamp(msg.header.stamp)
-        tick = self.driver.add_joints(stamp, lambda: joint_state_arrays(msg, self.joint_index))
+        self._publish(self.driver.add_joints(ns_from_stamp(msg.header.stamp),
+                                             lambda: joint_state_arrays(msg, self.joint_index)))
+
+    def _publish(self, tick: TceTick | None) -> None:
         if tick is None:
             return
-        out = self._writer(stamp, tick)
-        self.pub.publish(out)
+        stamp = tick.stamp_ns
+        assert stamp is not None
+        self.pub.publish(self._writer(stamp, tick))
         if (self.ticks - 1) % HISTORY_DECIMATION == 0:
             self.history.append([stamp * 1e-9] + [e.stiffness_n_per_m for e in tick.estimates]
                                 + [float(e.valid) for e in tick.estimates])
@@ -139,6 +156,7 @@ class TceNode(Node):
         estimates = self.tce.estimates
         return {
             "ticks": self.ticks, "rejected_inputs": self.rejected_inputs,
+            "stale_ticks": self.driver.stale_ticks, "late_base_ticks": self.driver.late_base_ticks,
             "samples_outside_map": self.samples_outside_map,
             "edge_samples_per_leg": self.tce.edge_samples.tolist(),
             "final": {leg.name: {"stiffness_n_per_m": clean(e.stiffness_n_per_m),

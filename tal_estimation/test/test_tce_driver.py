@@ -154,3 +154,52 @@ def test_thresholds_change_at_run_time_the_window_does_not() -> None:
     assert not any(tick.in_contact) and [e.samples for e in tick.estimates] == [1, 1, 1, 1]
     with pytest.raises(InputError, match="window"):
         driver.reconfigure(TceSettings(window=100, min_samples=10))
+
+
+def test_a_tick_waits_for_the_base_state_of_its_stamp_in_any_arrival_order() -> None:
+    """base_period_s: the tick at 4 ms uses the base state of 4 ms whether it arrives before or after the joint
+    state, so a lockstep run does not depend on DDS delivery order."""
+    base, q, tau = standing()
+    bases = {k: BaseState(base.position + [0.0, 0.0, -0.0005 * k], base.quat_xyzw, np.zeros(3), np.zeros(3))
+             for k in range(0, 13, 4)}
+    results = []
+    for base_first in (True, False):
+        driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.004)
+        driver.set_terrain(flat)
+        ticks = []
+        for k in range(13):
+            events = [("joints", k)] + ([("base", k)] if k in bases else [])
+            for kind, stamp in (events[::-1] if base_first else events):
+                tick = (driver.add_joints(stamp * MS, read()) if kind == "joints"
+                        else driver.set_base(stamp * MS, bases[stamp]))
+                if tick is not None:
+                    ticks.append(tick)
+        assert driver.late_base_ticks == 0
+        results.append([(t.stamp_ns, t.samples[Leg.LF].penetration_m) for t in ticks])
+    assert [stamp for stamp, _ in results[0]] == [0, 4 * MS, 8 * MS, 12 * MS]
+    assert results[0] == results[1]
+    assert results[0][1][1] == pytest.approx(results[0][0][1] + 0.002)  # 4 ms: the base 2 mm lower
+
+
+def test_a_waiting_tick_runs_late_when_the_robot_moves_on() -> None:
+    """The base state of 4 ms never comes: the next joint sample past max_defer_s computes the tick on the
+    latest base state there is (counted); an estimate grid of 3 ms: the tick at 8 ms waits for the estimate
+    of 6 ms."""
+    base = standing()[0]
+    driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.004, max_defer_s=0.002)
+    driver.set_terrain(flat)
+    driver.set_base(0, base)
+    assert driver.add_joints(0, read()) is not None
+    assert driver.add_joints(4 * MS, read()) is None and not driver.wants_joints(5 * MS)
+    assert driver.add_joints(6 * MS, read()) is None  # 2 ms: still waiting
+    assert driver.wants_joints(7 * MS)
+    late = driver.add_joints(7 * MS, read())
+    assert late is not None and late.stamp_ns == 4 * MS and driver.late_base_ticks == 1
+    estimate = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.003)
+    estimate.set_terrain(flat)
+    estimate.set_base(3 * MS, base)
+    assert estimate.add_joints(8 * MS, read()) is None  # waits for the estimate of 6 ms
+    tick = estimate.set_base(6 * MS, base)
+    assert tick is not None and tick.stamp_ns == 8 * MS
+    with pytest.raises(InputError, match="base_period_s must be > 0"):
+        TceDriver(RobotModel.from_name("hyq"), base_period_s=0.0)

@@ -87,7 +87,9 @@ class SimBridgeNode(Node):
         self.params = p
         self.steps_per_control = max(1, round(p["control_period_s"] * p["physics_rate_hz"]))
         self.schedule = OutputSchedule.from_rates(p["physics_rate_hz"], p["sensor_rate_hz"], p["contact_rate_hz"],
-                                                  p["heightmap_rate_hz"], p["clock_rate_hz"])
+                                                  p["heightmap_rate_hz"], p["clock_rate_hz"],
+                                                  p["ground_truth_rate_hz"])
+        self.schedule.check_control_steps(self.steps_per_control)
         self.writers = SensorWriters(sim.description.joint_names, p["imu_gyro_noise_std_rad_s"],
                                      p["imu_accel_noise_std_m_s2"])
         self._set_duration(p["duration_s"])
@@ -148,7 +150,11 @@ class SimBridgeNode(Node):
                                           "[-] realtime: most physics steps per timer call", low=1, high=1000,
                                           on_change=self._set_catch_up),
             "sensor_rate_hz": declare(self, "sensor_rate_hz", 1000.0,
-                                      "[Hz] joint_states, imu, ground_truth/odom", low=1.0, high=10000.0),
+                                      "[Hz] joint_states, imu", low=1.0, high=10000.0),
+            "ground_truth_rate_hz": declare(self, "ground_truth_rate_hz", 250.0,
+                                            "[Hz] ground_truth/odom (evaluation, or the base state of a controller "
+                                            "run on ground truth: a whole multiple of the control rate)",
+                                            low=1.0, high=10000.0),
             "clock_rate_hz": declare(self, "clock_rate_hz", 250.0,
                                      "[Hz] clock (sim time for use_sim_time nodes; every node ticks on message "
                                      "stamps, so the control rate is enough)", low=1.0, high=10000.0),
@@ -297,6 +303,8 @@ class SimBridgeNode(Node):
         if due.sensors:
             self._publish_sensors(stamp_ns, state)
             self.latency.published(stamp_ns, time.monotonic())
+        if due.ground_truth:
+            self.pub_odom.publish(self.writers.odometry(stamp_ns, state))
         if due.contacts:
             contacts = self.core.sim.foot_contacts()
             self.pub_contacts.publish(self.writers.contact_state(stamp_ns, contacts))
@@ -309,7 +317,6 @@ class SimBridgeNode(Node):
         self.pub_joints.publish(self.writers.joint_state(stamp_ns, state))
         specific_force, angular_rate = self.core.imu.measure(state)
         self.pub_imu.publish(self.writers.imu(stamp_ns, specific_force, angular_rate))
-        self.pub_odom.publish(self.writers.odometry(stamp_ns, state))
 
     def _publish_heightmap(self, stamp, state) -> None:
         p = self.params

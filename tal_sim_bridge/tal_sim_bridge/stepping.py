@@ -19,37 +19,53 @@ class DueOutputs:
     """What to publish after one physics step."""
 
     clock: bool  # clock
-    sensors: bool  # joint_states, imu, ground_truth/odom
+    sensors: bool  # joint_states, imu
     contacts: bool  # ground_truth/contacts
     heightmap: bool  # terrain/heightmap
+    ground_truth: bool  # ground_truth/odom
 
 
 @dataclass(frozen=True)
 class OutputSchedule:
-    """Every output as a whole number of physics steps."""
+    """Every output as a whole number of physics steps. Ground truth (evaluation, and the base state of a
+    controller run on it) comes at the control rate by default: a motion-capture rate, and every control tick
+    finds the base state of its own stamp."""
 
     sensor_every: int = 1
     contact_every: int = 4
     heightmap_every: int = 50
     clock_every: int = 1
+    ground_truth_every: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("sensor_every", "contact_every", "heightmap_every", "clock_every"):
+        for name in ("sensor_every", "contact_every", "heightmap_every", "clock_every", "ground_truth_every"):
             if int(getattr(self, name)) < 1:
                 raise BridgeConfigError(f"OutputSchedule.{name} must be >= 1 step, got {getattr(self, name)}")
 
     @classmethod
     def from_rates(cls, physics_rate_hz: float, sensor_rate_hz: float, contact_rate_hz: float,
-                   heightmap_rate_hz: float, clock_rate_hz: float | None = None) -> OutputSchedule:
-        """Rates [Hz] rounded to whole physics steps (at least one); the clock at every step by default."""
+                   heightmap_rate_hz: float, clock_rate_hz: float | None = None,
+                   ground_truth_rate_hz: float | None = None) -> OutputSchedule:
+        """Rates [Hz] rounded to whole physics steps (at least one); the clock at every step and ground truth
+        with the sensors by default."""
         if physics_rate_hz <= 0.0:
             raise BridgeConfigError(f"physics_rate_hz must be > 0, got {physics_rate_hz}")
-        rates = (sensor_rate_hz, contact_rate_hz, heightmap_rate_hz, clock_rate_hz or physics_rate_hz)
+        rates = (sensor_rate_hz, contact_rate_hz, heightmap_rate_hz, clock_rate_hz or physics_rate_hz,
+                 ground_truth_rate_hz or sensor_rate_hz)
         return cls(*(max(1, round(physics_rate_hz / rate)) for rate in rates))
+
+    def check_control_steps(self, steps_per_control: int) -> None:
+        """BridgeConfigError unless every control tick has a ground-truth sample of its own stamp (a
+        controller or estimator run on ground truth waits for the base state of its tick)."""
+        if int(steps_per_control) % self.ground_truth_every != 0:
+            raise BridgeConfigError(
+                f"ground truth every {self.ground_truth_every} physics steps does not fall on every control tick "
+                f"({steps_per_control} steps): set ground_truth_rate_hz to a whole multiple of the control rate")
 
     def due(self, step: int, force_all: bool = False) -> DueOutputs:
         return DueOutputs(force_all or step % self.clock_every == 0, force_all or step % self.sensor_every == 0,
-                          force_all or step % self.contact_every == 0, force_all or step % self.heightmap_every == 0)
+                          force_all or step % self.contact_every == 0, force_all or step % self.heightmap_every == 0,
+                          force_all or step % self.ground_truth_every == 0)
 
 
 class LockstepGate:

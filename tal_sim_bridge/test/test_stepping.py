@@ -21,6 +21,19 @@ def test_schedule_from_the_node_default_rates() -> None:
     assert [step for step in range(12) if clocked.due(step).clock] == [0, 4, 8]
 
 
+def test_ground_truth_at_the_control_rate_falls_on_every_control_tick() -> None:
+    default = OutputSchedule.from_rates(1000.0, 1000.0, 250.0, 20.0)
+    assert all(default.due(step).ground_truth for step in range(10))  # with the sensors unless its rate is given
+    mocap = OutputSchedule.from_rates(1000.0, 1000.0, 250.0, 20.0, ground_truth_rate_hz=250.0)
+    assert [step for step in range(13) if mocap.due(step).ground_truth] == [0, 4, 8, 12]
+    assert mocap.due(3, force_all=True).ground_truth
+    mocap.check_control_steps(4)
+    mocap.check_control_steps(8)
+    slow = OutputSchedule.from_rates(1000.0, 1000.0, 250.0, 20.0, ground_truth_rate_hz=100.0)
+    with pytest.raises(BridgeConfigError, match="ground truth every 10 physics steps does not fall on every control"):
+        slow.check_control_steps(4)
+
+
 def test_schedule_rejects_a_zero_period() -> None:
     with pytest.raises(BridgeConfigError, match="contact_every must be >= 1"):
         OutputSchedule(1, 0, 50)
