@@ -18,7 +18,10 @@ Stamps are integer nanoseconds of sim time. Ticks lie on the grid k * period_ns 
   stamped with the tick they answer) are held and handed to the first tick at least one control period
   after their stamp, in stamp order. A tick also waits for the answer to the previous tick of every input
   named in ``waited_inputs`` (a newer one will do: the producer skipped a tick), so what it uses does not
-  depend on how fast the producer was; the first tick waits for nothing.
+  depend on how fast the producer was. The first tick waits (wall time, up to ``command_source_wait_s``,
+  like the wait for a command source) for a first answer of each: a producer discovered late would
+  otherwise miss the first ticks, and every later tick would wait for answers that never come. An input
+  with no answer by then is no longer waited for (``unanswered_inputs``).
 - A joint state more than ``CLOCK_RESET_NS`` older than the last one is a restarted clock: every input is
   forgotten and the grid starts again (the node starts its controller afresh). Base states and contacts
   that jump back likewise replace the held ones.
@@ -189,6 +192,10 @@ class WbcTickPolicy:
         self._fed_s: float | None = None
         self._source_deadline_s = (None if config.command_source_wait_s <= 0.0
                                    else clock() + config.command_source_wait_s)
+        self._inputs_deadline_s = (None if config.command_source_wait_s <= 0.0 or not config.waited_inputs
+                                   else clock() + config.command_source_wait_s)
+        self._waited = tuple(config.waited_inputs)
+        self.unanswered_inputs: tuple[str, ...] = ()  # waited inputs that gave no first answer in time
 
     # -- configuration -------------------------------------------------------------------------------------
     @property
@@ -219,7 +226,8 @@ class WbcTickPolicy:
         waiting = deferred is not None and deferred < stamp_ns <= deferred + self.config.max_defer_ns
         return (last is None or stamp_ns + CLOCK_RESET_NS < last.stamp_ns or stamp_ns == self._answered_ns
                 or (reaches_tick(stamp_ns, self.next_tick_ns) and not waiting)
-                or (deferred is not None and not waiting) or self._source_deadline_s is not None)
+                or (deferred is not None and not waiting) or self._source_deadline_s is not None
+                or self._inputs_deadline_s is not None)
 
     def joint_state(self, stamp_ns: int, sample: Any) -> Arrival:
         """A valid joint state stamped ``stamp_ns``: restart, repeat, drop, or store it and decide the tick."""
@@ -232,7 +240,8 @@ class WbcTickPolicy:
         if max_defer and deferred is not None and deferred < stamp_ns <= deferred + max_defer:
             return Arrival(restarted=restarted, feed_watchdog=True)  # the deferred tick keeps its sample, waiting
         if self._joints is not None and stamp_ns <= self._joints.stamp_ns:
-            if stamp_ns == self._joints.stamp_ns and self.waiting_for_command_source:
+            if stamp_ns == self._joints.stamp_ns and (self.waiting_for_command_source
+                                                      or self._inputs_deadline_s is not None):
                 # The driver repeats its first state while we wait for the command source: try again.
                 tick, missing = self._decide()
                 return Arrival(tick=tick, command_source_missing=missing)
@@ -264,7 +273,7 @@ class WbcTickPolicy:
             newest = None
         self._lagged.append((int(stamp_ns), name, value))
         self._newest_lagged[name] = int(stamp_ns) if newest is None else max(newest, int(stamp_ns))
-        if name in self.config.waited_inputs:
+        if name in self._waited:
             return self._decided()
         return Arrival()
 
@@ -378,12 +387,19 @@ class WbcTickPolicy:
 
     def _waited_missing(self, stamp_ns: int) -> bool:
         """Whether a waited input has not yet answered the tick one period before ``stamp_ns``."""
+        newest = self._newest_lagged
+        if self._inputs_deadline_s is not None:  # the first tick: a first answer of each, or the deadline
+            if all(name in newest for name in self._waited):
+                self._inputs_deadline_s = None
+            elif self.clock() > self._inputs_deadline_s:
+                self._inputs_deadline_s = None
+                self.unanswered_inputs = tuple(name for name in self._waited if name not in newest)
+                self._waited = tuple(name for name in self._waited if name in newest)
+            return self._inputs_deadline_s is not None
         previous = stamp_ns - self.config.period_ns
         if previous < -TICK_TOLERANCE_NS:
             return False  # the first tick: there is no earlier one to answer
-        newest = self._newest_lagged
-        return any(name not in newest or newest[name] < previous - TICK_TOLERANCE_NS
-                   for name in self.config.waited_inputs)
+        return any(name not in newest or newest[name] < previous - TICK_TOLERANCE_NS for name in self._waited)
 
     def _release_lagged(self, stamp_ns: int) -> tuple[tuple[str, Any], ...]:
         """The held inputs stamped at least one period before the tick, in (stamp, name) order."""

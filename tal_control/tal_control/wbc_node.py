@@ -553,6 +553,7 @@ class WbcNode(Node):
                 "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
                 "ticks_without_contacts": self.ticks_without_contacts,
                 "ticks_without_waited": self.ticks_without_waited,
+                "unanswered_inputs": list(self.policy.unanswered_inputs),
                 "touchdown_searches_per_leg": self.controller.touchdown_search.searches.tolist(),
                 "early_touchdowns_per_leg": self.controller.touchdown_search.early_touchdowns.tolist(),
                 "command_source_waits": self.command_source_waits,

@@ -359,3 +359,21 @@ def test_a_tick_waits_for_the_previous_ticks_waited_input() -> None:
     step(bounded, 0)
     assert step(bounded, 4 * MS).tick is None and step(bounded, 6 * MS).tick is None
     assert step(bounded, 7 * MS).tick is not None and bounded.counters.ticks_without_waited == 1
+
+
+def test_the_first_tick_waits_for_a_first_answer_of_each_waited_input() -> None:
+    """A producer discovered late: the first tick (the driver re-sends its initial state) waits for its first
+    answer, up to command_source_wait_s of wall time; without a producer it starts at the deadline."""
+    clock = FakeClock()
+    p = policy(waited_inputs=("impedance",), command_source_wait_s=5.0, clock=clock)
+    assert step(p, 0).tick is None
+    assert p.wants_joint_state(0) and step(p, 0).tick is None  # a re-sent initial state: still waiting
+    first = p.lagged("impedance", 0, "k@0")
+    assert first.tick is not None and first.tick.stamp_ns == 0 and first.tick.inputs == ()
+    assert step(p, 4 * MS).tick.inputs == (("impedance", "k@0"),)
+    alone = policy(waited_inputs=("impedance",), command_source_wait_s=5.0, clock=clock)
+    assert step(alone, 0).tick is None
+    clock.now_s += 6.0
+    assert step(alone, 0).tick is not None  # the deadline passed: start without it ...
+    assert alone.unanswered_inputs == ("impedance",)
+    assert step(alone, 4 * MS).tick is not None  # ... and no longer wait for it
