@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
-from tal_lab.graph_report import build_report, read_bag, stiffness_table, topic_rates
+from tal_lab.graph_report import bench_rates, build_report, read_bag, stiffness_table, topic_rates
 
 from tal_core.ros.bag_io import BagWriter
 from tal_core.ros.node_utils import stamp_from_ns
@@ -30,6 +30,21 @@ def test_rates_count_the_missed_ticks_of_each_gap() -> None:
     assert gait.wall_rate_hz == pytest.approx(0.5 * 996 / 4.0)
     assert rates["joint_states"].messages == 0 and rates["joint_states"].sim_rate_hz is None
     assert rates["footholds"].target_hz is None
+
+
+def test_bench_rates_take_the_bridge_rate_from_its_contacts_when_joint_states_was_not_recorded() -> None:
+    """A real-time tour records no 1 kHz topic: the bridge's physics rate is its contacts' times four."""
+    stamps = {"ground_truth/contacts": [k * 4 * MS for k in range(251)], "joint_command": [k * 4 * MS for k in
+                                                                                          range(0, 251, 2)]}
+    rates = [r.__dict__ for r in topic_rates(stamps, real_time_factor=0.8)]
+    nodes = bench_rates({"rates": rates, "mode": "realtime", "real_time_factor": 0.8,
+                         "peak_total_rss_mb": 1.0})["nodes"]
+    assert nodes["sim_bridge"]["topic"] == "ground_truth/contacts x 4"
+    assert nodes["sim_bridge"]["target_hz"] == 1000.0 and nodes["sim_bridge"]["achieved_hz"] == pytest.approx(800.0)
+    assert nodes["wbc"]["deadline_misses"] == 125 and nodes["wbc"]["achieved_hz"] == pytest.approx(100.0)
+    with_joints = bench_rates({"rates": [r.__dict__ for r in topic_rates({**stamps, "joint_states": [0, MS]}, 1.0)],
+                               "mode": "realtime", "real_time_factor": 1.0, "peak_total_rss_mb": 1.0})
+    assert with_joints["nodes"]["sim_bridge"]["topic"] == "joint_states"
 
 
 def _write_walk(path: Path, base: bool = False) -> None:
