@@ -483,9 +483,10 @@ class WbcNode(Node):
         self.stats.add(stamp_ns * 1e-9, base, out)
         stamp = self._joints_stamp_msg(stamp_ns)
         self.pub_gait.publish(self._gait_writer(out, stamp_ns))
-        self.pub_diag.publish(wbc_diagnostics_message(stamp, self.mode, self.p["contact_model"], self.rejected_inputs,
-                                                      self.controller.wbc.failed_solves, out=out,
-                                                      joint_names=self.joint_names))
+        if self.pub_diag.get_subscription_count():  # 250 Hz of per-joint arrays: built only for a listener
+            self.pub_diag.publish(wbc_diagnostics_message(stamp, self.mode, self.p["contact_model"],
+                                                          self.rejected_inputs, self.controller.wbc.failed_solves,
+                                                          out=out, joint_names=self.joint_names))
 
     def _safe_mode(self, stamp_ns: int, reason: str) -> None:
         if self.policy.enter_safe_mode():

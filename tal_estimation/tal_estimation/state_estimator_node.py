@@ -244,11 +244,13 @@ class StateEstimatorNode(Node):
         odom = self.writers.odometry(stamp, e.position, e.world_R_base, e.linear_velocity, e.angular_velocity_base,
                                      e.position_covariance, e.velocity_covariance, e.attitude_covariance)
         self.pub_state.publish(odom)
-        impedance = self.stream.impedance
-        normals = impedance.normal if impedance is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
-        contact = self.writers.contacts(stamp, e, normals,
-                                        self.estimator.settings.leg_odometry.mode == "terrain_aware")
-        self.pub_contact.publish(contact)
+        contact = None
+        if self.pub_contact.get_subscription_count():  # built only for a listener (333 Hz)
+            impedance = self.stream.impedance
+            normals = impedance.normal if impedance is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
+            contact = self.writers.contacts(stamp, e, normals,
+                                            self.estimator.settings.leg_odometry.mode == "terrain_aware")
+            self.pub_contact.publish(contact)
         self._last_output = (odom, contact)
 
     def _publish_diagnostics(self, stamp: int) -> None:
