@@ -27,12 +27,12 @@
 #   stand           HyQ stands 10 s in lockstep (joint PD hold), first on rigid ground, then on T1 soft
 #   stand_realtime  the same, following the wall clock
 # VFA=1 adds the vfa node (and a 121x121 heightmap) to trot and crawl too; its counters go to vfa_summary.json.
-# Results: runs/<timestamp>/<part>/ (one log per node, summary.json), runs/<timestamp>/report.md and, for the
+# Results (RUNS_DIR=... for another folder than runs/): runs/<timestamp>/<part>/ (one log per node, summary.json), runs/<timestamp>/report.md and, for the
 # walking scenarios, runs/<timestamp>/bag (the run recorded by bag_recorder).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 SCENARIO="${1:-tour}"
-RUN_ROOT="$ROOT/runs/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
+RUN_ROOT="${RUNS_DIR:-$ROOT/runs}/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
 # What make run records into runs/<timestamp>/bag (rosbag2 MCAP; sim time as log time).
 RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/contacts', 'joint_command', \
 'state_estimate', 'contact_estimate', 'terrain_impedance', 'gait_state', 'wbc/diagnostics', 'cmd_vel', 'cmd_vel_stamped']"
@@ -40,14 +40,19 @@ RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/cont
 for var in DURATION_S SPEED_M_S TOUCHDOWN_DEPTH_M; do
     if [[ "${!var:-}" =~ ^-?[0-9]+$ ]]; then printf -v "$var" '%s.0' "${!var}"; fi
 done
-# Every scenario with the wbc also starts cmd_vel_script: the wbc's first tick waits for it (lockstep).
-COMMAND_SOURCE_WAIT_S=10.0
+# Every scenario with the wbc also starts cmd_vel_script: the wbc's first tick waits for it (lockstep), and for
+# the first answers of the nodes it waits for (tce, vfa, vpa): eight Python processes starting on two busy
+# cores took more than 10 s.
+COMMAND_SOURCE_WAIT_S=30.0
 # A private DDS domain per run, so concurrent runs and tests do not see each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
 
 # On the wall clock the next joint sample comes 1 ms after a tick's, before the estimator's answer to it: the wbc
 # waits up to 6 ms of sim time for the base state of its tick (lockstep: 0, the bridge waits for the command).
 max_defer() { if [ "$1" = realtime ]; then echo 0.006; else echo 0.0; fi; }
+# The tce is not what the bridge waits for: in lockstep a later joint sample (up to the next control tick, the
+# wbc waits for the tce's answer before the one after) may come before its tick's base state (another topic).
+tce_max_defer() { if [ "$1" = realtime ]; then echo 0.006; else echo 0.004; fi; }
 
 walk() {
     local gait="$1" speed="$2" course="${3:-flat_rigid}" state_source="${4:-estimate}" duration="${DURATION_S:-20.0}"
@@ -117,6 +122,10 @@ tour() {
     local contact_source="${CONTACT_SOURCE:-ground_truth}" touchdown_depth="${TOUCHDOWN_DEPTH_M:-0.02}"
     local dir="$RUN_ROOT"
     local topics="${RECORDED_TOPICS%]}, 'footholds', 'body_pose_reference']"
+    # Lockstep: the wbc waits for every input's answer to the previous tick (tce, vfa, vpa on its 50 ms grid),
+    # so the run repeats itself bit for bit; on the wall clock nobody waits for perception.
+    local lockstep=true pose_period=0.05
+    if [ "$mode" = realtime ]; then lockstep=false; pose_period=0.0; fi
     # On the wall clock the recorder keeps only what the report reads (each node's main output, the base track,
     # contacts and stiffness) unless asked (RECORD=1): the two 1 kHz topics alone cost 2,000 deliveries a
     # second on two cores. The bridge's rate is then its contacts'; the wbc skips its diagnostics (no subscriber).
@@ -129,7 +138,9 @@ tour() {
          "wbc ($contact_model contact model), vfa, vpa, bag_recorder, cmd_vel_script"
     bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge -m "$dir/resources.json" \
         -s "sim_bridge.course:=graph_tour" -s "sim_bridge.duration_s:=$duration" -s "sim_bridge.mode:=$mode" \
-        -s "wbc.max_defer_s:=$(max_defer "$mode")" -s "tce.max_defer_s:=$(max_defer "$mode")" \
+        -s "wbc.max_defer_s:=$(max_defer "$mode")" -s "tce.max_defer_s:=$(tce_max_defer "$mode")" \
+        -s "vfa.answer_every_gait_state:=$lockstep" -s "wbc.wait_for_footholds:=$lockstep" \
+        -s "wbc.body_pose_period_s:=$pose_period" \
         -s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \

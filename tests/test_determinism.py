@@ -1,6 +1,7 @@
 """Lockstep is deterministic across processes (issue 9, item 3): the same trot run twice through
 scripts/run_graph.sh (sim_bridge, state_estimator, wbc, cmd_vel_script, bag_recorder; one process each),
-the second time with a busy loop on every core, gives the same base trajectory at every stamp.
+the second time with a busy loop on every core, gives the same base trajectory at every stamp. So does the
+whole tour graph (tce, vfa and vpa included, issue 33 item 2), started as `make run` starts it.
 
 Measured when written: identical odometry (max difference 0.0 m at all common stamps) and identical
 joint commands; before the wbc tied the scripted command and the heightmap to sim time, the runs
@@ -113,3 +114,37 @@ def test_the_same_lockstep_trot_twice_once_under_cpu_load_gives_the_same_traject
     assert hog_cpu_s > 0.1 * loaded["bridge"]["wall_time_s"]
     assert a[common[-1]][0] - a[common[0]][0] > 0.4            # it trotted
     assert deviation.max() < 1e-3                               # [m] at every common stamp
+
+
+def run_tour(runs_dir: Path) -> Path:
+    """`make run`'s tour (all eight nodes, lockstep) for TOUR_DURATION_S; returns its bag."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 140)), RUNS_DIR=str(runs_dir),
+               DURATION_S=str(TOUR_DURATION_S))
+    result = subprocess.run(["bash", str(ROOT / "scripts" / "run_scenario.sh"), "tour"], env=env,
+                            capture_output=True, text=True, timeout=500)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (bag,) = runs_dir.glob("*-tour/bag")
+    return bag
+
+
+TOUR_DURATION_S = 4.0
+
+
+@pytest.mark.skipif(not (ROOT / "ros2_ws" / "install").is_dir(), reason="workspace not built")
+def test_the_whole_tour_graph_repeats_itself_bit_for_bit_under_cpu_load(tmp_path) -> None:
+    """Footholds, body pose references and terrain impedance are used one tick after the tick they answer,
+    and the wbc waits for each answer: the tour's ground truth and commands are identical with a busy loop
+    on every core."""
+    quiet = run_tour(tmp_path / "quiet")
+    with cpu_hog():
+        loaded = run_tour(tmp_path / "loaded")
+    a, b = trajectory(quiet), trajectory(loaded)
+    common = sorted(set(a) & set(b))
+    assert len(common) >= 0.9 * TOUR_DURATION_S * 250
+    assert max(float(np.linalg.norm(a[k] - b[k])) for k in common) == 0.0
+    ca, cb = commands(quiet), commands(loaded)
+    common_commands = sorted(set(ca) & set(cb))
+    assert len(common_commands) >= 0.9 * TOUR_DURATION_S * 250
+    assert all(np.array_equal(ca[k], cb[k]) for k in common_commands)
+    footholds = [m for m in BagReader(quiet).messages(["/footholds"])]
+    assert len(footholds) >= 0.9 * TOUR_DURATION_S * 250  # the vfa answered every tick (mostly "no news")

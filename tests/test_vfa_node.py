@@ -57,8 +57,9 @@ def test_passes_the_nominal_through_without_a_map_and_adapts_around_a_gap(contex
         wbc.gait.publish(wbc.gait_state(1004 * MS))
         spin_until(executor, lambda: vfa.gait_states == 2, 5.0)
         # A map with a gap under LF's nominal: both legs re-decided, LF moved off the gap onto the ground.
-        wbc.maps.publish(wbc.heightmap(1005 * MS, gap_at_x=wbc.nominal(0)[0]))
-        assert spin_until(executor, lambda: vfa.maps == 1, 5.0)
+        # (A map comes into use at the first gait state one control period after its stamp.)
+        wbc.maps.publish(wbc.heightmap(1004 * MS, gap_at_x=wbc.nominal(0)[0]))
+        assert spin_until(executor, lambda: len(vfa.maps_inbox) == 1, 5.0)
         wbc.gait.publish(wbc.gait_state(1008 * MS))
         assert spin_until(executor, lambda: len(wbc.footholds) == 2, 10.0)
         seen = by_leg(wbc.footholds[1])
@@ -94,7 +95,8 @@ def test_bad_messages_are_counted_and_the_node_keeps_running(context, spin_until
         nan_centre = wbc.heightmap(1003 * MS)
         nan_centre.center.x = math.nan
         wbc.maps.publish(nan_centre)
-        assert spin_until(executor, lambda: sum(vfa.rejections.values()) == 4 and vfa.maps == 1, 10.0), vfa.rejections
+        assert spin_until(executor, lambda: sum(vfa.rejections.values()) == 4 and len(vfa.maps_inbox) == 1,
+                          10.0), vfa.rejections
         wbc.gait.publish(wbc.gait_state(1004 * MS))
         assert spin_until(executor, lambda: len(wbc.footholds) == 1, 10.0)
         bad = wbc.gait_state(1008 * MS)
@@ -109,8 +111,8 @@ def test_bad_messages_are_counted_and_the_node_keeps_running(context, spin_until
                                   "heightmap_invalid": 1, "gait_state_nan": 1, "gait_state_out_of_order": 1,
                                   "gait_state_invalid": 1}
         # Still running: a map with a gap under LF arrives, and the next gait state adapts LF.
-        wbc.maps.publish(wbc.heightmap(1014 * MS, gap_at_x=wbc.nominal(0)[0]))
-        assert spin_until(executor, lambda: vfa.maps == 2, 10.0)  # topics are not ordered with each other
+        wbc.maps.publish(wbc.heightmap(1012 * MS, gap_at_x=wbc.nominal(0)[0]))
+        assert spin_until(executor, lambda: len(vfa.maps_inbox) == 1, 10.0)  # topics are not ordered with each other
         wbc.gait.publish(wbc.gait_state(1016 * MS))
         assert spin_until(executor, lambda: len(wbc.footholds) == 2, 10.0)
         assert abs(by_leg(wbc.footholds[1])[0].selected.x - wbc.nominal(0)[0]) >= 0.09
@@ -174,3 +176,19 @@ def test_closed_loop_on_stairs_the_wbc_takes_adapted_footholds(context, spin_unt
     assert sum(accepted(stamp, f) for stamp, f in adapted) >= 1
     assert wbc.rejected_inputs == 0 and sum(vfa.rejections.values()) == 0, vfa.rejections
     assert end[0] > 0.7 and end[2] > 0.5  # walked forward onto the first step and still standing
+
+
+def test_answer_every_gait_state_sends_an_empty_answer_without_news(context, spin_until) -> None:
+    """For a wbc that waits for the answer to each tick (lockstep determinism): news or not, one footholds
+    message per gait state, stamped with it."""
+    vfa, wbc, executor = start(context, answer_every_gait_state=True)
+    try:
+        assert spin_until(executor, wbc.matched, 20.0)
+        for k in range(3):
+            wbc.gait.publish(wbc.gait_state((1000 + 4 * k) * MS))
+        assert spin_until(executor, lambda: len(wbc.footholds) == 3, 10.0)
+        assert [ns_from_stamp(m.header.stamp) for m in wbc.footholds] == [1000 * MS, 1004 * MS, 1008 * MS]
+        assert [len(m.footholds) for m in wbc.footholds] == [2, 0, 0]  # the blind decisions, then no news
+        assert vfa.counters()["empty_answers"] == 2 and vfa.counters()["published_messages"] == 1
+    finally:
+        stop(executor, vfa, wbc.node)

@@ -18,10 +18,13 @@ Stamps are integer nanoseconds of sim time. Ticks lie on the grid k * period_ns 
   stamped with the tick they answer) are held and handed to the first tick at least one control period
   after their stamp, in stamp order. A tick also waits for the answer to the previous tick of every input
   named in ``waited_inputs`` (a newer one will do: the producer skipped a tick), so what it uses does not
-  depend on how fast the producer was. The first tick waits (wall time, up to ``command_source_wait_s``,
-  like the wait for a command source) for a first answer of each: a producer discovered late would
-  otherwise miss the first ticks, and every later tick would wait for answers that never come. An input
-  with no answer by then is no longer waited for (``unanswered_inputs``).
+  depend on how fast the producer was. A producer that answers only every ``P`` of sim time
+  (``waited_periods_ns``: the first tick at least ``P`` after its last answer, as the VPA) is waited for
+  when such a tick lies at least one period back. The first tick waits (wall time, up to
+  ``command_source_wait_s``, like the wait for a command source) for a first answer of each input that does
+  not answer the wbc's own gait state, and for ``producers_ready()`` (the others' subscriptions discovered):
+  a producer discovered late would otherwise miss the first ticks, and every later tick would wait for
+  answers that never come. An input not ready by then is no longer waited for (``unanswered_inputs``).
 - A joint state more than ``CLOCK_RESET_NS`` older than the last one is a restarted clock: every input is
   forgotten and the grid starts again (the node starts its controller afresh). Base states and contacts
   that jump back likewise replace the held ones.
@@ -67,7 +70,9 @@ class TickPolicyConfig:
     max_defer_ns: a tick deferred for its base state (or contacts) runs anyway on the first joint sample more
     than this past it (0: the next sample, which in lockstep only comes after a lockstep timeout; on the wall
     clock the next sample comes 1 ms later, before the estimator's answer, so real-time runs wait longer).
-    waited_inputs: lagged inputs (``WbcTickPolicy.lagged``) a tick waits for, the previous tick's answer."""
+    waited_inputs: lagged inputs (``WbcTickPolicy.lagged``) a tick waits for, the previous tick's answer.
+    waited_periods_ns: (name, P) of waited inputs answered every P [ns] of sim time (default: every tick).
+    gait_driven: waited inputs computed from the wbc's gait_state (no first answer before the first tick)."""
 
     period_ns: int
     stale_periods: int = 3
@@ -77,6 +82,8 @@ class TickPolicyConfig:
     watchdog_timeout_s: float = 0.0
     max_defer_ns: int = 0
     waited_inputs: tuple[str, ...] = ()
+    waited_periods_ns: tuple[tuple[str, int], ...] = ()
+    gait_driven: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.period_ns <= 0:
@@ -172,8 +179,10 @@ class WbcTickPolicy:
 
     def __init__(self, config: TickPolicyConfig, commands: VelocityCommandInput | None = None, *,
                  clock: Callable[[], float] = time.monotonic,
-                 command_source_found: Callable[[], bool] = lambda: True) -> None:
+                 command_source_found: Callable[[], bool] = lambda: True,
+                 producers_ready: Callable[[], bool] = lambda: True) -> None:
         self.config = config
+        self.producers_ready = producers_ready
         self.commands = commands if commands is not None else VelocityCommandInput(math.inf, math.inf)
         self.clock = clock
         self.command_source_found = command_source_found
@@ -388,18 +397,26 @@ class WbcTickPolicy:
     def _waited_missing(self, stamp_ns: int) -> bool:
         """Whether a waited input has not yet answered the tick one period before ``stamp_ns``."""
         newest = self._newest_lagged
-        if self._inputs_deadline_s is not None:  # the first tick: a first answer of each, or the deadline
-            if all(name in newest for name in self._waited):
+        gait_driven = self.config.gait_driven
+        if self._inputs_deadline_s is not None:  # the first tick: first answers and producers, or the deadline
+            answered = all(name in newest for name in self._waited if name not in gait_driven)
+            ready = not any(name in gait_driven for name in self._waited) or self.producers_ready()
+            if answered and ready:
                 self._inputs_deadline_s = None
             elif self.clock() > self._inputs_deadline_s:
                 self._inputs_deadline_s = None
-                self.unanswered_inputs = tuple(name for name in self._waited if name not in newest)
-                self._waited = tuple(name for name in self._waited if name in newest)
+                lost = tuple(name for name in self._waited
+                             if (name in gait_driven and not ready) or (name not in gait_driven and name not in newest))
+                self.unanswered_inputs = lost
+                self._waited = tuple(name for name in self._waited if name not in lost)
             return self._inputs_deadline_s is not None
         previous = stamp_ns - self.config.period_ns
         if previous < -TICK_TOLERANCE_NS:
             return False  # the first tick: there is no earlier one to answer
-        return any(name not in newest or newest[name] < previous - TICK_TOLERANCE_NS for name in self._waited)
+        periods = dict(self.config.waited_periods_ns)
+        return any(name not in newest
+                   or newest[name] + periods.get(name, self.config.period_ns) <= previous + TICK_TOLERANCE_NS
+                   for name in self._waited)
 
     def _release_lagged(self, stamp_ns: int) -> tuple[tuple[str, Any], ...]:
         """The held inputs stamped at least one period before the tick, in (stamp, name) order."""

@@ -22,10 +22,11 @@ solution and is counted (MODE_FALLBACK); nothing raises out of the loop.
 Lockstep determinism: inputs without a fixed arrival order relative to the tick's joint state are tied to
 sim time: a stamped command applies from its stamp's tick; a heightmap, footholds, body pose references and
 terrain impedance (each stamped with the tick it was computed for) from the first tick one control period
-after their stamp, in stamp order. With wait_for_impedance (c3WBC on the tce) a tick also waits for the
-TCE's answer to the previous tick, so a TCE-fed graph repeats itself bit for bit; footholds and pose
-references that come later than one period are used at the next tick (the vfa and vpa answer only some
-ticks, so no tick can wait for them).
+after their stamp, in stamp order. A tick also waits for the answer to the previous tick of the TCE
+(wait_for_impedance, c3WBC on the tce), of the vfa (wait_for_footholds, with the vfa's
+answer_every_gait_state) and of the vpa (body_pose_period_s: its update period), so the whole graph repeats
+itself bit for bit in lockstep; the first tick waits for the TCE's first answer and for the vfa's and vpa's
+gait_state subscriptions to be discovered (up to command_source_wait_s).
 
 Live parameters (``ros2 param set``, validated, effective from the next tick unless said otherwise): the
 task gains K_* and D_*, friction_coefficient, min/max_normal_force_n, touchdown_depth_m,
@@ -141,9 +142,12 @@ class WbcNode(Node):
                              command_source_wait_s=p["command_source_wait_s"],
                              watchdog_timeout_s=p["watchdog_timeout_s"],
                              max_defer_ns=round(p["max_defer_s"] * 1e9),
-                             waited_inputs=(("impedance",) if p["wait_for_impedance"] and p["contact_model"]
-                                            == "compliant" and p["impedance_source"] == "tce" else ())),
-            self.command_input, command_source_found=lambda: self.count_publishers("cmd_vel_stamped") > 0)
+                             waited_inputs=self._waited_inputs(p),
+                             waited_periods_ns=((("body_pose", round(p["body_pose_period_s"] * 1e9)),)
+                                                if p["body_pose_period_s"] > 0.0 else ()),
+                             gait_driven=("footholds", "body_pose")),
+            self.command_input, command_source_found=lambda: self.count_publishers("cmd_vel_stamped") > 0,
+            producers_ready=self._gait_consumers_ready)
         self.stats = TrackingStats()
 
         self.pub_command = self.create_publisher(JointCommand, "joint_command", 10)
@@ -270,6 +274,13 @@ class WbcNode(Node):
             "terrain_damping_ns_per_m": declare(self, "terrain_damping_ns_per_m", 400.0,
                                                 "[N s/m] c3WBC damping when fixed or not estimated", low=0.0,
                                                 high=1e6),
+            "wait_for_footholds": declare(self, "wait_for_footholds", False,
+                                          "a tick waits for the vfa's answer to the previous tick's gait state "
+                                          "(needs vfa answer_every_gait_state; lockstep: deterministic)"),
+            "body_pose_period_s": declare(self, "body_pose_period_s", 0.0,
+                                          "[s] > 0: a tick waits for the vpa's answers, one every this much gait "
+                                          "time (its update_period_s; lockstep: deterministic); 0: no wait",
+                                          low=0.0, high=10.0),
             "wait_for_impedance": declare(self, "wait_for_impedance", True,
                                           "c3WBC on the tce: a tick waits for the TCE's answer to the previous "
                                           "tick (up to max_defer_s on the wall clock; lockstep: deterministic)"),
@@ -397,6 +408,28 @@ class WbcNode(Node):
         if late:
             self.get_logger().warn(f"cmd_vel_stamped for {stamp * 1e-9:.3f} s arrived after its tick "
                                    f"({self.command_input.late} late)", throttle_duration_sec=1.0)
+
+    @staticmethod
+    def _waited_inputs(p: dict) -> tuple[str, ...]:
+        waited = []
+        if p["wait_for_impedance"] and p["contact_model"] == "compliant" and p["impedance_source"] == "tce":
+            waited.append("impedance")
+        if p["wait_for_footholds"]:
+            waited.append("footholds")
+        if p["body_pose_period_s"] > 0.0:
+            waited.append("body_pose")
+        return tuple(waited)
+
+    def _gait_consumers_ready(self) -> bool:
+        """Every node publishing a waited footholds / body_pose_reference topic has its gait_state subscription
+        discovered (it will get the first tick's gait state), and there is one for each."""
+        listeners = {info.node_name for info in self.get_subscriptions_info_by_topic("gait_state")}
+        for name, topic in (("footholds", "footholds"), ("body_pose", "body_pose_reference")):
+            if name in self.policy.config.waited_inputs:
+                producers = {info.node_name for info in self.get_publishers_info_by_topic(topic)}
+                if not producers or not producers <= listeners:
+                    return False
+        return True
 
     def _on_footholds(self, msg: FootholdArray) -> None:
         self._act(self.policy.lagged("footholds", ns_from_stamp(msg.header.stamp), msg))

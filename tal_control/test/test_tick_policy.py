@@ -377,3 +377,35 @@ def test_the_first_tick_waits_for_a_first_answer_of_each_waited_input() -> None:
     assert step(alone, 0).tick is not None  # the deadline passed: start without it ...
     assert alone.unanswered_inputs == ("impedance",)
     assert step(alone, 4 * MS).tick is not None  # ... and no longer wait for it
+
+
+def test_a_producer_answering_every_p_of_sim_time_is_waited_for_on_its_own_grid() -> None:
+    """The VPA answers the first gait state at least 50 ms after its last answer: after its answer to 0 ms,
+    the ticks up to 52 ms wait for nothing; the tick at 56 ms waits for its answer to 52 ms."""
+    p = policy(waited_inputs=("body_pose",), waited_periods_ns=(("body_pose", 50 * MS),), gait_driven=("body_pose",))
+    assert step(p, 0).tick is not None  # gait-driven: the first tick waits for nothing (no command source wait)
+    assert step(p, 4 * MS).tick is None  # the answer to the gait state of 0 ms is not in
+    assert p.lagged("body_pose", 0, "pose@0").tick.stamp_ns == 4 * MS
+    for k in range(8, 53, 4):
+        assert step(p, k * MS).tick is not None, k
+    assert step(p, 56 * MS).tick is None
+    late = p.lagged("body_pose", 52 * MS, "pose@52")
+    assert late.tick is not None and late.tick.inputs == (("body_pose", "pose@52"),)
+
+
+def test_the_first_tick_waits_for_gait_driven_producers_to_be_discovered() -> None:
+    clock, ready = FakeClock(), [False]
+    p = WbcTickPolicy(TickPolicyConfig(period_ns=PERIOD, command_source_wait_s=5.0, waited_inputs=("footholds",),
+                                       gait_driven=("footholds",)),
+                      VelocityCommandInput(1.0, 1.0), clock=clock, producers_ready=lambda: ready[0])
+    assert step(p, 0).tick is None
+    ready[0] = True
+    assert step(p, 0).tick is not None  # the re-sent initial state: now the vfa listens
+    assert step(p, 4 * MS).tick is None  # ... and its answer to 0 ms is awaited
+    never = WbcTickPolicy(TickPolicyConfig(period_ns=PERIOD, command_source_wait_s=5.0, waited_inputs=("footholds",),
+                                           gait_driven=("footholds",)),
+                          VelocityCommandInput(1.0, 1.0), clock=clock, producers_ready=lambda: False)
+    assert step(never, 0).tick is None
+    clock.now_s += 6.0
+    assert step(never, 0).tick is not None and never.unanswered_inputs == ("footholds",)
+    assert step(never, 4 * MS).tick is not None

@@ -2,7 +2,8 @@
 
 Subscribes: ``gait_state`` (tal_msgs/GaitState, from the wbc), ``terrain/heightmap`` (tal_msgs/HeightMap).
 Publishes: ``footholds`` (tal_msgs/FootholdArray: the new or changed decisions of one gait-state tick,
-header stamp = that gait state's stamp, frame "world"; nothing when there is no news) and
+header stamp = that gait state's stamp, frame "world"; nothing when there is no news, or with
+answer_every_gait_state an empty array, so that a wbc can wait for the answer to each tick) and
 ``vfa/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s`` of node time:
 decisions by status and trigger, rejections by reason, selection time median/max).
 
@@ -10,7 +11,10 @@ The selection runs in the gait-state callback (the exact lazy selection took a m
 swinging leg in the closed loop on this loaded machine, at most ~13 ms; it is measured and reported).
 Bad input (NaN, wrong array sizes, wrong frame, stamps
 going backwards) is rejected, counted by reason and logged at most once per second; it never stops
-the node. A heightmap with the stamp of the one in use is a duplicate: ignored, counted apart. A clock
+the node. A heightmap comes into use at the first gait state ``map_lag_s`` (one control period) after its
+stamp (``tal_core.ticks.StampedInbox``: one stamped with the tick itself may arrive before or after that
+tick's gait state, so lockstep runs repeat themselves). A heightmap with the stamp of the one in use is a
+duplicate: ignored, counted apart. A clock
 that jumps back by more than 0.5 s (a restarted simulation) restarts the planner. A missing or stale
 map, or a patch without a safe candidate, publishes the nominal foothold with ``safe_candidate_found``
 false (see ``vfa_planner``).
@@ -30,6 +34,7 @@ from tal_core.heightmap import HeightMapGrid
 from tal_core.robot_model import RobotModel
 from tal_core.ros.conversions import heightmap_grid
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
+from tal_core.ticks import CLOCK_RESET_NS, StampedInbox
 from tal_msgs.msg import Foothold, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
@@ -113,6 +118,13 @@ class VfaNode(Node):
                                         "lower than now (the way down stairs)"))
         self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
                                             "clock: sim time with use_sim_time)", low=0.05, high=60.0)
+        self.answer_every_gait_state = declare(self, "answer_every_gait_state", False,
+                                               "publish an (empty) footholds answer to every gait state "
+                                               "(a wbc with wait_for_footholds waits for it)")
+        map_lag_s = declare(self, "map_lag_s", 0.004, "[s] a heightmap is used from the first gait state this "
+                            "long after its stamp (the control period)", low=0.0, high=1.0)
+        self.maps_inbox = StampedInbox(round(map_lag_s * 1e9))
+        self._newest_map_ns: int | None = None
         self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
                                     "('' = none)",
                                     on_change=lambda value: setattr(self, "summary_path", value))
@@ -127,6 +139,7 @@ class VfaNode(Node):
         self.duplicate_maps = 0
         self.published_messages = 0
         self.published_footholds = 0
+        self.empty_answers = 0
 
         self.pub_footholds = self.create_publisher(FootholdArray, "footholds", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "vfa/diagnostics", 10)
@@ -144,16 +157,34 @@ class VfaNode(Node):
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
-            fresh = self.planner.set_map(*grid_from_message(msg))
+            grid, stamp_s = grid_from_message(msg)
         except VfaInputError as exc:
             self._reject(exc.reason, str(exc))
             return
-        if fresh:
-            self.maps += 1
-        else:
-            self.duplicate_maps += 1  # the simulator repeats its first sample until the wbc answers
+        stamp_ns = ns_from_stamp(msg.header.stamp)
+        newest = self._newest_map_ns
+        if newest is not None and stamp_ns < newest and stamp_ns + CLOCK_RESET_NS >= newest:
+            self._reject("heightmap_out_of_order", f"heightmap stamp {stamp_ns * 1e-9:.6f} s is before the "
+                         f"newest one's {newest * 1e-9:.6f} s")
+            return
+        self._newest_map_ns = stamp_ns
+        self.maps_inbox.add(stamp_ns, (grid, stamp_s))
+
+    def _use_maps(self, stamp_ns: int) -> None:
+        """The heightmaps due at the gait state stamped ``stamp_ns``, oldest first."""
+        for _, (grid, stamp_s) in self.maps_inbox.due(stamp_ns):
+            try:
+                fresh = self.planner.set_map(grid, stamp_s)
+            except VfaInputError as exc:
+                self._reject(exc.reason, str(exc))
+                continue
+            if fresh:
+                self.maps += 1
+            else:
+                self.duplicate_maps += 1  # the simulator repeats its first sample until the wbc answers
 
     def _on_gait_state(self, msg: GaitState) -> None:
+        self._use_maps(ns_from_stamp(msg.header.stamp))
         try:
             decisions = self.planner.update(gait_snapshot_from_message(msg))
         except VfaInputError as exc:
@@ -165,13 +196,14 @@ class VfaNode(Node):
         self.gait_states += 1
         for decision in decisions:
             self._note(decision)
-        if not decisions:
+        if not decisions and not self.answer_every_gait_state:
             return
         out = FootholdArray(footholds=[foothold_message(d) for d in decisions])
         out.header.stamp = msg.header.stamp
         out.header.frame_id = FRAME
         self.pub_footholds.publish(out)
-        self.published_messages += 1
+        self.published_messages += 1 if decisions else 0
+        self.empty_answers += 0 if decisions else 1
         self.published_footholds += len(decisions)
 
     def _note(self, decision: FootholdDecision) -> None:
@@ -193,6 +225,7 @@ class VfaNode(Node):
             "selector": self.selector_name, "gait_states": self.gait_states, "heightmaps": self.maps,
             "duplicate_heightmaps": self.duplicate_maps,
             "published_messages": self.published_messages, "published_footholds": self.published_footholds,
+            "empty_answers": self.empty_answers,
             **{f"decisions_{k}": v for k, v in c.by_status.items()},
             **{f"trigger_{k}": v for k, v in c.by_trigger.items()},
             "adapted": c.adapted, "late_swings": c.late_swings, "restarts": c.restarts, "kept": c.kept,

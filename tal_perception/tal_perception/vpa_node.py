@@ -14,11 +14,14 @@ The update runs in the gait-state callback: with the CNN it took a median of 15.
 ``update_period_s`` >= 0.25 (the thesis ran it at 5 Hz). Bad input (NaN, wrong sizes, wrong frame,
 stamps going backwards) is rejected, counted by reason and logged at most once per second; it never
 stops the node. A missing or stale map holds the default pose (nominal height, level), flagged with
-``optimal`` false and counted.
+``optimal`` false and counted. Heightmaps and footholds come into use at the first update ``input_lag_s``
+(one control period) after their stamp (``tal_core.ticks.StampedInbox``), so that lockstep runs repeat
+themselves.
 """
 
 from __future__ import annotations
 
+import math
 from collections import Counter, deque
 
 import numpy as np
@@ -27,9 +30,11 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 
 from tal_core.errors import InputError
+from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.ros.cdr import subscribe_stamped
-from tal_core.ros.node_utils import declare, run_node, write_summary
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
+from tal_core.ticks import StampedInbox
 from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
@@ -76,6 +81,9 @@ class VpaNode(Node):
                              "(0: the robot's nominal height)", low=0.0, high=2.0)
         self.diagnostics_period_s = declare(self, "diagnostics_period_s", 1.0, "[s] diagnostics period (node "
                                             "clock)", low=0.05, high=60.0)
+        input_lag = round(declare(self, "input_lag_s", 0.004, "[s] a heightmap or foothold is used from the first "
+                                  "update this long after its stamp (the control period)", low=0.0, high=1.0) * 1e9)
+        self.maps_inbox, self.footholds_inbox = StampedInbox(input_lag), StampedInbox(input_lag)
         self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
                                     "('' = none)",
                                     on_change=lambda value: setattr(self, "summary_path", value))
@@ -113,19 +121,36 @@ class VpaNode(Node):
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
-            self.planner.set_map(*grid_from_message(msg))
+            grid, stamp_s = grid_from_message(msg)
         except VfaInputError as exc:
             self._reject(exc.reason, str(exc))
+            return
+        self.maps_inbox.add(ns_from_stamp(msg.header.stamp), (grid, stamp_s))
 
     def _on_footholds(self, msg: FootholdArray) -> None:
+        valid = []
         for foothold in msg.footholds:
+            point = (foothold.selected.x, foothold.selected.y, foothold.selected.z)
+            if 0 <= foothold.leg < NUM_LEGS and all(math.isfinite(v) for v in point):
+                valid.append((int(foothold.leg), point))
+            else:
+                self._reject("foothold_invalid", f"foothold of leg {foothold.leg} at {point} (legs 0-3, finite [m])")
+        if valid:  # a vfa answering every gait state sends empty arrays too
+            self.footholds_inbox.add(ns_from_stamp(msg.header.stamp), valid)
+
+    def _use_inputs(self, stamp_ns: int) -> None:
+        """The heightmaps and footholds due at the gait state stamped ``stamp_ns``, oldest first."""
+        for _, (grid, stamp_s) in self.maps_inbox.due(stamp_ns):
             try:
-                self.planner.set_foothold(foothold.leg, (foothold.selected.x, foothold.selected.y,
-                                                         foothold.selected.z))
+                self.planner.set_map(grid, stamp_s)
             except VfaInputError as exc:
                 self._reject(exc.reason, str(exc))
+        for _, footholds in self.footholds_inbox.due(stamp_ns):
+            for leg, point in footholds:
+                self.planner.set_foothold(leg, point)
 
     def _on_gait_state(self, msg: GaitState) -> None:
+        self._use_inputs(ns_from_stamp(msg.header.stamp))
         try:
             snapshot = gait_snapshot_from_message(msg)
             targets = np.array([[p.x, p.y, p.z] for p in msg.target_foothold], dtype=float)
