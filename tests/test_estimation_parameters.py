@@ -36,6 +36,9 @@ class Caught:
     def publish(self, msg) -> None:
         self.messages.append(deserialize_message(msg, self.msg_type) if isinstance(msg, bytes) else msg)
 
+    def get_subscription_count(self) -> int:
+        return 1  # a listener: outputs built only for one are built
+
 
 def set_one(node, name: str, value):
     return node.set_parameters([Parameter(name, value=value)])[0]

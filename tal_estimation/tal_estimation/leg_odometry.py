@@ -16,7 +16,12 @@ rises with a Kelvin-Voigt ground F_n = K p + D dp/dt whose K and D come from the
 normal force the penetration obeys D dp/dt = F_n - K p, integrated exactly per interval (stable for any
 K/D) from p = 0 at touchdown, so v_foot = -(dp/dt) n; the legs are averaged with a continuous contact
 probability (a smoothstep of the normal force) instead of the binary threshold, so the loading
-and unloading phases neither chatter nor vanish. A leg without a valid impedance is treated as rigid.
+and unloading phases neither chatter nor vanish. A leg without a valid impedance is treated as rigid, and so
+is a leg whose impedance the TCE is not confident in (below ``min_confidence``) or reports as rigid (a
+lower bound on the stiffness, not a value): sinking is modelled only from a trusted soft-ground fit.
+Why: on graph_tour's rigid ground the odometry sank modelled feet by F / K from the TCE's rigid lower bound
+(~1e5 N/m, 3-4 mm a stance), the TCE, running on the estimate, read the lowered base as deeper penetration
+and fitted softer ground, and the loop ran away to ~400 N/m and -0.5 m of z per m walked (replay, measured).
 """
 
 from __future__ import annotations
@@ -46,7 +51,9 @@ class LegOdometrySettings:
     the modelled sinking or rising speed of a stance foot. min_stiffness_n_per_m: a stiffness below it is
     implausible for ground that carries the robot (an unconverged or clamped TCE fit) and the leg is
     treated as on rigid ground; max_penetration_m: bound on the modelled sinking of one foot (a wrong
-    stiffness must not sink the estimate by metres per step)."""
+    stiffness must not sink the estimate by metres per step). min_confidence [-]: a leg whose impedance
+    confidence (the TCE's fill ratio x R^2, zero for an inconsistent window) is below it is treated as on
+    rigid ground (as the c3WBC's ImpedanceGate, which adopts an estimate from 0.1 on)."""
 
     mode: str = "rigid"
     contact_threshold_weight_fraction: float = 0.1
@@ -57,6 +64,7 @@ class LegOdometrySettings:
     max_penetration_rate_m_s: float = 2.0
     min_stiffness_n_per_m: float = 500.0
     max_penetration_m: float = 0.3
+    min_confidence: float = 0.1
 
     def __post_init__(self) -> None:
         if self.mode not in LEG_ODOMETRY_MODES:
@@ -65,17 +73,33 @@ class LegOdometrySettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 < value < 1.0):
                 raise InputError(f"LegOdometrySettings.{name} must be in (0, 1), got {value!r}")
+        if not (math.isfinite(self.min_confidence) and 0.0 <= self.min_confidence <= 1.0):
+            raise InputError(f"LegOdometrySettings.min_confidence must be in [0, 1], got {self.min_confidence!r}")
 
 
 @dataclass(frozen=True)
 class LegImpedance:
     """Per-leg Kelvin-Voigt ground along the contact normal: stiffness [N/m], damping [N s/m], unit normal
-    (world frame), valid flags. Shapes (4,), (4,), (4, 3), (4,)."""
+    (world frame), valid flags. Shapes (4,), (4,), (4, 3), (4,). Optional, (4,) each: confidence [0, 1] of
+    the TCE (None: fully confident) and rigid flags (the stiffness is a lower bound: ground at least that
+    stiff; None: none)."""
 
     stiffness_n_per_m: np.ndarray
     damping_ns_per_m: np.ndarray
     normal: np.ndarray
     valid: np.ndarray
+    confidence: np.ndarray | None = None
+    rigid: np.ndarray | None = None
+
+    def usable(self, min_confidence: float) -> np.ndarray:
+        """(4,) bool: legs whose impedance is a soft-ground fit to model sinking with (valid, confident,
+        not a rigid lower bound)."""
+        use = np.asarray(self.valid, dtype=bool).copy()
+        if self.confidence is not None:
+            use &= np.asarray(self.confidence, dtype=float) >= min_confidence
+        if self.rigid is not None:
+            use &= ~np.asarray(self.rigid, dtype=bool)
+        return use
 
 
 @dataclass(frozen=True)
@@ -201,9 +225,10 @@ class LegOdometry:
         swing = probability < self.settings.swing_probability
         self.penetration[swing] = 0.0
         if impedance is not None and dt > 0.0:
+            usable = impedance.usable(self.settings.min_confidence)
             for leg in range(NUM_LEGS):
                 k, d = float(impedance.stiffness_n_per_m[leg]), float(impedance.damping_ns_per_m[leg])
-                if (swing[leg] or not impedance.valid[leg] or not (math.isfinite(d) and d >= 0.0)
+                if (swing[leg] or not usable[leg] or not (math.isfinite(d) and d >= 0.0)
                         or not k >= self.settings.min_stiffness_n_per_m):
                     self.penetration[leg] = 0.0
                     continue

@@ -102,4 +102,5 @@ class ImpedanceWriter:
         t.field("confidence")[:] = [e.confidence for e in est]
         t.field("samples")[:] = [e.samples for e in est]
         t.field("valid")[:] = [e.valid for e in est]
+        t.field("rigid")[:] = [e.rigid for e in est]
         return t.data()

@@ -319,8 +319,12 @@ class MotionCompensatedGravity:
 
 
 def legs_from_impedance_arrays(stiffness: np.ndarray, damping: np.ndarray, valid: np.ndarray,
-                               normal: np.ndarray | None = None) -> LegImpedance:
-    """LegImpedance from per-leg arrays (normal defaults to world z)."""
+                               normal: np.ndarray | None = None, confidence: np.ndarray | None = None,
+                               rigid: np.ndarray | None = None) -> LegImpedance:
+    """LegImpedance from per-leg arrays (normal defaults to world z; confidence and rigid flags, the TCE's,
+    are optional: see LegImpedance)."""
     normals = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1)) if normal is None else np.asarray(normal, float)
     return LegImpedance(np.asarray(stiffness, float), np.asarray(damping, float), normals,
-                        np.asarray(valid, bool) & np.isfinite(stiffness) & np.isfinite(damping))
+                        np.asarray(valid, bool) & np.isfinite(stiffness) & np.isfinite(damping),
+                        None if confidence is None else np.nan_to_num(np.asarray(confidence, float), nan=0.0),
+                        None if rigid is None else np.asarray(rigid, bool))

@@ -201,7 +201,10 @@ class StateEstimatorNode(Node):
             self._reject("terrain_impedance", "normals must be finite unit vectors")
             return
         valid = np.array(msg.valid, bool) & np.isfinite(k) & np.isfinite(d) & (k > 0) & (d > 0)
-        self.stream.impedance = LegImpedance(k, d, normals / norms[:, None], valid)
+        # The odometry models sinking only from a confident soft-ground fit (not from a rigid lower bound).
+        confidence = np.nan_to_num(np.array(msg.confidence, float), nan=0.0)
+        self.stream.impedance = LegImpedance(k, d, normals / norms[:, None], valid, confidence,
+                                             np.array(msg.rigid, bool))
 
     def _on_imu(self, msg: Imu) -> None:
         f = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])

@@ -380,3 +380,24 @@ def test_an_implausibly_soft_stiffness_is_ignored_and_the_sinking_is_bounded() -
     np.testing.assert_allclose(out.penetration, 0.1)
     # At the cap the modelled foot neither sinks nor (sunk deeper than its radius) rolls.
     np.testing.assert_allclose(out.foot_velocity, 0.0, atol=1e-12)
+
+
+def test_unconfident_or_rigid_impedance_models_no_sinking() -> None:
+    """The TCE's confidence and rigid flag gate the sinking model: on graph_tour the odometry sank feet by
+    F / K from the TCE's rigid lower bound (~1e5 N/m) and from unconfident soft fits, and the estimate ran
+    away (replay: -0.5 m of z per m on rigid ground). Legs 0 (confidence below min_confidence) and 1
+    (flagged rigid) are treated as rigid; leg 2 (confident) and leg 3 (no confidence given) sink."""
+    model, qj, sample = standing_on_four_feet()
+    impedance = LegImpedance(np.full(4, 1e4), np.full(4, 3e3), np.tile([0.0, 0.0, 1.0], (4, 1)), np.ones(4, bool),
+                             confidence=np.array([0.05, 0.9, 0.9, 1.0]), rigid=np.array([False, True, False, False]))
+    settings = LegOdometrySettings(mode="terrain_aware", use_leg_inertia=False, min_confidence=0.1)
+    odometry = LegOdometry(model, settings)
+    for _ in range(3):
+        out = odometry.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, sample.tau, impedance=impedance)
+    np.testing.assert_array_equal(out.penetration[:2], 0.0)
+    np.testing.assert_allclose(out.foot_velocity[:2], sample.centre_velocity[:2], atol=1e-9)
+    assert np.all(out.penetration[2:] > 0.0)
+    assert np.all(out.foot_velocity[2:, 2] - sample.centre_velocity[2:, 2] < -1e-3)  # sinking
+    np.testing.assert_array_equal(impedance.usable(0.1), [False, False, True, True])
+    with pytest.raises(InputError, match="min_confidence"):
+        LegOdometrySettings(min_confidence=1.5)

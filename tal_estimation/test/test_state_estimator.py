@@ -302,6 +302,12 @@ def test_legs_from_impedance_arrays() -> None:
     normal = np.tile([0.0, 0.6, 0.8], (4, 1))
     np.testing.assert_array_equal(legs_from_impedance_arrays(np.ones(4), np.ones(4), np.ones(4), normal).normal,
                                   normal)
+    assert impedance.confidence is None and impedance.rigid is None
+    gated = legs_from_impedance_arrays(np.full(4, 8e3), np.full(4, 300.0), np.ones(4, bool),
+                                       confidence=np.array([0.9, 0.05, np.nan, 0.9]),
+                                       rigid=np.array([False, False, False, True]))
+    np.testing.assert_array_equal(gated.confidence, [0.9, 0.05, 0.0, 0.9])
+    np.testing.assert_array_equal(gated.usable(0.1), [True, False, False, False])
 
 
 # --------------------------------------------------------------------------------------------------------

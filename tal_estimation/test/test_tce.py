@@ -267,3 +267,50 @@ def test_finite_difference_accelerations_skip_gaps() -> None:
     np.testing.assert_allclose(acc.update(0.004, np.array([0.004, 0.0, -0.008])), [1.0, 0.0, -2.0])
     assert acc.update(0.020, np.ones(3)) is None          # a skipped tick: no difference across the gap
     assert acc.update(0.010, np.ones(3)) is None          # out of order
+
+
+def offset_stances(k: float, offsets: list[float], n: int = 60, noise_n: float = 2.0, seed: int = 0):
+    """Stances from touchdown (p = 0) to lift-off on a Kelvin-Voigt ground of stiffness k, the force a half
+    sine to 400 N, every penetration of stance i read ``offsets[i]`` too deep (a base-height or map error)."""
+    rng = np.random.default_rng(seed)
+    s = np.sin(np.pi * np.arange(n) / (n - 1))
+    force = np.concatenate([400.0 * s + rng.normal(0.0, noise_n, n) for _ in offsets])
+    pen = np.concatenate([400.0 * s / k + off for off in offsets])
+    rate = np.concatenate([np.gradient(400.0 * s / k, 0.004) for _ in offsets])
+    return force, pen, rate
+
+
+def test_a_window_with_offset_penetrations_is_not_confident() -> None:
+    """A TCE on a base estimate 2 cm too low reads every penetration 2 cm too deep: the fit through the
+    origin gives 2841 N/m on 3500 N/m ground, and the thesis' confidence (fill x R^2) was 0.92. The offset
+    fit finds the 2 cm and the estimate is not confident; without the offset it is, and accurate."""
+    for offset, confident in ((0.02, False), (0.0, True)):
+        fit = WindowedKelvinVoigtFit(TceSettings(window=250, min_samples=50))
+        for f, p, r in zip(*offset_stances(3500.0, [offset] * 4)):
+            fit.add(f, p, r)
+        estimate = fit.fit()
+        assert estimate.penetration_offset_m == pytest.approx(offset, abs=1e-3)
+        assert (estimate.confidence >= 0.5) is confident, estimate
+        if confident:
+            assert estimate.stiffness_n_per_m == pytest.approx(3500.0, rel=0.01)
+
+
+def test_a_drifting_base_over_rigid_ground_gives_no_confident_soft_estimate() -> None:
+    """Rigid ground (2e6 N/m) under a base estimate sinking 3 mm a stance (the terrain-aware odometry's
+    runaway on graph_tour): the window reads ~1.5e4 N/m, which must not be confident."""
+    fit = WindowedKelvinVoigtFit(TceSettings(window=250, min_samples=50))
+    for f, p, r in zip(*offset_stances(2e6, [0.010, 0.013, 0.016, 0.019])):
+        fit.add(f, p, r)
+    estimate = fit.fit()
+    assert estimate.stiffness_n_per_m < 5e4 and not estimate.rigid
+    assert estimate.confidence < 0.1
+
+
+def test_the_offset_check_can_be_disabled() -> None:
+    fit = WindowedKelvinVoigtFit(TceSettings(window=250, min_samples=50, max_penetration_offset_m=float("inf")))
+    for f, p, r in zip(*offset_stances(3500.0, [0.02] * 4)):
+        fit.add(f, p, r)
+    estimate = fit.fit()
+    assert estimate.confidence > 0.5 and estimate.penetration_offset_m == 0.0
+    with pytest.raises(InputError):
+        TceSettings(max_penetration_offset_m=-0.01)

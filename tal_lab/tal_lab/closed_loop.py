@@ -370,7 +370,8 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                     impedance = impedance_gate.update(tce_k, tce_d, tce_tick.valid, tce_conf)
                     if estimated is not None:
                         estimated.stream.impedance = legs_from_impedance_arrays(
-                            tce_k, tce_d, tce_tick.valid, np.array([normal_fn(*c.position_m[:2]) for c in contacts]))
+                            tce_k, tce_d, tce_tick.valid, np.array([normal_fn(*c.position_m[:2]) for c in contacts]),
+                            confidence=tce_conf, rigid=np.array([e.rigid for e in tce_tick.estimates]))
                 touching = (np.array([c.in_contact for c in contacts], dtype=bool)
                             if config.contact_feedback else None)
                 out = controller.tick(

@@ -98,7 +98,7 @@ def tce_impedance(recording: Recording, model: RobotModel, period_s: float = 0.0
     driver.set_terrain(lambda x, y: 0.0)
     sensors = recording.sensors
     decimation = max(1, round(period_s / float(np.median(np.diff(sensors.t)))))
-    times, stiffness, damping, valid = [], [], [], []
+    times, stiffness, damping, valid, confidence, rigid = [], [], [], [], [], []
     for i in range(0, len(sensors.t), decimation):
         world_R_base = rotation_from_quat_xyzw(recording.true_quat[i])
         base = BaseState(recording.true_position[i], recording.true_quat[i], recording.true_velocity[i],
@@ -109,11 +109,14 @@ def tce_impedance(recording: Recording, model: RobotModel, period_s: float = 0.0
         stiffness.append(tick.stiffness_n_per_m)
         damping.append(tick.damping_ns_per_m)
         valid.append(tick.valid)
+        confidence.append(tick.confidence)
+        rigid.append([e.rigid for e in tick.estimates])
     times_a, k_a, d_a, valid_a = np.array(times), np.array(stiffness), np.array(damping), np.array(valid)
+    confidence_a, rigid_a = np.array(confidence), np.array(rigid, dtype=bool)
 
     def at(t: float) -> LegImpedance:
         j = max(0, int(np.searchsorted(times_a, t + 1e-9)) - 1)
-        return legs_from_impedance_arrays(k_a[j], d_a[j], valid_a[j])
+        return legs_from_impedance_arrays(k_a[j], d_a[j], valid_a[j], confidence=confidence_a[j], rigid=rigid_a[j])
 
     return at, (times_a, k_a)
 

@@ -2,15 +2,19 @@
 faster than real time, and write a report.
 
     python -m tal_lab.estimation_replay BAG [--out DIR] [--leg-odometry rigid|terrain_aware] [--robot hyq]
+        [--course NAME|PATH|flat] [--tce-base estimate|ground_truth]
 
 Reads ``/joint_states`` and ``/imu``, ``/ground_truth/odom`` (initial pose and the errors, when the bag has
 it) and ``/state_estimate`` (the estimate the live graph published, to compare with). The messages go in
 bag order through the nodes' own timing (tal_estimation.streaming and tal_estimation.tce_driver), so the
 estimator ticks, pairs samples by stamp and rejects input exactly as the ``state_estimator`` node does. The
 estimator starts at the bag's first ground truth if it comes before the first tick, else standing at the
-origin. The TCE runs on the replayed estimate over flat ground (causal: its impedance reaches the
-terrain-aware leg odometry at the next tick). Everything is streamed: memory does not grow with the bag's
-length (plots use 20 Hz series).
+origin. The TCE runs on the replayed estimate (``--tce-base estimate``) or, as the live graph's ``tce`` node
+by default (the thesis' motion capture), on the bag's ground truth (``--tce-base ground_truth``), over the
+course's undeformed surface (``--course``; by default the course in the run's bridge_summary.json next to the
+bag, else flat ground at z = 0) (causal: its impedance reaches the terrain-aware leg odometry at the next
+tick). With a course and ground truth the report has the drift per course section (``section_drift``).
+Everything is streamed: memory does not grow with the bag's length (plots use 20 Hz series).
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ from tal_core.legs import LEGS, NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.ros.bag_io import BagReader
 from tal_core.rotations import rotation_from_quat_xyzw
+from tal_core.state import BaseState
+from tal_core.terrain import Course, load_course
 from tal_estimation.drift_statistics import DriftStatistics
 from tal_estimation.leg_odometry import LegOdometrySettings
 from tal_estimation.messages import joint_state_arrays
@@ -36,7 +42,10 @@ from tal_estimation.state_estimator import StateEstimatorSettings, legs_from_imp
 from tal_estimation.streaming import EstimatorOutput, StreamingEstimator
 from tal_estimation.tce_driver import TceDriver
 
+from .section_drift import SectionDrift, format_section_table
+
 LOG = logging.getLogger("tal_lab.estimation_replay")
+TCE_BASES = ("estimate", "ground_truth")
 MATCH_WINDOW_NS = 20_000_000     # [ns] an estimate, truth or live sample unmatched for this long is dropped
 PLOT_PERIOD_NS = 50_000_000      # [ns] plot series decimation (20 Hz)
 
@@ -55,15 +64,25 @@ def _stamp(msg) -> int:
 class BagReplay:
     """Streams a bag through the estimator (and TCE); see the module docstring."""
 
-    def __init__(self, model: RobotModel, leg_odometry: str = "rigid", run_tce: bool = True) -> None:
+    def __init__(self, model: RobotModel, leg_odometry: str = "rigid", run_tce: bool = True,
+                 tce_base: str = "estimate", course: Course | None = None) -> None:
+        if tce_base not in TCE_BASES:
+            raise ValueError(f"tce_base must be one of {TCE_BASES}, got {tce_base!r}")
         self.model = model
+        self.tce_base = tce_base
+        self.course = course
         self.joint_index = {name: i for i, name in enumerate(model.description.joint_names)}
         self.settings = StateEstimatorSettings(leg_odometry=LegOdometrySettings(mode=leg_odometry))
         self.stream = StreamingEstimator(model, self.settings)
         self.tce: TceDriver | None = None
         if run_tce:
             self.tce = TceDriver(model, period_s=self.settings.period_s)
-            self.tce.set_terrain(lambda x, y: 0.0)
+            if course is None:
+                self.tce.set_terrain(lambda x, y: 0.0)
+            else:
+                self.tce.set_terrain(course.height, course.normal)
+        self.sections = SectionDrift(course.patch_at) if course is not None else None
+        self._section_offset: np.ndarray | None = None
         self._truth: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._live: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._estimates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -99,6 +118,11 @@ class BagReplay:
         elif topic == "/ground_truth/odom":
             stamp = _stamp(msg)
             position, rotation, velocity = _odometry_state(msg)
+            if self.tce is not None and self.tce_base == "ground_truth":
+                w = msg.twist.twist.angular
+                o = msg.pose.pose.orientation
+                self.tce.set_base(stamp, BaseState(position, np.array([o.x, o.y, o.z, o.w]), velocity,
+                                                   rotation @ np.array([w.x, w.y, w.z])))
             self._outputs(self.stream.set_initial_pose(position, rotation))
             self._truth[stamp] = (position, velocity)
             self._match(stamp)
@@ -116,11 +140,13 @@ class BagReplay:
         stamp, e = out.stamp_ns, out.estimate
         assert e is not None and out.joints is not None
         if self.tce is not None:
-            self.tce.set_base(stamp, e.base_state)
+            if self.tce_base == "estimate":
+                self.tce.set_base(stamp, e.base_state)
             tick = self.tce.add_joints(stamp, lambda: out.joints)
             if tick is not None:
-                self.stream.impedance = legs_from_impedance_arrays(tick.stiffness_n_per_m, tick.damping_ns_per_m,
-                                                                   tick.valid)
+                self.stream.impedance = legs_from_impedance_arrays(
+                    tick.stiffness_n_per_m, tick.damping_ns_per_m, tick.valid, confidence=tick.confidence,
+                    rigid=np.array([e.rigid for e in tick.estimates]))
         if stamp >= self._next_plot_ns:
             self._next_plot_ns = stamp + PLOT_PERIOD_NS
             truth = self._truth.get(stamp)
@@ -143,6 +169,11 @@ class BagReplay:
         truth = self._truth.pop(stamp, None) if stamp in self._truth else None
         if truth is not None:
             self.vs_truth.add(stamp * 1e-9, estimate[0] - truth[0], estimate[1] - truth[1])
+            if self.sections is not None:
+                error = estimate[0] - truth[0]
+                if self._section_offset is None:
+                    self._section_offset = error  # start aligned, as vs_truth
+                self.sections.add(stamp * 1e-9, truth[0], error - self._section_offset)
         live = self._live.pop(stamp, None)
         if live is not None:
             self.vs_live.add(stamp * 1e-9, estimate[0] - live[0], estimate[1] - live[1])
@@ -157,6 +188,9 @@ class BagReplay:
         estimates = self.tce.tce.estimates if self.tce is not None else []
         return {
             "counts": self.counts, "leg_odometry": self.settings.leg_odometry.mode,
+            "tce_base": self.tce_base if self.tce is not None else None,
+            "course": self.course.name if self.course is not None else None,
+            "sections": self.sections.summary() if self.sections is not None else [],
             "vs_ground_truth": self.vs_truth.summary(), "vs_live_estimate": self.vs_live.summary(),
             "tce_final_stiffness_n_per_m": {leg.name: (round(e.stiffness_n_per_m, 1) if math.isfinite(
                 e.stiffness_n_per_m) else None) for leg, e in zip(LEGS, estimates)},
@@ -164,10 +198,11 @@ class BagReplay:
 
 
 def replay_bag(bag: str | Path, model: RobotModel, *, leg_odometry: str = "rigid", run_tce: bool = True,
-               progress: bool = False) -> tuple[BagReplay, dict[str, object]]:
+               progress: bool = False, tce_base: str = "estimate",
+               course: Course | None = None) -> tuple[BagReplay, dict[str, object]]:
     """Replay ``bag`` and return the replay (with its plot series) and its summary."""
     reader = BagReader(bag)
-    replay = BagReplay(model, leg_odometry, run_tce)
+    replay = BagReplay(model, leg_odometry, run_tce, tce_base, course)
     topics = ("/joint_states", "/imu", "/ground_truth/odom", "/state_estimate")
     wall = time.perf_counter()
     last_report = wall
@@ -203,9 +238,15 @@ def write_report(replay: BagReplay, summary: dict[str, object], out: Path) -> No
                 lines.append(f"| {label} | " + " | ".join(f"{v:+.3g}" for v in errors[name]) + " |")
             lines.append(f"\nMax abs difference: position {errors['max_abs_position_m']:.3g} m, velocity "
                          f"{errors['max_abs_velocity_m_s']:.3g} m/s over {errors['samples']} ticks.\n")
+    if summary.get("sections"):
+        lines += ["## Drift per course section (against ground truth)", "",
+                  f"Course {summary['course']}: sections by the ground-truth base position; each section's drift is "
+                  "the change of the start-aligned error over it (they add up to the final drift).", ""]
+        lines += format_section_table(summary["sections"]) + [""]
     stiffness = summary["tce_final_stiffness_n_per_m"]
     if stiffness:
-        lines += ["## TCE (on the replayed estimate)", "", "| leg | stiffness [N/m] |", "|---|---|"]
+        lines += ["## TCE", "", f"Base state: {summary.get('tce_base')}; terrain: "
+                  f"{summary.get('course') or 'flat (z = 0)'}.", "", "| leg | stiffness [N/m] |", "|---|---|"]
         lines += [f"| {leg} | {k if k is not None else 'n/a'} |" for leg, k in stiffness.items()]
     if not summary["read_complete"]:
         lines += ["", f"The bag ended early: {summary['read_error']}"]
@@ -248,6 +289,18 @@ def _plot(replay: BagReplay, out: Path) -> None:
         plt.close(fig)
 
 
+def course_of_run(bag: Path) -> str | None:
+    """The course of the run a bag was recorded in (``course`` of bridge_summary.json in the bag folder's
+    parent), or None."""
+    folder = bag if bag.is_dir() else bag.parent
+    summary = folder.parent / "bridge_summary.json"
+    try:
+        course = json.loads(summary.read_text()).get("course")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return course if isinstance(course, str) and course else None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("bag", type=Path, help="bag folder or .mcap file")
@@ -255,10 +308,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--leg-odometry", choices=("rigid", "terrain_aware"), default="rigid")
     parser.add_argument("--robot", default="hyq")
     parser.add_argument("--no-tce", action="store_true", help="skip the TCE")
+    parser.add_argument("--tce-base", choices=TCE_BASES, default="estimate",
+                        help="base state of the TCE: the replayed estimate or the bag's ground truth (live default)")
+    parser.add_argument("--course", help="course name or YAML (terrain of the TCE, sections of the report); 'flat' for "
+                                         "z = 0; default: the course in the run's bridge_summary.json, else flat")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    course_name = args.course if args.course is not None else course_of_run(args.bag)
+    course = load_course(course_name) if course_name not in (None, "flat") else None
     replay, summary = replay_bag(args.bag, RobotModel.from_name(args.robot), leg_odometry=args.leg_odometry,
-                                 run_tce=not args.no_tce, progress=True)
+                                 run_tce=not args.no_tce, progress=True, tce_base=args.tce_base, course=course)
     out = args.out or (args.bag / "replay" if args.bag.is_dir() else args.bag.with_suffix(".replay"))
     write_report(replay, summary, out)
     sys.stdout.write((out / "report.md").read_text())
