@@ -21,7 +21,7 @@ from .model import SimModel
 LOG = logging.getLogger("tal.sim2real")
 
 
-def run_identify(bag: Path, model: SimModel, out: Path, closed_loop: bool = True) -> Path:
+def run_identify(bag: Path, model: SimModel, out: Path, closed_loop: bool = True, gait: str | None = None) -> Path:
     """The whole workflow on one bag; returns the report path."""
     from tal_core.robot_description import load_robot_description
 
@@ -34,12 +34,13 @@ def run_identify(bag: Path, model: SimModel, out: Path, closed_loop: bool = True
     result = identify(bag, model, data=data)
     model_path = result.updated.write_yaml(out / "model_updated.yaml")
     overlay = holdout_overlay(result, data)
-    closed = closed_loop_rerun(result, data) if closed_loop else None
+    closed = closed_loop_rerun(result, data, gait) if closed_loop else None
     path = write_report(result, out, overlay, closed, model_path)
     for f in result.named:
         LOG.info("named %s: %s", f.candidate, {k: round(v, 6) for k, v in f.values.items()})
     if not result.named:
         LOG.info("no missing effect named")
+    LOG.info("verdict: %s", result.verdict)
     return path
 
 
@@ -58,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument("--course", default="flat_rigid", help="nominal course when no --model (default flat_rigid)")
     p_id.add_argument("--out", type=Path, required=True, help="report folder")
     p_id.add_argument("--no-closed-loop", action="store_true", help="skip the closed-loop re-runs in the report")
+    p_id.add_argument(
+        "--gait", choices=("stand", "crawl", "trot"), help="gait of the closed-loop re-run (default: the recording's)"
+    )
     p_gen = sub.add_parser("generate", help="hidden-effect test bags")
     p_gen.add_argument("--out", type=Path, required=True)
     p_gen.add_argument("--count", type=int, default=30)
@@ -68,12 +72,13 @@ def main(argv: list[str] | None = None) -> int:
     p_b.add_argument("--count", type=int, default=30)
     p_b.add_argument("--seed", type=int, default=0)
     p_b.add_argument("--jobs", type=int, default=2)
+    p_b.add_argument("--out-of-library", type=int, default=3, help="datasets with an effect the library lacks")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         if args.command == "identify":
             model = SimModel.from_yaml(args.model) if args.model else SimModel.nominal(args.course)
-            print(f"report: {run_identify(args.bag, model, args.out, not args.no_closed_loop)}")
+            print(f"report: {run_identify(args.bag, model, args.out, not args.no_closed_loop, args.gait)}")
         elif args.command == "generate":
             from .hidden_effects import generate_set
 
@@ -81,7 +86,9 @@ def main(argv: list[str] | None = None) -> int:
         else:
             from .benchmark import run_benchmark
 
-            print(f"summary: {run_benchmark(args.out, args.data, args.count, args.seed, args.jobs)}")
+            print(
+                f"summary: {run_benchmark(args.out, args.data, args.count, args.seed, args.jobs, args.out_of_library)}"
+            )
     except Sim2RealError as exc:
         LOG.error("%s", exc)
         return 2

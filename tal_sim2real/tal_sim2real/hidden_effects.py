@@ -55,6 +55,11 @@ EFFECT_TYPES = (
     "payload",
     "imu_bias",
 )
+OUT_OF_LIBRARY_TYPES = ("encoder_offset", "leg_torque_sensor_gain")
+"""Effects the workflow's library lacks, applied to the recorded joint states after the run (the robot and
+its controller never see them): a constant offset of one joint's encoder [rad] (``joint``: its index), and a
+gain of one leg's three torque sensors [-] (``leg``: 0-3 as LF, RF, LH, RH). They test whether the workflow
+says that something outside its library remains, and where (the label carries the joint and the leg)."""
 
 
 @dataclass(frozen=True)
@@ -121,11 +126,21 @@ def draw_effect(kind: str, rng: np.random.Generator) -> HiddenEffect:
                 **{f"imu_accel_bias_{a}_m_s2": float(v) for a, v in zip("xyz", accel)},
             },
         )
-    raise ValueError(f"unknown effect type '{kind}'; known: {EFFECT_TYPES}")
+    if kind == "encoder_offset":
+        joint = int(rng.choice([2, 5, 8, 11]))  # a knee
+        offset = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.03, 0.08))
+        return HiddenEffect(kind, {"encoder_offset_rad": offset, "joint": float(joint)})
+    if kind == "leg_torque_sensor_gain":
+        leg = int(rng.integers(0, 4))
+        gain = float(rng.uniform(0.8, 0.9)) if rng.random() < 0.5 else float(rng.uniform(1.1, 1.2))
+        return HiddenEffect(kind, {"leg_torque_sensor_gain": gain, "leg": float(leg)})
+    raise ValueError(f"unknown effect type '{kind}'; known: {EFFECT_TYPES + OUT_OF_LIBRARY_TYPES}")
 
 
 def _scaled(effect: HiddenEffect, factor: float) -> HiddenEffect:
     """The same effect, ``factor`` of the way from nominal (used after a fall)."""
+    if effect.kind in OUT_OF_LIBRARY_TYPES:  # applied to the recording: cannot make HyQ fall
+        return effect
     nominal = SimModel.nominal().values()
     values = {}
     for name, value in effect.values.items():
@@ -156,7 +171,8 @@ def generate_hidden(
     while True:
         model = SimModel.nominal("flat_rigid")
         for effect in effects:
-            model = model.with_values(effect.values)
+            if effect.kind not in OUT_OF_LIBRARY_TYPES:
+                model = model.with_values(effect.values)
         scenario = DatasetScenario(
             name,
             "hidden-effect dataset (tal_sim2real)",
@@ -176,6 +192,9 @@ def generate_hidden(
             LOG.info("%s: %s; shrinking the effect(s)", name, exc)
             effects = [_scaled(e, 0.6) for e in effects]
             shrinks += 1
+    sensor = [e for e in effects if e.kind in OUT_OF_LIBRARY_TYPES]
+    if sensor:
+        apply_sensor_effects(bag, sensor)
     label = {
         "name": name,
         "seed": seed,
@@ -188,8 +207,50 @@ def generate_hidden(
     return bag, label_path
 
 
+def apply_sensor_effects(bag: Path, effects: list[HiddenEffect]) -> None:
+    """Rewrite ``bag`` in place with the out-of-library sensor effects applied to /joint_states (encoder
+    offset of one joint, gain of one leg's torque sensors); every other message is copied unchanged."""
+    from tal_core.ros.bag_io import BagReader, BagWriter
+
+    bag = Path(bag)
+    tmp = bag.with_name(bag.name + ".sensor_tmp")
+    if tmp.exists():
+        import shutil
+
+        shutil.rmtree(tmp)
+    reader = BagReader(bag)
+    with BagWriter(tmp) as writer:
+        for topic, type_name in reader.topics().items():
+            writer.add_topic(topic, type_name)
+        for record in reader.messages():
+            message = record.message
+            if record.topic == "/joint_states":
+                position = list(message.position)
+                effort = list(message.effort)
+                for e in effects:
+                    if e.kind == "encoder_offset":
+                        position[int(e.values["joint"])] += e.values["encoder_offset_rad"]
+                    elif e.kind == "leg_torque_sensor_gain" and effort:
+                        leg = int(e.values["leg"])
+                        for j in range(3 * leg, 3 * leg + 3):
+                            effort[j] *= e.values["leg_torque_sensor_gain"]
+                message.position = position
+                message.effort = effort
+            writer.write(record.topic, message, record.log_time_ns)
+    import shutil
+
+    shutil.rmtree(bag)
+    tmp.rename(bag)
+
+
 def _detectability(effect: HiddenEffect, bag: Path) -> dict[str, object]:
     """Whether the recorded motion excites the effect, from the simulator's record (scorer's oracle)."""
+    if effect.kind == "encoder_offset":
+        joint = load_robot_description("hyq").joint_names[int(effect.values["joint"])]
+        return {"detectable": True, "why": "", "out_of_library": True, "joint": joint, "leg": joint[:2].upper()}
+    if effect.kind == "leg_torque_sensor_gain":
+        leg = ("LF", "RF", "LH", "RH")[int(effect.values["leg"])]
+        return {"detectable": True, "why": "", "out_of_library": True, "joint": "", "leg": leg}
     if effect.kind in ("ground", "ground_nonlinear"):
         k = effect.values["ground_stiffness_n_per_m"]
         ok = k < STIFF_GROUND_N_PER_M

@@ -9,6 +9,10 @@ of ``torque_block_s`` instead: its excitation (the peak torques) changes over a 
 hold torques the identification window never reached (a torque limit seen only in the held-out part).
 
 Decisions per subsystem (torque path, IMU, dynamics):
+  * what remains (``remainder``): the held-out residual of the chosen model against a noise floor
+    re-estimated with that model; above ``remainder.REMAINDER_FACTOR`` floors the verdict is "partly
+    explained" or "not explained by the library" (never a plain "named"), localised per channel, joint,
+    leg and gait phase;
   * named: the fitted effect lowers the Bayesian information criterion by more than ``min_bic_drop`` and
     (dynamics) the validation cost by at least ``min_validation_gain``;
   * no missing effect: the nominal residual is at the noise floor (cost < ``floor_factor`` x floor);
@@ -31,6 +35,7 @@ from .library import CANDIDATES, missing_signals
 from .measured import MeasuredData, load_measured
 from .model import SimModel
 from .outcomes import Finding, Identification, Settings, SubsystemResult
+from .phases import infer_gait, leg_contacts, leg_phases
 from .subsystems import imu_subsystem, torque_path_subsystem
 
 __all__ = ["Finding", "Identification", "Settings", "SubsystemResult", "identify"]
@@ -54,6 +59,9 @@ def identify(
     ho_slice = slice(data.index_at(holdout_start), len(data.t_s))
     torque_id, torque_ho = _interleaved_blocks(data, fit_start, settings)
     available = data.signals()
+    contacts = leg_contacts(data, description, nominal)
+    phases = leg_phases(contacts, data.dt_s)
+    gait = infer_gait(contacts, data.t_s)
     findings: list[Finding] = []
     subsystems: dict[str, SubsystemResult] = {}
     values = nominal.values()
@@ -70,7 +78,7 @@ def identify(
 
     torque = [c for c in usable if c.subsystem == "torque_path"]
     if torque:
-        result, found = torque_path_subsystem(data, description, torque, torque_id, torque_ho, settings)
+        result, found = torque_path_subsystem(data, description, torque, torque_id, torque_ho, settings, phases)
         subsystems["torque_path"] = result
         findings += found
     imu = [c for c in usable if c.subsystem == "imu"]
@@ -84,7 +92,7 @@ def identify(
     dynamics = [c for c in usable if c.subsystem == "dynamics"]
     steps = 0
     if dynamics:
-        result, found, steps = dynamics_subsystem(data, description, dynamics, nominal, windows, settings)
+        result, found, steps = dynamics_subsystem(data, description, dynamics, nominal, windows, settings, phases)
         subsystems["dynamics"] = result
         findings += found
         for f in found:
@@ -103,6 +111,7 @@ def identify(
         time.perf_counter() - started,
         steps,
         dict(data.rejected),
+        gait,
     )
 
 

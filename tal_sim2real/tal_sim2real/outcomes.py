@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass, field
 
 from .model import SimModel
+from .remainder import Remainder
 
 LOG = logging.getLogger("tal.sim2real.identify")
 
@@ -60,6 +61,8 @@ class SubsystemResult:
     verdict: str = ""
     channels_before: dict[str, float] = field(default_factory=dict)
     channels_after: dict[str, float] = field(default_factory=dict)
+    floor_updated: float = math.nan  # fitting-window floor re-estimated with the chosen model
+    remainder: Remainder | None = None  # what the chosen model leaves on the held-out data, and where
 
 
 @dataclass
@@ -75,10 +78,28 @@ class Identification:
     elapsed_s: float = 0.0
     simulated_steps: int = 0
     rejected_samples: dict[str, int] = field(default_factory=dict)
+    gait: str = ""  # the gait the recording shows (phases.infer_gait)
 
     @property
     def named(self) -> list[Finding]:
         return [f for f in self.findings if f.status == "named"]
+
+    @property
+    def remainders(self) -> dict[str, Remainder]:
+        """Subsystem -> its held-out remainder (subsystems that compute one)."""
+        return {k: s.remainder for k, s in self.subsystems.items() if s.remainder is not None}
+
+    @property
+    def verdict(self) -> str:
+        """One line: "explained" when every remainder is within its threshold, otherwise "partly explained"
+        or "not explained by the library" with the subsystems concerned."""
+        flagged = {k: r for k, r in self.remainders.items() if r.flagged}
+        if not flagged:
+            return "explained to the noise floor" if self.named else "no missing effect"
+        explained_elsewhere = any(f.subsystem not in flagged for f in self.named)
+        partly = explained_elsewhere or any(r.verdict.startswith("partly") for r in flagged.values())
+        overall = "partly explained" if partly else "not explained by the library"
+        return overall + ": " + "; ".join(f"{k}: {r.verdict}" for k, r in flagged.items())
 
     def gap(self, after: bool) -> float:
         """Held-out gap: sum over subsystems of cost / noise floor (1 per subsystem at the floor)."""

@@ -13,6 +13,7 @@ from tal_core.robot_description import load_robot_description
 from .identify import Identification
 from .measured import MeasuredData, load_measured
 from .model import SimModel
+from .phases import infer_gait, leg_contacts
 from .segments import SegmentSimulator, measured_vectors, plan_segments
 
 
@@ -39,9 +40,12 @@ def holdout_overlay(result: Identification, data: MeasuredData | None = None, jo
     return out
 
 
-def closed_loop_rerun(result: Identification, data: MeasuredData | None = None) -> dict[str, np.ndarray]:
-    """The whole experiment re-run in closed loop with the nominal and the updated model; base position
-    [m] over time and its RMS error against the measured base."""
+def closed_loop_rerun(
+    result: Identification, data: MeasuredData | None = None, gait: str | None = None
+) -> dict[str, np.ndarray]:
+    """The whole experiment re-run in closed loop with the nominal and the updated model, in the gait the
+    recording shows (``gait`` overrides it; a crawl re-run as a trot would compare unlike runs); base
+    position [m] over time and its RMS error against the measured base."""
     description = load_robot_description(result.nominal.robot)
     if data is None:
         data = load_measured(result.bag, description)
@@ -51,9 +55,14 @@ def closed_loop_rerun(result: Identification, data: MeasuredData | None = None) 
         (float(t - data.t_s[0]), float(v[0]), float(v[1]), float(v[2])) for t, v in zip(data.cmd_vel_t_s, data.cmd_vel)
     ]
     compact = [commands[0]] + [c for prev, c in zip(commands, commands[1:]) if c[1:] != prev[1:]]
-    out: dict[str, np.ndarray] = {"measured_t": data.t_s - data.t_s[0], "measured_pos": data.base.position_m}
+    gait = gait or result.gait or infer_gait(leg_contacts(data, description, result.nominal), data.t_s)
+    out: dict[str, np.ndarray] = {
+        "measured_t": data.t_s - data.t_s[0],
+        "measured_pos": data.base.position_m,
+        "gait": np.array(gait),
+    }
     for key, model in (("nominal", result.nominal), ("updated", result.updated)):
-        config = _config(model, compact, data)
+        config = _config(model, compact, data, gait)
         log = run_closed_loop(config)
         out[f"{key}_t"] = log.t
         out[f"{key}_pos"] = log.base_position
@@ -62,12 +71,12 @@ def closed_loop_rerun(result: Identification, data: MeasuredData | None = None) 
     return out
 
 
-def _config(model: SimModel, commands: list, data: MeasuredData) -> ClosedLoopConfig:
+def _config(model: SimModel, commands: list, data: MeasuredData, gait: str) -> ClosedLoopConfig:
     assert data.base is not None
     return ClosedLoopConfig(
         name="sim2real_rerun",
         course=model.course,
-        gait="trot",
+        gait=gait,
         commands=tuple(commands),
         duration_s=float(data.t_s[-1] - data.t_s[0]),
         effects=model.effects,

@@ -49,6 +49,74 @@ def plot_channels(result: Identification, path: Path) -> Path:
     return _save(fig, path)
 
 
+def plot_remainder(result: Identification, path: Path) -> Path | None:
+    """Per subsystem with a remainder: held-out cost / noise floor (re-estimated with the updated model) per
+    channel, joint, leg and gait phase; the dashed line is the remainder threshold."""
+    from .remainder import REMAINDER_FACTOR
+
+    remainders = result.remainders
+    if not remainders:
+        return None
+    tables = ("channel", "joint", "leg", "phase")
+    fig, axes = plt.subplots(len(remainders), len(tables), figsize=(14.0, 3.2 * len(remainders)), squeeze=False)
+    for row, (name, rem) in enumerate(remainders.items()):
+        for col, table in enumerate(tables):
+            ax = axes[row, col]
+            groups = getattr(rem, f"by_{table}")
+            labels = list(groups)
+            ratios = [max(groups[k].ratio, 1e-3) for k in labels]
+            top = rem.top(table) if rem.flagged else ""
+            colors = ["C3" if k == top else "C0" for k in labels]
+            ax.bar(np.arange(len(labels)), ratios, color=colors)
+            ax.set_xticks(np.arange(len(labels)), [k.replace("_joint", "") for k in labels], rotation=60, fontsize=7)
+            ax.set_yscale("log")
+            ax.axhline(1.0, color="k", lw=0.8)
+            ax.axhline(REMAINDER_FACTOR, color="k", lw=0.8, ls="--")
+            ax.set_title(f"{name}: per {table}", fontsize=9)
+            if col == 0:
+                ax.set_ylabel("held-out cost / noise floor")
+    fig.suptitle(f"What the updated model leaves: {Path(result.bag).name} ({result.verdict[:90]})", fontsize=9)
+    return _save(fig, path)
+
+
+def _remainder_lines(result: Identification) -> list[str]:
+    from .remainder import MOSTLY_EXPLAINED, REMAINDER_FACTOR
+
+    remainders = result.remainders
+    if not remainders:
+        return []
+    lines = [
+        "## What remains, and where",
+        "",
+        f"Held-out cost of the updated model against the noise floor re-estimated with it (1 = at the floor). "
+        f'Above {REMAINDER_FACTOR:g} floors a remainder is reported: "partly explained" when the named effects '
+        f'remove at least {100 * MOSTLY_EXPLAINED:.0f}% of the held-out excess, otherwise "not explained by the '
+        "library\". Share: the group's part of the excess over the floor (where to look).",
+        "",
+        "| subsystem | held-out before | after | floor (updated model) | after / floor | verdict |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, r in remainders.items():
+        lines.append(f"| {name} | {_fmt(r.before)} | {_fmt(r.after)} | {_fmt(r.floor)} | {r.ratio:.3g} | {r.verdict} |")
+    for name, r in remainders.items():
+        for table in ("channel", "joint", "leg", "phase"):
+            groups = getattr(r, f"by_{table}")
+            if not groups or (table == "channel" and len(groups) == 1):
+                continue
+            lines += [
+                "",
+                f"{name}, per {table}:",
+                "",
+                f"| {table} | cost / floor | share of the excess |",
+                "|---|---|---|",
+            ]
+            for key, g in groups.items():
+                mark = " **(largest)**" if r.flagged and key == r.top(table) else ""
+                lines.append(f"| {key}{mark} | {g.ratio:.3g} | {100 * g.share:.0f}% |")
+    lines.append("")
+    return lines
+
+
 def plot_overlay(overlay: dict[str, np.ndarray], path: Path) -> Path:
     """Held-out open-loop segments: a joint velocity and the base height, measured vs predicted."""
     fig, axes = plt.subplots(2, 1, figsize=(8.0, 5.0), sharex=True)
@@ -98,6 +166,8 @@ def write_report(
         f"**Held-out gap** (sum over subsystems of cost / noise floor; 1 per subsystem at the floor): "
         f"{before:.3g} -> {after:.3g} ({100 * reduction:.1f}% reduction).",
         "",
+        f"**Verdict**: {result.verdict}.",
+        "",
     ]
     named = result.named
     if named:
@@ -112,14 +182,16 @@ def write_report(
     lines += [
         "## Subsystems",
         "",
-        "| subsystem | verdict | noise floor | nominal | fitted | held-out before | held-out after |",
-        "|---|---|---|---|---|---|---|",
+        "| subsystem | verdict | noise floor (nominal model) | floor (chosen model) | nominal | fitted | "
+        "held-out before | held-out after | held-out floor (updated model) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for s in result.subsystems.values():
         lines.append(
-            f"| {s.name} | {s.verdict} | {_fmt(s.floor)} | {_fmt(s.nominal_cost)} | {_fmt(s.fitted_cost)} | "
-            f"{_fmt(s.holdout_before)} | {_fmt(s.holdout_after)} |"
+            f"| {s.name} | {s.verdict} | {_fmt(s.floor)} | {_fmt(s.floor_updated)} | {_fmt(s.nominal_cost)} | "
+            f"{_fmt(s.fitted_cost)} | {_fmt(s.holdout_before)} | {_fmt(s.holdout_after)} | {_fmt(s.holdout_floor)} |"
         )
+    lines += [""] + _remainder_lines(result)
     lines += [
         "",
         "## Every candidate",
@@ -136,6 +208,9 @@ def write_report(
     if result.rejected_samples:
         lines += ["", f"Rejected samples (out-of-order, repeated stamps or non-finite): {result.rejected_samples}"]
     lines += ["", "## Plots", "", f"![gap per channel]({plot_channels(result, out_dir / 'gap_channels.png').name})"]
+    remainder_png = plot_remainder(result, out_dir / "remainder.png")
+    if remainder_png is not None:
+        lines.append(f"![remainder per channel, joint, leg and gait phase]({remainder_png.name})")
     if overlay is not None:
         lines.append(f"![held-out segments]({plot_overlay(overlay, out_dir / 'holdout_overlay.png').name})")
     if closed is not None:
@@ -143,7 +218,8 @@ def write_report(
         for key in ("nominal", "updated"):
             if f"{key}_rms_m" in closed:
                 lines.append(
-                    f"- closed-loop re-run, {key} model: base position RMS error {float(closed[f'{key}_rms_m']):.4f} m"
+                    f"- closed-loop re-run ({closed['gait'] if 'gait' in closed else 'trot'} gait, the recording's), "
+                    f"{key} model: base position RMS error {float(closed[f'{key}_rms_m']):.4f} m"
                 )
     if model_path is not None:
         lines += ["", f"Updated model configuration: `{model_path}`"]

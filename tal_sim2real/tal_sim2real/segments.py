@@ -199,6 +199,30 @@ def scaled_residual(measured: np.ndarray, predicted: np.ndarray) -> np.ndarray:
     return np.nan_to_num(out, nan=1e3, posinf=1e3, neginf=-1e3)
 
 
+def scaled_elements(measured: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """(segments, samples, 36) channel errors divided by CHANNEL_SCALES, components in CHANNEL_SCALES order
+    (base position, orientation, linear and angular velocity, 12 joint positions, 12 joint velocities):
+    the elements of ``scaled_residual`` by component."""
+    errors = channel_errors(measured, predicted)
+    out = np.concatenate([errors[name] / CHANNEL_SCALES[name] for name in CHANNEL_SCALES], axis=-1)
+    return np.nan_to_num(out, nan=1e3, posinf=1e3, neginf=-1e3)
+
+
+def component_channels() -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """(channel -> boolean mask over the 36 components of ``scaled_elements``, joint index per component
+    or -1 for the base channels)."""
+    total = sum(CHANNEL_SIZES.values())
+    masks, joint_of, start = {}, np.full(total, -1), 0
+    for name in CHANNEL_SCALES:
+        mask = np.zeros(total, dtype=bool)
+        mask[start : start + CHANNEL_SIZES[name]] = True
+        masks[name] = mask
+        if name.startswith("joint_"):
+            joint_of[start : start + CHANNEL_SIZES[name]] = np.arange(CHANNEL_SIZES[name])
+        start += CHANNEL_SIZES[name]
+    return masks, joint_of
+
+
 def channel_rms(measured: np.ndarray, predicted: np.ndarray) -> dict[str, float]:
     """RMS error per channel in physical units (over segments, samples and components)."""
     return {name: float(np.sqrt(np.mean(err**2))) for name, err in channel_errors(measured, predicted).items()}

@@ -9,7 +9,7 @@ import numpy as np
 from .fitting import Fit, fit_scalar
 from .imu_bias import estimate_bias, imu_residuals
 from .library import Candidate
-from .measured import MeasuredData
+from .measured import MeasuredData, white_noise_std
 from .outcomes import (
     ACCEL_BIAS_FLOOR_M_S2,
     GYRO_BIAS_FLOOR_RAD_S,
@@ -18,6 +18,7 @@ from .outcomes import (
     Settings,
     SubsystemResult,
 )
+from .remainder import Remainder, judge, localise
 from .torque_path import TorquePathProblem
 
 
@@ -29,6 +30,7 @@ def torque_path_subsystem(
     id_slice: slice | np.ndarray,
     ho_slice: slice | np.ndarray,
     settings: Settings,
+    phases: np.ndarray | None = None,
 ) -> tuple[SubsystemResult, list[Finding]]:
     """Fit the torque-path candidates on the ``id_slice`` samples (a slice or sample indices) and report the
     gap on ``ho_slice``."""
@@ -107,13 +109,29 @@ def torque_path_subsystem(
         problem.noise_std_nm(ho_slice) ** 2 * len(r_ho0),
         best.candidates if accepted else (),
     )
-    result.verdict = (
-        "no missing effect (at the noise floor)"
-        if not accepted and nominal_cost < settings.floor_factor * floor
-        else f"named {', '.join(best.candidates)}"
-        if accepted
-        else "unexplained residual"
+    # the remainder per joint, leg and gait phase against each joint's own torque-sensor noise
+    n_joints = problem.effort.shape[1]
+    after_el = (r_ho1**2).reshape(-1, n_joints)
+    sigma = np.array([white_noise_std(problem.effort[ho_slice][:, j]) for j in range(n_joints)])
+    floor_el = np.broadcast_to(sigma**2, after_el.shape).copy()
+    result.holdout_floor = float(floor_el.sum())
+    result.floor_updated = floor  # the torque sensor noise: the same whatever the model
+    remainder = Remainder("torque_path", result.holdout_before, result.holdout_after, result.holdout_floor)
+    element_phase = None
+    if phases is not None:
+        element_phase = phases[np.arange(len(data.t_s))[ho_slice]][:, np.arange(n_joints) // 3]
+    localise(
+        remainder,
+        after_el,
+        floor_el,
+        {"joint_torque": np.ones(n_joints, dtype=bool)},
+        description.joint_names,
+        np.arange(n_joints),
+        element_phase,
     )
+    at_floor = not accepted and nominal_cost < settings.floor_factor * floor
+    result.remainder = judge(remainder, result.named, at_floor)
+    result.verdict = result.remainder.verdict
     result.channels_before = {"joint_torque_nm": math.sqrt(float(r_ho0 @ r_ho0) / len(r_ho0))}
     result.channels_after = {"joint_torque_nm": math.sqrt(float(r_ho1 @ r_ho1) / len(r_ho1))}
     return result, findings
