@@ -9,6 +9,8 @@
 #                tal_core.resource_monitor)
 #   -w NODE      wait for this executable to exit, then stop the others (default: wait for any to exit)
 #   -s EXE.PARAM:=VALUE  a parameter override for one node, e.g. -s sim_bridge.duration_s:=10.0
+#   -n EXE:NICE  start that node at this nice level (0-19: lower priority), e.g. -n vpa:10: on a machine
+#                without spare cores the control chain (bridge, estimator, wbc) gets the CPU first
 # Ctrl-C, SIGTERM or a node failing stops every child (SIGINT, then SIGTERM, then SIGKILL): no orphans.
 # Exit code: that of the waited-for node (or of the first node to exit).
 set -euo pipefail
@@ -19,13 +21,16 @@ WAIT_FOR=""
 MONITOR_OUT=""
 MONITOR_PID=""
 OVERRIDES=()
-while getopts "d:w:m:s:h" opt; do
+declare -A NICENESS=()  # exe -> nice level
+while getopts "d:w:m:s:n:h" opt; do
     case "$opt" in
         d) RUN_DIR="$OPTARG" ;;
         w) WAIT_FOR="$OPTARG" ;;
         m) MONITOR_OUT="$OPTARG" ;;
         s) OVERRIDES+=("$OPTARG") ;;
-        h) sed -n '2,14p' "$0"; exit 0 ;;
+        n) [[ "$OPTARG" =~ ^[a-z_]+:[0-9]+$ ]] || { echo "run_graph: -n wants EXE:NICE (0-19), got '$OPTARG'" >&2; exit 2; }
+           NICENESS["${OPTARG%%:*}"]="${OPTARG##*:}" ;;
+        h) sed -n '2,16p' "$0"; exit 0 ;;
         *) echo "run_graph: see -h" >&2; exit 2 ;;
     esac
 done
@@ -96,6 +101,7 @@ for spec in "$@"; do
         cmd=("$binary" "${args[@]}")
     fi
     # setsid: each node leads its own process group, so stop_all reaches its children too.
+    if [ -n "${NICENESS[$exe]:-}" ]; then cmd=(nice -n "${NICENESS[$exe]}" "${cmd[@]}"); fi
     setsid "${cmd[@]}" > "$RUN_DIR/$exe.log" 2>&1 < /dev/null &
     PIDS[$exe]=$!
     NAMES[$!]=$exe

@@ -36,6 +36,9 @@ RUN_ROOT="${RUNS_DIR:-$ROOT/runs}/$(date +%Y%m%d-%H%M%S)-$SCENARIO"
 # What make run records into runs/<timestamp>/bag (rosbag2 MCAP; sim time as log time).
 RECORDED_TOPICS="['joint_states', 'imu', 'ground_truth/odom', 'ground_truth/contacts', 'joint_command', \
 'state_estimate', 'contact_estimate', 'terrain_impedance', 'gait_state', 'wbc/diagnostics', 'cmd_vel', 'cmd_vel_stamped']"
+# PARAMS="exe.param:=value ..." adds parameter overrides to every node started (after the scenario's own).
+EXTRA=()
+for override in ${PARAMS:-}; do EXTRA+=(-s "$override"); done
 # ROS parameters are typed: DURATION_S=20 would reach a double parameter as an integer and stop the node.
 for var in DURATION_S SPEED_M_S TOUCHDOWN_DEPTH_M; do
     if [[ "${!var:-}" =~ ^-?[0-9]+$ ]]; then printf -v "$var" '%s.0' "${!var}"; fi
@@ -80,7 +83,7 @@ walk() {
         -s "bag_recorder.topics:=$topics" \
         -s "bag_recorder.summary_path:=$dir/recorder_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
-        "${vfa[@]+"${vfa[@]}"}" "${nodes[@]}" \
+        "${vfa[@]+"${vfa[@]}"}" "${EXTRA[@]+"${EXTRA[@]}"}" "${nodes[@]}" \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
     python -m tal_lab.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
         --estimator "$dir/estimator_summary.json" \
@@ -109,8 +112,8 @@ stance() {
         -s "bag_recorder.topics:=$RECORDED_TOPICS" \
         -s "bag_recorder.summary_path:=$dir/recorder_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
-        tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc tal_estimation/tce \
-        tal_control/cmd_vel_script tal_sim_bridge/bag_recorder \
+        "${EXTRA[@]+"${EXTRA[@]}"}" tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_control/wbc \
+        tal_estimation/tce tal_control/cmd_vel_script tal_sim_bridge/bag_recorder \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
     python -m tal_lab.run_report --bridge "$dir/bridge_summary.json" --wbc "$dir/wbc_summary.json" \
         --tce "$dir/tce_summary.json" --estimator "$dir/estimator_summary.json" --title "STANCE: HyQ crawl at $speed m/s, rigid -> T1 -> T2 -> T3 -> rigid" --output "$RUN_ROOT/report.md"
@@ -123,9 +126,14 @@ tour() {
     local dir="$RUN_ROOT"
     local topics="${RECORDED_TOPICS%]}, 'footholds', 'body_pose_reference']"
     # Lockstep: the wbc waits for every input's answer to the previous tick (tce, vfa, vpa on its 50 ms grid),
-    # so the run repeats itself bit for bit; on the wall clock nobody waits for perception.
-    local lockstep=true pose_period=0.05
-    if [ "$mode" = realtime ]; then lockstep=false; pose_period=0.0; fi
+    # so the run repeats itself bit for bit; on the wall clock the wbc waits for nobody's estimates.
+    local lockstep=true pose_period=0.05 priorities=()
+    # On the wall clock two cores are not enough for all eight: the control chain (bridge, wbc, estimator)
+    # keeps the default priority, the tce, perception, the script and the recorder run niced.
+    if [ "$mode" = realtime ]; then
+        lockstep=false; pose_period=0.0
+        priorities=(-n tce:5 -n vfa:10 -n vpa:10 -n cmd_vel_script:10 -n bag_recorder:15)
+    fi
     # On the wall clock the recorder keeps only what the report reads (each node's main output, the base track,
     # contacts and stiffness) unless asked (RECORD=1): the two 1 kHz topics alone cost 2,000 deliveries a
     # second on two cores. The bridge's rate is then its contacts'; the wbc skips its diagnostics (no subscriber).
@@ -136,11 +144,11 @@ tour() {
     echo "[run] tour: the whole graph ($mode). HyQ trots at $speed m/s over rigid -> T1 -> T2 -> rigid -> 4 stairs" \
          "up -> landing for $duration s of sim time: sim_bridge, state_estimator ($odometry leg odometry), tce," \
          "wbc ($contact_model contact model), vfa, vpa, bag_recorder, cmd_vel_script"
-    bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge -m "$dir/resources.json" \
+    bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge -m "$dir/resources.json" "${priorities[@]}" \
         -s "sim_bridge.course:=graph_tour" -s "sim_bridge.duration_s:=$duration" -s "sim_bridge.mode:=$mode" \
         -s "wbc.max_defer_s:=$(max_defer "$mode")" -s "tce.max_defer_s:=$(tce_max_defer "$mode")" \
         -s "vfa.answer_every_gait_state:=$lockstep" -s "wbc.wait_for_footholds:=$lockstep" \
-        -s "wbc.body_pose_period_s:=$pose_period" \
+        -s "wbc.body_pose_period_s:=$pose_period" -s "wbc.wait_for_impedance:=$lockstep" \
         -s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \
@@ -153,6 +161,7 @@ tour() {
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
         -s "bag_recorder.topics:=$topics" -s "bag_recorder.summary_path:=$dir/recorder_summary.json" \
         -s "cmd_vel_script.profile:=[0.0, 0.0, 0.0, 0.0, 1.0, $speed, 0.0, 0.0]" \
+        "${EXTRA[@]+"${EXTRA[@]}"}" \
         tal_sim_bridge/sim_bridge tal_estimation/state_estimator tal_estimation/tce tal_control/wbc \
         tal_perception/vfa tal_perception/vpa tal_control/cmd_vel_script tal_sim_bridge/bag_recorder \
         || { echo "[run] the graph failed; logs in $dir" >&2; tail -n 20 "$dir"/*.log >&2; exit 1; }
