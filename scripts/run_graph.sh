@@ -11,6 +11,8 @@
 #   -s EXE.PARAM:=VALUE  a parameter override for one node, e.g. -s sim_bridge.duration_s:=10.0
 #   -n EXE:NICE  start that node at this nice level (0-19: lower priority), e.g. -n vpa:10: on a machine
 #                without spare cores the control chain (bridge, estimator, wbc) gets the CPU first
+#   -r EXE:PRIO  run that node under the real-time FIFO scheduler at this priority (1-99; needs
+#                CAP_SYS_NICE, e.g. root): it preempts every normal process when its message arrives
 # Ctrl-C, SIGTERM or a node failing stops every child (SIGINT, then SIGTERM, then SIGKILL): no orphans.
 # Exit code: that of the waited-for node (or of the first node to exit).
 set -euo pipefail
@@ -22,7 +24,8 @@ MONITOR_OUT=""
 MONITOR_PID=""
 OVERRIDES=()
 declare -A NICENESS=()  # exe -> nice level
-while getopts "d:w:m:s:n:h" opt; do
+declare -A FIFO=()      # exe -> SCHED_FIFO priority
+while getopts "d:w:m:s:n:r:h" opt; do
     case "$opt" in
         d) RUN_DIR="$OPTARG" ;;
         w) WAIT_FOR="$OPTARG" ;;
@@ -30,7 +33,9 @@ while getopts "d:w:m:s:n:h" opt; do
         s) OVERRIDES+=("$OPTARG") ;;
         n) [[ "$OPTARG" =~ ^[a-z_]+:[0-9]+$ ]] || { echo "run_graph: -n wants EXE:NICE (0-19), got '$OPTARG'" >&2; exit 2; }
            NICENESS["${OPTARG%%:*}"]="${OPTARG##*:}" ;;
-        h) sed -n '2,16p' "$0"; exit 0 ;;
+        r) [[ "$OPTARG" =~ ^[a-z_]+:[0-9]+$ ]] || { echo "run_graph: -r wants EXE:PRIO (1-99), got '$OPTARG'" >&2; exit 2; }
+           FIFO["${OPTARG%%:*}"]="${OPTARG##*:}" ;;
+        h) sed -n '2,18p' "$0"; exit 0 ;;
         *) echo "run_graph: see -h" >&2; exit 2 ;;
     esac
 done
@@ -102,6 +107,10 @@ for spec in "$@"; do
     fi
     # setsid: each node leads its own process group, so stop_all reaches its children too.
     if [ -n "${NICENESS[$exe]:-}" ]; then cmd=(nice -n "${NICENESS[$exe]}" "${cmd[@]}"); fi
+    if [ -n "${FIFO[$exe]:-}" ]; then
+        if chrt -f "${FIFO[$exe]}" true 2>/dev/null; then cmd=(chrt -f "${FIFO[$exe]}" "${cmd[@]}")
+        else echo "run_graph: no permission for SCHED_FIFO: $exe runs at normal priority" >&2; fi
+    fi
     setsid "${cmd[@]}" > "$RUN_DIR/$exe.log" 2>&1 < /dev/null &
     PIDS[$exe]=$!
     NAMES[$!]=$exe

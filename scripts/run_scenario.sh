@@ -128,11 +128,14 @@ tour() {
     # Lockstep: the wbc waits for every input's answer to the previous tick (tce, vfa, vpa on its 50 ms grid),
     # so the run repeats itself bit for bit; on the wall clock the wbc waits for nobody's estimates.
     local lockstep=true pose_period=0.05 priorities=()
-    # On the wall clock two cores are not enough for all eight: the control chain (bridge, wbc, estimator)
-    # keeps the default priority, the tce, perception, the script and the recorder run niced.
+    # On the wall clock two cores are not enough for all eight: the control chain runs under the real-time FIFO
+    # scheduler (bridge 30, wbc 20, estimator 10; as a robot's control loop would; without the permission it
+    # runs at normal priority), the tce and perception at normal priority, the script and the recorder niced.
+    # RT_PRIORITIES="-r EXE:PRIO -n EXE:NICE ..." replaces these.
     if [ "$mode" = realtime ]; then
         lockstep=false; pose_period=0.0
-        priorities=(-n tce:5 -n vfa:10 -n vpa:10 -n cmd_vel_script:10 -n bag_recorder:15)
+        # shellcheck disable=SC2206
+        priorities=(${RT_PRIORITIES:--r sim_bridge:30 -r wbc:20 -r state_estimator:10 -n cmd_vel_script:10 -n bag_recorder:15})
     fi
     # On the wall clock the recorder keeps only what the report reads (each node's main output, the base track,
     # contacts and stiffness) unless asked (RECORD=1): the two 1 kHz topics alone cost 2,000 deliveries a

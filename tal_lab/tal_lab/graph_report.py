@@ -84,7 +84,8 @@ def topic_rates(stamps: dict[str, list[int]], real_time_factor: float | None) ->
     """Rate and missed ticks per checked topic from its header stamps [ns]."""
     results = []
     for spec in TOPIC_RATES:
-        s = np.array(sorted(stamps.get(spec.topic, [])), dtype=np.int64)
+        # Distinct stamps: the bridge re-sends its initial state until the first command (one tick, not many).
+        s = np.unique(np.array(stamps.get(spec.topic, []), dtype=np.int64))
         sim_rate = wall_rate = missed = None
         if s.size >= 2 and s[-1] > s[0]:
             sim_rate = (s.size - 1) / ((s[-1] - s[0]) * 1e-9)

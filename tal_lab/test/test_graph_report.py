@@ -22,7 +22,7 @@ def test_rates_count_the_missed_ticks_of_each_gap() -> None:
     ticks = [k * 4 * MS for k in range(1001)]          # 250 Hz for 4 s
     del ticks[500:503]                                  # one gap of 4 periods: 3 ticks missed
     del ticks[100]                                      # one gap of 2 periods: 1 missed
-    rates = {r.topic: r for r in topic_rates({"gait_state": ticks}, real_time_factor=0.5)}
+    rates = {r.topic: r for r in topic_rates({"gait_state": [0, 0, 0] + ticks}, real_time_factor=0.5)}  # re-sends
     gait = rates["gait_state"]
     assert gait.missed_ticks == 4
     assert gait.messages == 997
