@@ -169,3 +169,20 @@ def test_a_run_that_did_not_fall_keeps_every_figure(tmp_path: Path) -> None:
     summary = json.loads((tmp_path / "graph_summary.json").read_text())
     assert summary["fell"] is False and summary["distance_m"] == 9.5
     assert {row["patch"] for row in summary["stiffness"]} == {"default", "soft_t1"}
+
+
+def test_node_rates_come_from_each_nodes_own_counter(tmp_path: Path) -> None:
+    """10 s of sim time at a real-time factor of 0.5 (20 s of wall time): the wbc's 2,000 ticks + 100 safe-mode
+    ticks are 105 Hz with 400 missed; the bridge's physics is 1 kHz x 0.5; a node without a summary is left out."""
+    from tal_lab.graph_report import node_rates
+    (tmp_path / "wbc_summary.json").write_text(json.dumps({"ticks": 2000, "safe_mode_ticks": 100}))
+    (tmp_path / "tce_summary.json").write_text(json.dumps({"ticks": 2500}))
+    bridge = {"sim_time_s": 10.0, "real_time_factor": 0.5}
+    rates = {r["node"]: r for r in node_rates(tmp_path, bridge)}
+    assert sorted(rates) == ["sim_bridge", "tce", "wbc"]
+    assert rates["wbc"]["wall_rate_hz"] == pytest.approx(105.0) and rates["wbc"]["missed_ticks"] == 400
+    assert rates["tce"]["missed_ticks"] == 0 and rates["sim_bridge"]["wall_rate_hz"] == pytest.approx(500.0)
+    nodes = bench_rates({"rates": [r.__dict__ for r in topic_rates({}, 0.5)], "node_rates": list(rates.values()),
+                         "mode": "realtime", "real_time_factor": 0.5, "peak_total_rss_mb": 1.0})["nodes"]
+    assert nodes["wbc"]["achieved_hz"] == pytest.approx(105.0) and "node counter" in nodes["wbc"]["topic"]
+    assert node_rates(tmp_path, {"sim_time_s": None}) == []
