@@ -400,7 +400,8 @@ def build_report(run_dir: Path, title: str) -> str:
     counted = node_rates(run_dir, bridge)
     if counted:
         report += ("\n## Rates held (each node's own counter over the run's wall time)\n\n"
-                   "| node | counter | target [Hz] | counted | wall-clock rate [Hz] | missed ticks |\n|---|---|---|---|---|---|\n")
+                   "| node | counter | target [Hz] | counted | wall-clock rate [Hz] | missed ticks |\n"
+                   "|---|---|---|---|---|---|\n")
         report += "".join(f"| {r['node']} | {r['counter']} | {r['target_hz']:.4g} | {r['ticks']} | "
                           f"{r['wall_rate_hz']:.1f} | {r['missed_ticks']} |\n" for r in counted)
     summary = {"rates": [r.__dict__ for r in rates], "node_rates": counted, "stiffness": stiffness,
