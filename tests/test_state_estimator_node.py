@@ -173,3 +173,40 @@ def test_invalid_parameters_are_refused_at_start_up(context) -> None:
         StateEstimatorNode(context=context, parameter_overrides=[Parameter("leg_odometry", value="magic")])
     with pytest.raises(ValueError, match="period_s"):
         StateEstimatorNode(context=context, parameter_overrides=[Parameter("period_s", value=-1.0)])
+
+
+def test_a_robot_with_foot_force_sensors_and_no_joint_velocities_or_efforts(context, spin_until) -> None:
+    """contact_source force_sensor: joint states with positions only, foot forces on foot_contacts (raw counts,
+    calibrated per leg): the node ticks, derives the velocities, rejects nothing and reports the feet in
+    contact. With the defaults such joint states are rejected."""
+    weight_share = RobotModel.from_name("hyq").total_mass_kg * 9.81 / 4.0
+    estimator = StateEstimatorNode(context=context, parameter_overrides=[
+        Parameter("initial_pose_source", value="standing"), Parameter("contact_source", value="force_sensor"),
+        Parameter("joint_velocities_optional", value=True),
+        Parameter("foot_force_scale", value=[0.5, 0.5, 0.5, 0.5]),
+        Parameter("foot_force_offset", value=[30.0, 30.0, 30.0, 30.0])])
+    robot = FakeRobot(context)
+    feet = robot.node.create_publisher(ContactState, "foot_contacts", 100)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(estimator)
+    executor.add_node(robot.node)
+    try:
+        assert spin_until(executor, lambda: robot.matched() and feet.get_subscription_count() >= 1, 20.0)
+        for k in range(0, 20):
+            stamp = k * 2 * MS
+            joints = JointState(name=robot.names, position=[float(v) for v in robot.q])
+            joints.header.stamp = stamp_from_ns(stamp)
+            robot.joints.publish(joints)
+            robot.publish_imu(stamp)
+            contact = ContactState()
+            contact.header.stamp = stamp_from_ns(stamp)
+            for force in contact.force:
+                force.z = weight_share / 0.5 + 30.0
+            feet.publish(contact)
+        assert spin_until(executor, lambda: estimator.ticks >= 10 and len(robot.contacts) >= 5, 10.0)
+        assert not estimator.rejections and estimator.stream.deriving_velocities
+        assert all(robot.contacts[-1].in_contact)
+    finally:
+        executor.shutdown()
+        estimator.destroy_node()
+        robot.node.destroy_node()

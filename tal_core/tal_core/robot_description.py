@@ -27,6 +27,7 @@ import yaml
 
 from tal_core.errors import InputError, RobotConfigError
 from tal_core.legs import JOINT_KINDS, JOINTS_PER_LEG, LEG_NAMES, LEGS, NUM_LEGS, Leg, PerLeg
+from tal_core.rotations import quat_xyzw_from_rotation
 
 EXAMPLE_ROBOT_DATA_ENV = "TAL_EXAMPLE_ROBOT_DATA_DIR"
 EXAMPLE_ROBOT_DATA_SCHEME = "example-robot-data://"
@@ -44,7 +45,7 @@ _REQUIRED_KEYS = (
 )
 _OPTIONAL_KEYS = ("hip_frames", "limits", "imu")
 _LIMIT_KEYS = ("position_rad", "velocity_rad_s", "torque_Nm")
-_IMU_KEYS = ("position_m", "orientation_xyzw")
+_IMU_KEYS = ("position_m", "orientation_xyzw", "link")
 _ACTUATED_URDF_TYPES = ("revolute", "prismatic")
 
 
@@ -103,6 +104,10 @@ class UrdfJoint:
     upper: float | None
     velocity: float | None
     effort: float | None
+    parent: str = ""  # parent link
+    child: str = ""  # child link
+    origin_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)  # [m] child frame in the parent frame
+    origin_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)  # [rad] fixed-axis roll, pitch, yaw
 
 
 @dataclass(frozen=True)
@@ -134,8 +139,67 @@ def read_urdf_summary(path: Path) -> UrdfSummary:
             for key in ("lower", "upper", "velocity", "effort")
         }
         name = element.get("name", "")
-        joints[name] = UrdfJoint(name, element.get("type", ""), **values)
+        origin = element.find("origin")
+        parent, child = element.find("parent"), element.find("child")
+        try:
+            xyz = _triple(None if origin is None else origin.get("xyz"))
+            rpy = _triple(None if origin is None else origin.get("rpy"))
+        except ValueError as error:
+            raise RobotConfigError(f"{path}: joint {name!r}: bad <origin>: {error}") from None
+        joints[name] = UrdfJoint(name, element.get("type", ""), **values,
+                                 parent="" if parent is None else parent.get("link", ""),
+                                 child="" if child is None else child.get("link", ""), origin_xyz=xyz, origin_rpy=rpy)
     return UrdfSummary(Path(path), links, joints)
+
+
+def _triple(text: str | None) -> tuple[float, float, float]:
+    if text is None:
+        return (0.0, 0.0, 0.0)
+    values = [float(item) for item in text.split()]
+    if len(values) != 3:
+        raise ValueError(f"expected 3 numbers, got {text!r}")
+    return (values[0], values[1], values[2])
+
+
+def _rotation_from_rpy(rpy: Sequence[float]) -> np.ndarray:
+    """URDF rpy (fixed axes x, y, z): R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    (cr, sr), (cp, sp), (cy, sy) = ((math.cos(a), math.sin(a)) for a in rpy)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+def _fixed_chain(urdf: UrdfSummary, frame: str) -> tuple[str, np.ndarray]:
+    """(top link, top_T_frame 4x4): ``frame`` (a link, or a joint: its child link) walked up through fixed
+    joints to the first link that hangs on a moving joint or is the root."""
+    link = urdf.joints[frame].child if frame in urdf.joints else frame
+    parent_joint = {joint.child: joint for joint in urdf.joints.values()}
+    transform = np.eye(4)
+    seen = set()
+    while link in parent_joint and parent_joint[link].joint_type == "fixed" and link not in seen:
+        seen.add(link)
+        joint = parent_joint[link]
+        step = np.eye(4)
+        step[:3, :3] = _rotation_from_rpy(joint.origin_rpy)
+        step[:3, 3] = joint.origin_xyz
+        transform = step @ transform
+        link = joint.parent
+    return link, transform
+
+
+def fixed_frame_pose(urdf: UrdfSummary, base_frame: str, frame: str) -> tuple[np.ndarray, np.ndarray]:
+    """(position [m] (3,), rotation (3, 3)) of ``frame`` in ``base_frame``, both URDF links (or joints) rigidly
+    attached to one another through fixed joints; RobotConfigError otherwise."""
+    for name in (base_frame, frame):
+        if name not in urdf.frame_names:
+            raise RobotConfigError(f"{urdf.path}: {name!r} is neither a link nor a joint")
+    base_top, top_T_base = _fixed_chain(urdf, base_frame)
+    frame_top, top_T_frame = _fixed_chain(urdf, frame)
+    if base_top != frame_top:
+        raise RobotConfigError(f"{urdf.path}: {frame!r} is not rigidly attached to {base_frame!r} (fixed joints "
+                               f"lead to {frame_top!r} and {base_top!r})")
+    base_T_frame = np.linalg.inv(top_T_base) @ top_T_frame
+    return base_T_frame[:3, 3].copy(), base_T_frame[:3, :3].copy()
 
 
 def _optional_float(text: str | None) -> float | None:
@@ -318,7 +382,7 @@ def _build_description(document: dict[str, Any], source: Path) -> RobotDescripti
     torque_tables = _torque_tables(fields, overrides.get("torque_Nm", {}), joint_names, urdf)
 
     nominal = _parse_nominal(fields, document["nominal_joint_positions_rad"], joint_names, lower, upper)
-    imu_position, imu_quat = _parse_imu(fields, document.get("imu", {}) or {})
+    imu_position, imu_quat = _parse_imu(fields, document.get("imu", {}) or {}, urdf, base_frame)
     return RobotDescription(
         name=fields.string(document["name"], "name"),
         source=source,
@@ -500,8 +564,19 @@ def _parse_nominal(
     return nominal
 
 
-def _parse_imu(fields: _Fields, value: Any) -> tuple[list[float], list[float]]:
+def _parse_imu(fields: _Fields, value: Any, urdf: UrdfSummary, base_frame: str) -> tuple[list[float], list[float]]:
+    """The IMU's pose in the base frame: from the URDF's fixed joints when ``imu.link`` names its link, else
+    ``position_m`` / ``orientation_xyzw`` (default: identity at the base origin)."""
     fields.check_keys(value, "imu", (), _IMU_KEYS)
+    if "link" in value:
+        if "position_m" in value or "orientation_xyzw" in value:
+            raise fields.error("imu", "give either link (pose from the URDF) or position_m/orientation_xyzw")
+        link = _parse_frame(fields, value["link"], "imu.link", urdf)
+        try:
+            position, rotation = fixed_frame_pose(urdf, base_frame, link)
+        except RobotConfigError as error:
+            raise fields.error("imu.link", str(error)) from None
+        return position.tolist(), quat_xyzw_from_rotation(rotation).tolist()
     position = fields.numbers(value.get("position_m", [0.0, 0.0, 0.0]), "imu.position_m", 3)
     quat = np.array(
         fields.numbers(value.get("orientation_xyzw", [0.0, 0.0, 0.0, 1.0]), "imu.orientation_xyzw", 4)

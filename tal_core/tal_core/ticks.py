@@ -7,14 +7,16 @@ TICK_TOLERANCE_NS = 100_000  # [ns] stamps are exact multiples of the physics st
 CLOCK_RESET_NS = 500_000_000  # [ns] a stamp this far behind the last one is a restarted clock, not reordering
 
 
-def reaches_tick(stamp_ns: int, next_tick_ns: int) -> bool:
-    """True when a sample stamped ``stamp_ns`` is at (or past) the control tick ``next_tick_ns``."""
-    return stamp_ns >= next_tick_ns - TICK_TOLERANCE_NS
+def reaches_tick(stamp_ns: int, next_tick_ns: int, tolerance_ns: int = TICK_TOLERANCE_NS) -> bool:
+    """True when a sample stamped ``stamp_ns`` is at (or past) the control tick ``next_tick_ns``; a sample
+    up to ``tolerance_ns`` early counts (rounding; the jitter of a real robot's stamps)."""
+    return stamp_ns >= next_tick_ns - tolerance_ns
 
 
-def tick_after(stamp_ns: int, period_ns: int) -> int:
-    """The next control tick [ns] after the one at ``stamp_ns``, on the sim-time grid k * period_ns."""
-    return ((stamp_ns + TICK_TOLERANCE_NS) // period_ns + 1) * period_ns
+def tick_after(stamp_ns: int, period_ns: int, tolerance_ns: int = TICK_TOLERANCE_NS) -> int:
+    """The next control tick [ns] after the one at ``stamp_ns``, on the sim-time grid k * period_ns (a stamp
+    up to ``tolerance_ns`` before a grid point belongs to it)."""
+    return ((stamp_ns + tolerance_ns) // period_ns + 1) * period_ns
 
 
 

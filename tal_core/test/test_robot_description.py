@@ -270,3 +270,34 @@ def test_foot_radius_must_be_a_non_negative_number(tmp_path: Path) -> None:
     _expect_error(
         tmp_path, hyq_document() | {"foot_radius_m": math.nan}, r"'foot_radius_m': expected a finite"
     )
+
+
+# ----------------------------------------------------------------------------------------------------
+# IMU pose from the URDF
+# ----------------------------------------------------------------------------------------------------
+def test_imu_pose_is_read_from_the_urdf_link(tmp_path: Path) -> None:
+    """HyQ's URDF mounts trunk_imu 0.29 m ahead, 0.1 m above base_link, upside down (rpy 0, -pi, 0): the
+    pose equals Pinocchio's placement of that frame in the base frame."""
+    import pinocchio as pin
+
+    description = load_robot_description(write_yaml(tmp_path, hyq_document() | {"imu": {"link": "trunk_imu"}}))
+    np.testing.assert_allclose(description.imu_position_base_m, [0.29, 0.0, 0.0999214], atol=1e-12)
+    model = pin.buildModelFromUrdf(str(description.urdf_path), pin.JointModelFreeFlyer())
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    base_T_imu = data.oMf[model.getFrameId(description.base_frame)].inverse() * data.oMf[model.getFrameId("trunk_imu")]
+    from tal_core.rotations import rotation_from_quat_xyzw
+
+    np.testing.assert_allclose(rotation_from_quat_xyzw(description.base_quat_imu_xyzw), base_T_imu.rotation,
+                               atol=1e-9)
+    np.testing.assert_allclose(description.imu_position_base_m, base_T_imu.translation, atol=1e-12)
+
+
+@pytest.mark.parametrize("imu, message", [
+    ({"link": "trunk_imu", "position_m": [0.0, 0.0, 0.0]}, r"'imu': give either link"),
+    ({"link": "no_such_link"}, r"'imu.link': frame 'no_such_link' is neither"),
+    ({"link": "lf_foot"}, r"'imu.link': .*'lf_foot' is not rigidly attached to 'base_link'"),
+])
+def test_imu_link_errors(tmp_path: Path, imu: dict, message: str) -> None:
+    with pytest.raises(RobotConfigError, match=message):
+        load_robot_description(write_yaml(tmp_path, hyq_document() | {"imu": imu}))

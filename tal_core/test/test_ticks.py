@@ -35,3 +35,11 @@ def test_inbox_bounds_its_memory_and_forgets_inputs_from_before_a_restart() -> N
     assert inbox.due(0) == [(0, "after")] and len(inbox) == 0
     with pytest.raises(ValueError, match="lag_ns >= 0"):
         StampedInbox(lag_ns=-1)
+
+
+def test_a_tolerance_for_jittered_stamps() -> None:
+    """A sample 0.3 ms early takes its grid point with a 0.4 ms tolerance (not with the default), and the
+    next grid point stays the one after it."""
+    assert not reaches_tick(4 * MS - 300_000, 4 * MS)
+    assert reaches_tick(4 * MS - 300_000, 4 * MS, tolerance_ns=400_000)
+    assert tick_after(4 * MS - 300_000, 2 * MS, tolerance_ns=400_000) == 6 * MS

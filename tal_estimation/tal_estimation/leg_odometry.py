@@ -22,6 +22,15 @@ lower bound on the stiffness, not a value): sinking is modelled only from a trus
 Why: on graph_tour's rigid ground the odometry sank modelled feet by F / K from the TCE's rigid lower bound
 (~1e5 N/m, 3-4 mm a stance), the TCE, running on the estimate, read the lowered base as deeper penetration
 and fitted softer ground, and the loop ran away to ~400 N/m and -0.5 m of z per m walked (replay, measured).
+
+Contact source (``contact_source``): ``torque`` (the above: the force from the joint torques), or, for robots
+that sense contact at the feet and may log no torques, ``force_sensor`` (one force value per foot, raw counts
+calibrated per leg as scale * (raw - offset) [N], or newtons with the default calibration; thresholded with
+hysteresis: on above the threshold, off below (1 - contact_hysteresis_fraction) x threshold; terrain aware,
+the contact probability ramps from the off to the on threshold while in contact) or ``contact_flags`` (one
+binary flag per foot; terrain aware, each stance foot carries an equal share of the weight for the sinking
+model). With a sensor source no torque is read: the force reported is the sensed normal force along the
+contact normal, and the leg inertia term is not used.
 """
 
 from __future__ import annotations
@@ -37,6 +46,7 @@ from tal_core.robot_model import RobotModel
 from tal_core.rotations import quat_xyzw_from_rotation
 
 LEG_ODOMETRY_MODES = ("rigid", "terrain_aware")
+CONTACT_SOURCES = ("torque", "force_sensor", "contact_flags")
 
 
 @dataclass(frozen=True)
@@ -53,7 +63,11 @@ class LegOdometrySettings:
     treated as on rigid ground; max_penetration_m: bound on the modelled sinking of one foot (a wrong
     stiffness must not sink the estimate by metres per step). min_confidence [-]: a leg whose impedance
     confidence (the TCE's fill ratio x R^2, zero for an inconsistent window) is below it is treated as on
-    rigid ground (as the c3WBC's ImpedanceGate, which adopts an estimate from 0.1 on)."""
+    rigid ground (as the c3WBC's ImpedanceGate, which adopts an estimate from 0.1 on).
+    contact_source: torque | force_sensor | contact_flags (module docstring); contact_hysteresis_fraction
+    [-]: a sensed contact ends below (1 - it) x the threshold; foot_force_scale [N per sensor unit] and
+    foot_force_offset [sensor units, the unloaded reading], per leg (LF, RF, LH, RH): force_sensor
+    calibration (defaults: the values are newtons)."""
 
     mode: str = "rigid"
     contact_threshold_weight_fraction: float = 0.1
@@ -65,11 +79,26 @@ class LegOdometrySettings:
     min_stiffness_n_per_m: float = 500.0
     max_penetration_m: float = 0.3
     min_confidence: float = 0.1
+    contact_source: str = "torque"
+    contact_hysteresis_fraction: float = 0.3
+    foot_force_scale: tuple[float, ...] = (1.0,) * NUM_LEGS
+    foot_force_offset: tuple[float, ...] = (0.0,) * NUM_LEGS
 
     def __post_init__(self) -> None:
         if self.mode not in LEG_ODOMETRY_MODES:
             raise InputError(f"leg odometry mode must be one of {LEG_ODOMETRY_MODES}, got {self.mode!r}")
-        for name in ("contact_threshold_weight_fraction", "probability_width_fraction", "swing_probability"):
+        if self.contact_source not in CONTACT_SOURCES:
+            raise InputError(f"contact_source must be one of {CONTACT_SOURCES}, got {self.contact_source!r}")
+        for name in ("foot_force_scale", "foot_force_offset"):
+            values = tuple(float(v) for v in getattr(self, name))
+            if len(values) != NUM_LEGS or not all(math.isfinite(v) for v in values):
+                raise InputError(f"LegOdometrySettings.{name} needs {NUM_LEGS} finite values (LF, RF, LH, RH), "
+                                 f"got {getattr(self, name)!r}")
+            object.__setattr__(self, name, values)
+        if not all(v > 0.0 for v in self.foot_force_scale):
+            raise InputError(f"LegOdometrySettings.foot_force_scale must be > 0, got {self.foot_force_scale!r}")
+        for name in ("contact_threshold_weight_fraction", "probability_width_fraction", "swing_probability",
+                     "contact_hysteresis_fraction"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 < value < 1.0):
                 raise InputError(f"LegOdometrySettings.{name} must be in (0, 1), got {value!r}")
@@ -136,17 +165,24 @@ class LegOdometry:
         self.penetration = np.zeros(NUM_LEGS)
         self._previous_v: np.ndarray | None = None
         self._penetration_rate = np.zeros(NUM_LEGS)
+        self._sensed_contact = np.zeros(NUM_LEGS, dtype=bool)  # force_sensor: the hysteresis state
 
     def _set_thresholds(self) -> None:
         fraction = self.settings.contact_threshold_weight_fraction
         self.threshold_n = fraction * self.model.total_mass_kg * self._gravity_m_s2
         self._width_n = self.settings.probability_width_fraction * self.threshold_n
+        self._release_n = (1.0 - self.settings.contact_hysteresis_fraction) * self.threshold_n
+        self._scale = np.array(self.settings.foot_force_scale)
+        self._offset = np.array(self.settings.foot_force_offset)
 
     def reconfigure(self, settings: LegOdometrySettings) -> None:
-        """Apply ``settings`` from the next update (thresholds, bounds), keeping the legs' state; the mode is
-        fixed for the odometry's lifetime (InputError)."""
+        """Apply ``settings`` from the next update (thresholds, bounds, calibration), keeping the legs' state;
+        the mode and the contact source are fixed for the odometry's lifetime (InputError)."""
         if settings.mode != self.settings.mode:
             raise InputError(f"leg odometry mode is fixed at {self.settings.mode!r}; got {settings.mode!r}")
+        if settings.contact_source != self.settings.contact_source:
+            raise InputError(f"contact_source is fixed at {self.settings.contact_source!r}; "
+                             f"got {settings.contact_source!r}")
         self.settings = settings
         self._set_thresholds()
 
@@ -170,19 +206,43 @@ class LegOdometry:
         self.penetration[:] = 0.0
         self._penetration_rate[:] = 0.0
         self._previous_v = None
+        self._sensed_contact[:] = False
+
+    def sensed_contact(self, foot_contact: np.ndarray, terrain_aware: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(normal force [N] (4,), contact probability [0, 1] (4,)) from the per-foot sensor values of
+        ``contact_source`` force_sensor (hysteresis) or contact_flags; updates the hysteresis state."""
+        values = np.asarray(foot_contact, dtype=float)
+        if self.settings.contact_source == "contact_flags":
+            flags = values > 0.5
+            share = self.model.total_mass_kg * self._gravity_m_s2 / max(int(flags.sum()), 1)
+            return np.where(flags, share, 0.0), flags.astype(float)
+        force = np.maximum(self._scale * (values - self._offset), 0.0)
+        on, off = self.threshold_n, self._release_n
+        self._sensed_contact = np.where(self._sensed_contact, force >= off, force > on)
+        if not terrain_aware:
+            return force, self._sensed_contact.astype(float)
+        x = np.clip((force - off) / (on - off), 0.0, 1.0)
+        return force, np.where(self._sensed_contact, x * x * (3.0 - 2.0 * x), 0.0)
 
     def update(self, dt: float, world_R_base: np.ndarray, angular_velocity_world: np.ndarray,
-               joint_positions: np.ndarray, joint_velocities: np.ndarray, joint_torques: np.ndarray,
+               joint_positions: np.ndarray, joint_velocities: np.ndarray, joint_torques: np.ndarray | None,
                base_acceleration_world: np.ndarray | None = None,
-               impedance: LegImpedance | None = None) -> LegOdometryOutput:
+               impedance: LegImpedance | None = None, foot_contact: np.ndarray | None = None) -> LegOdometryOutput:
         """One odometry sample. Joint arrays in canonical order [rad, rad/s, N m]; ``dt`` [s] since the
-        previous sample (for the penetration integration and finite differences)."""
+        previous sample (for the penetration integration and finite differences). ``foot_contact`` (4,):
+        the per-foot sensor values of a sensor ``contact_source`` (then ``joint_torques`` is not read and
+        may be None)."""
         m, s = self.model, self.settings
+        sensed = s.contact_source != "torque"
+        if sensed and foot_contact is None:
+            raise InputError(f"contact_source {s.contact_source!r} needs the feet's sensor values")
+        if not sensed and joint_torques is None:
+            raise InputError("contact_source 'torque' needs the joint torques")
         quat = quat_xyzw_from_rotation(world_R_base)
         q = m.make_q(self._origin, quat, joint_positions)
         v = m.make_v(self._origin, angular_velocity_world, joint_velocities, quat)
         terrain_aware = s.mode == "terrain_aware"
-        inertia = terrain_aware and s.use_leg_inertia
+        inertia = terrain_aware and s.use_leg_inertia and not sensed
         feet = m.foot_dynamics(q, v, with_mass_matrix=inertia)
         h = feet.nonlinear_effects
         if inertia:
@@ -192,21 +252,34 @@ class LegOdometry:
                 h = h + feet.mass_matrix @ vdot
             self._previous_v = v
         relative = feet.foot_velocities
-        force = self._forces(feet.foot_jacobians, h, np.asarray(joint_torques, dtype=float))
+        normals = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1)) if impedance is None else impedance.normal
+        if sensed:
+            assert foot_contact is not None
+            sensed_force, sensed_probability = self.sensed_contact(foot_contact, terrain_aware)
+            force = sensed_force[:, None] * normals
+        else:
+            assert joint_torques is not None
+            force = self._forces(feet.foot_jacobians, h, np.asarray(joint_torques, dtype=float))
         foot_velocity = np.zeros((NUM_LEGS, 3))
         if terrain_aware:
-            normals = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1)) if impedance is None else impedance.normal
             # A foot sphere that rolls without slipping: its contact point is still, its centre is not. A
             # foot sunk deeper than its radius is held by the ground around it and does not roll.
             rolling = self._radius * np.cross(feet.foot_angular_velocities, normals)
             foot_velocity = np.where((self.penetration < self._radius)[:, None], rolling, 0.0)
-            normal_force = np.maximum(np.einsum("lk,lk->l", force, normals), 0.0)
-            probability = self.contact_probability(normal_force)
+            if sensed:
+                normal_force, probability = sensed_force, sensed_probability
+            else:
+                normal_force = np.maximum(np.einsum("lk,lk->l", force, normals), 0.0)
+                probability = self.contact_probability(normal_force)
             weights = probability
             in_contact = probability > 0.5
             self._integrate_penetration(dt, normal_force, probability, impedance)
             if impedance is not None:
                 foot_velocity = foot_velocity - self._penetration_rate[:, None] * normals
+        elif sensed:
+            probability = sensed_probability
+            in_contact = probability > 0.5
+            weights = probability
         else:
             norm = np.linalg.norm(force, axis=1)
             in_contact = norm > self.threshold_n

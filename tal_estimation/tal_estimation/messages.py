@@ -18,11 +18,16 @@ from .streaming import JointArrays
 from .tce_driver import TceTick
 
 
-def joint_state_arrays(msg: JointState, index: dict[str, int]) -> JointArrays:
+def joint_state_arrays(msg: JointState, index: dict[str, int], *, velocities_optional: bool = False,
+                       efforts_optional: bool = False) -> JointArrays:
     """Positions [rad], velocities [rad/s] and efforts (measured torques) [N m] of a joint state in canonical
     order; InputError when a joint is unknown or missing, a length differs from the names' or a value is not
-    finite."""
-    q, qd = canonical_joint_state(msg, index)
+    finite. A message without velocities (or efforts), an empty list, gives None for them when
+    ``velocities_optional`` (``efforts_optional``): the estimator derives the velocities and, with a sensor
+    contact source, needs no torques. Otherwise it is rejected."""
+    q, qd = canonical_joint_state(msg, index, velocities_optional)
+    if efforts_optional and len(msg.effort) == 0:
+        return q, qd, None
     if len(msg.effort) != len(msg.name):
         raise InputError(f"joint_states has {len(msg.name)} names and {len(msg.effort)} efforts")
     tau = np.full(len(index), np.nan)
@@ -31,6 +36,20 @@ def joint_state_arrays(msg: JointState, index: dict[str, int]) -> JointArrays:
     if not np.all(np.isfinite(tau)):
         raise InputError("joint_states efforts have NaN/inf")
     return q, qd, tau
+
+
+def foot_contact_values(msg: ContactState, contact_source: str) -> np.ndarray:
+    """The feet's sensor values (LF, RF, LH, RH) a sensor contact source reads from a tal_msgs/ContactState:
+    ``force_sensor``: the norm of each ``force`` vector (a scalar sensor reading, raw counts or [N], put in
+    the vector); ``contact_flags``: ``in_contact`` as 0/1. InputError for another source or non-finite forces."""
+    if contact_source == "contact_flags":
+        return np.array(msg.in_contact, dtype=float)
+    if contact_source != "force_sensor":
+        raise InputError(f"contact_source {contact_source!r} reads no foot contact messages")
+    force = np.array([[f.x, f.y, f.z] for f in msg.force], dtype=float)
+    if not np.all(np.isfinite(force)):
+        raise InputError("foot contact forces have NaN/inf")
+    return np.linalg.norm(force, axis=1)
 
 
 class EstimateWriters:

@@ -53,7 +53,10 @@ class StateEstimatorSettings:
     max_gap_periods: a larger gap between ticks re-initialises the velocity filter. accel_range_m_s2,
     gyro_range_rad_s: saturation limits of the IMU (a sample at or beyond them is rejected; defaults: a
     +-40 g, +-2000 deg/s MEMS IMU, since touchdown impacts on rigid ground reach 20-30 g at the trunk in
-    simulation).
+    simulation). joint_velocity_cutoff_hz: cut-off of the first-order low-pass on the finite-difference joint
+    velocities the streaming estimator derives when a joint state has none. tick_tolerance_s: a joint
+    sample this much before a tick's grid point is that tick's sample (raise it to the stamps' jitter,
+    below half a period, for a robot whose stamps are not exact multiples of its period).
     """
 
     period_s: float = 0.003
@@ -66,16 +69,22 @@ class StateEstimatorSettings:
     motion_compensation_tau_s: float = 0.03
     accel_range_m_s2: float = 392.0
     gyro_range_rad_s: float = 34.9
+    joint_velocity_cutoff_hz: float = 40.0
+    tick_tolerance_s: float = 1e-4
     attitude: AttitudeSettings = field(default_factory=AttitudeSettings)
     leg_odometry: LegOdometrySettings = field(default_factory=LegOdometrySettings)
 
     def __post_init__(self) -> None:
         for name in ("period_s", "accel_noise_m_s2", "leg_velocity_noise_m_s", "motion_compensation_tau_s",
                      "initial_position_std_m",
-                     "initial_velocity_std_m_s", "min_support", "accel_range_m_s2", "gyro_range_rad_s"):
+                     "initial_velocity_std_m_s", "min_support", "accel_range_m_s2", "gyro_range_rad_s",
+                     "joint_velocity_cutoff_hz", "tick_tolerance_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise InputError(f"StateEstimatorSettings.{name} must be finite and > 0, got {value!r}")
+        if self.tick_tolerance_s >= 0.5 * self.period_s:
+            raise InputError(f"StateEstimatorSettings.tick_tolerance_s must be below half the period "
+                             f"({0.5 * self.period_s} s), got {self.tick_tolerance_s!r}")
         if int(self.max_gap_periods) < 1:
             raise InputError(f"StateEstimatorSettings.max_gap_periods must be >= 1, got {self.max_gap_periods!r}")
 
@@ -210,18 +219,31 @@ class StateEstimator:
         return f, w
 
     def update(self, t_s: float, specific_force: np.ndarray, angular_rate: np.ndarray,
-               joint_positions: np.ndarray, joint_velocities: np.ndarray, joint_torques: np.ndarray,
-               impedance: LegImpedance | None = None, magnetic_field: np.ndarray | None = None) -> StateEstimate:
+               joint_positions: np.ndarray, joint_velocities: np.ndarray, joint_torques: np.ndarray | None,
+               impedance: LegImpedance | None = None, magnetic_field: np.ndarray | None = None,
+               foot_contact: np.ndarray | None = None) -> StateEstimate:
         """One tick at ``t_s`` [s] with IMU means since the previous tick (IMU frame) and the joint state
-        of the tick (canonical order). Raises EstimatorInputError (reason key) for unusable input;
-        a gap of more than ``max_gap_periods`` re-initialises the velocity filter (counted)."""
+        of the tick (canonical order). ``foot_contact`` (4,): the feet's sensor values (force or flags) when
+        the leg odometry's contact_source is a sensor; then the torques are optional (None). Raises
+        EstimatorInputError (reason key) for unusable input; a gap of more than ``max_gap_periods``
+        re-initialises the velocity filter (counted)."""
         if self.kf is None or self.attitude is None or self.t_s is None:
             raise EstimatorInputError("not_initialised", "state estimator: call initialise() first")
         s = self.settings
         n = len(self.model.description.joint_names)
         q = _checked(joint_positions, n, "joint positions", "joints")
         qd = _checked(joint_velocities, n, "joint velocities", "joints")
-        tau = _checked(joint_torques, n, "joint torques", "joints")
+        source = s.leg_odometry.contact_source
+        if source == "torque":
+            if joint_torques is None:
+                raise EstimatorInputError("joints", "joint torques are needed with contact_source 'torque'")
+            tau = _checked(joint_torques, n, "joint torques", "joints")
+            contact = None
+        else:  # the torques are not read
+            tau = None if joint_torques is None else np.asarray(joint_torques, dtype=float)
+            if foot_contact is None:
+                raise EstimatorInputError("no_contacts", f"contact_source {source!r}: no foot contact sample")
+            contact = _checked(foot_contact, NUM_LEGS, "foot contact", "contacts")
         f_imu, w_imu = self.check_imu(specific_force, angular_rate)
         mag_imu = None if magnetic_field is None else _checked(magnetic_field, 3, "magnetic field", "mag_nan")
         if not math.isfinite(t_s) or t_s <= self.t_s:
@@ -245,7 +267,8 @@ class StateEstimator:
         previous_R = self.attitude.world_R_base
         previous_omega_base = gyro - self.attitude.gyro_bias
         legs = self.legs.update(dt, previous_R, previous_R @ previous_omega_base, q, qd, tau,
-                                base_acceleration_world=self._last_acceleration, impedance=impedance)
+                                base_acceleration_world=self._last_acceleration, impedance=impedance,
+                                foot_contact=contact)
         supported = legs.weight_sum >= s.min_support
         velocity_base = previous_R.T @ legs.base_velocity if supported else None
         self.attitude.update(dt, self._gravity.update(dt, f_base, previous_omega_base, velocity_base), gyro, mag)

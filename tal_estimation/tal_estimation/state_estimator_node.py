@@ -1,7 +1,10 @@
 """Node ``state_estimator``: attitude observer + leg odometry + Kalman filter at 333 Hz (sim time).
 
-Subscribes: ``joint_states`` (positions, velocities, measured torques), ``imu`` (1 kHz, specific force and
-angular rate), ``terrain_impedance`` (leg_odometry terrain_aware), ``imu/mag`` (use_magnetometer),
+Subscribes: ``joint_states`` (positions, velocities, measured torques; without velocities when
+joint_velocities_optional, without efforts when contact_source is a sensor), ``imu`` (1 kHz, specific force
+and angular rate), ``foot_contacts`` (tal_msgs/ContactState, contact_source force_sensor: the norm of each
+``force``, raw or [N] per foot_force_scale/offset; contact_flags: ``in_contact``), ``terrain_impedance``
+(leg_odometry terrain_aware), ``imu/mag`` (use_magnetometer),
 ``ground_truth/odom`` (only with initial_pose_source ground_truth, for the first pose, or with
 summary_path, to report the drift at shutdown; never fed into the filter).
 Publishes: ``state_estimate`` (nav_msgs/Odometry, pose in world, twist in base, covariances) and
@@ -40,9 +43,9 @@ from tal_msgs.msg import ContactState, TerrainImpedance
 
 from .attitude import AttitudeSettings
 from .drift_statistics import DriftStatistics, StampMatcher
-from .leg_odometry import LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
+from .leg_odometry import CONTACT_SOURCES, LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
 from .live_settings import with_field
-from .messages import EstimateWriters, joint_state_arrays
+from .messages import EstimateWriters, foot_contact_values, joint_state_arrays
 from .state_estimator import StateEstimate, StateEstimator, StateEstimatorSettings
 from .streaming import EstimatorOutput, StreamingEstimator
 
@@ -60,6 +63,21 @@ class StateEstimatorNode(Node):
         fraction = declare(self, "contact_threshold_weight_fraction", 0.1,
                            "[-] contact force threshold as a fraction of the robot's weight", low=0.001, high=0.99,
                            on_change=self._setting("leg_odometry.contact_threshold_weight_fraction"))
+        self.contact_source = declare(
+            self, "contact_source", "torque", "torque (force from the joint efforts), force_sensor (foot_contacts "
+            "force norms, raw or N, thresholded with hysteresis) or contact_flags (foot_contacts in_contact); "
+            "with a sensor, joint efforts are optional", choices=CONTACT_SOURCES)
+        hysteresis = declare(self, "contact_hysteresis_fraction", 0.3, "[-] force_sensor: a contact ends below "
+                             "(1 - this) x the threshold", low=0.001, high=0.999,
+                             on_change=self._setting("leg_odometry.contact_hysteresis_fraction"))
+        force_scale = declare(self, "foot_force_scale", [1.0] * 4, "[N per sensor unit] force_sensor calibration "
+                              "per leg (LF, RF, LH, RH): force = scale * (raw - offset)",
+                              on_change=self._setting("leg_odometry.foot_force_scale", tuple))
+        force_offset = declare(self, "foot_force_offset", [0.0] * 4, "[sensor units] force_sensor reading of an "
+                               "unloaded foot, per leg (LF, RF, LH, RH)",
+                               on_change=self._setting("leg_odometry.foot_force_offset", tuple))
+        self.velocities_optional = declare(self, "joint_velocities_optional", False, "accept joint_states without "
+                                           "velocities and derive them (finite difference + low-pass)")
         self.init_source = declare(self, "initial_pose_source", "ground_truth",
                                    "ground_truth (first ground_truth/odom message aligns the world frame, as a "
                                    "motion-capture start) or standing (level, feet on z = 0 under initial_xy_m)",
@@ -82,12 +100,22 @@ class StateEstimatorNode(Node):
                                      on_change=self._setting("accel_range_m_s2")),
             gyro_range_rad_s=declare(self, "gyro_range_rad_s", 34.9, "[rad/s] IMU gyro range", low=0.1,
                                      high=1e3, on_change=self._setting("gyro_range_rad_s")),
+            joint_velocity_cutoff_hz=declare(self, "joint_velocity_cutoff_hz", 40.0, "[Hz] low-pass cut-off of "
+                                             "derived joint velocities", low=0.1, high=1e4,
+                                             on_change=self._setting("joint_velocity_cutoff_hz")),
+            tick_tolerance_s=declare(self, "tick_tolerance_s", 1e-4, "[s] how early a joint sample may be and "
+                                     "still take a tick (the stamps' jitter; below half the period)",
+                                     low=0.0, high=0.05, on_change=self._setting("tick_tolerance_s")),
             attitude=AttitudeSettings(
                 k_p=declare(self, "attitude_k_p", 1.0, "[rad/s] NLO injection gain", low=1e-6, high=100.0,
                             on_change=self._setting("attitude.k_p")),
                 k_i=declare(self, "attitude_k_i", 0.3, "[1/s^2] NLO gyro-bias gain", low=1e-6, high=100.0,
                             on_change=self._setting("attitude.k_i"))),
-            leg_odometry=LegOdometrySettings(mode=mode, contact_threshold_weight_fraction=fraction))
+            leg_odometry=LegOdometrySettings(mode=mode, contact_threshold_weight_fraction=fraction,
+                                             contact_source=self.contact_source,
+                                             contact_hysteresis_fraction=hysteresis,
+                                             foot_force_scale=tuple(force_scale),
+                                             foot_force_offset=tuple(force_offset)))
         self.summary_path = declare(self, "summary_path", "", "JSON written at shutdown (counters, drift "
                                     "against ground truth when available); empty: none",
                                     on_change=self._set_summary_path)
@@ -117,10 +145,12 @@ class StateEstimatorNode(Node):
             self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
         if use_mag:
             self.create_subscription(MagneticField, "imu/mag", self._on_mag, 10)
+        if self.contact_source != "torque":
+            self.create_subscription(ContactState, "foot_contacts", self._on_foot_contacts, 50)
         if self.init_source == "ground_truth" or self.summary_path:
             self._subscribe_truth()
         self.get_logger().info(f"state_estimator ready: robot '{robot}', {1.0 / period:.0f} Hz, leg odometry "
-                               f"{mode}, initial pose from {self.init_source}")
+                               f"{mode}, contact from {self.contact_source}, initial pose from {self.init_source}")
 
     # -- counters of the streaming tick (diagnostics, summary, tests) ---------------------------------------
     @property
@@ -140,9 +170,11 @@ class StateEstimatorNode(Node):
         return self.stream.restarts
 
     # -- live parameters ------------------------------------------------------------------------------------
-    def _setting(self, name: str) -> Callable[[Any], None]:
-        """on_change of a parameter that is the estimator setting ``name`` (dotted for nested settings)."""
-        return lambda value: self.stream.reconfigure(with_field(self.stream.settings, name, value))
+    def _setting(self, name: str, convert: Callable[[Any], Any] | None = None) -> Callable[[Any], None]:
+        """on_change of a parameter that is the estimator setting ``name`` (dotted for nested settings),
+        ``convert`` turning the parameter value into the setting's type."""
+        return lambda value: self.stream.reconfigure(
+            with_field(self.stream.settings, name, value if convert is None else convert(value)))
 
     def _set_initial_xy(self, value: list[float]) -> None:
         if len(value) != 2:
@@ -211,9 +243,19 @@ class StateEstimatorNode(Node):
         w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
         self._output(self.stream.add_imu(ns_from_stamp(msg.header.stamp), f, w))
 
+    def _on_foot_contacts(self, msg: ContactState) -> None:
+        try:
+            values = foot_contact_values(msg, self.contact_source)
+        except InputError as exc:
+            self._reject("contacts", str(exc))
+            return
+        self._output(self.stream.add_contacts(ns_from_stamp(msg.header.stamp), values))
+
     def _on_joints(self, msg: JointState) -> None:
-        self._output(self.stream.add_joints(ns_from_stamp(msg.header.stamp),
-                                            lambda: joint_state_arrays(msg, self.joint_index)))
+        self._output(self.stream.add_joints(
+            ns_from_stamp(msg.header.stamp),
+            lambda: joint_state_arrays(msg, self.joint_index, velocities_optional=self.velocities_optional,
+                                       efforts_optional=self.contact_source != "torque")))
 
     def _output(self, outputs: list[EstimatorOutput]) -> None:
         for out in outputs:

@@ -7,7 +7,9 @@ IMU and joint-state samples (1 kHz each) arrive separately and in no fixed order
 grid k * period_s of the joint-state stamps: the first joint sample at or past the next grid point is that
 tick's sample. It stays *pending* until the IMU sample of its stamp has arrived (the pairing by stamp), or
 until the next grid sample arrives (then it runs with the IMU samples that did come). A tick's IMU input is
-the mean of the IMU samples in (previous tick, tick] (pre-integration); the first tick initialises the
+the mean of the IMU samples in (previous tick, tick] (pre-integration; when IMU stamps jitter apart from the
+joints' and no sample came in that window, the sample after the tick, within a period, counted in
+``nearest_imu_ticks``); the first tick initialises the
 filter (at a given pose, or standing on flat ground), later ones update it.
 
 Rejected and counted by reason in ``rejections``: IMU samples with NaN or at the sensor range (imu_nan,
@@ -17,6 +19,16 @@ IMU samples were all rejected reuses the previous mean (``held_imu_ticks``). A r
 resends its first state until a controller answers) is counted in ``duplicates``; a repeated joint sample
 of the last tick gives a "repeat" output so a node can answer it again. A stamp more than CLOCK_RESET_NS
 behind the last one is a restarted clock: the estimator starts again (``restarts``).
+
+Robots without joint torques or joint velocities: with a sensor ``contact_source`` (leg odometry settings) a
+tick needs the feet's sensor values, given with the joint sample (``add_joints(..., foot_contact=...)``, one
+message or row carrying both) or as a stream of their own (``add_contacts``, paired by stamp as the IMU: a
+tick waits for a contact sample at or past its stamp, or for the next grid sample, and uses the latest one
+at or before its stamp; rejected: contacts, no_contacts). A joint state whose ``read()`` gives no
+velocities (None) gets them from ``JointVelocityFilter`` (finite difference + low-pass at
+``joint_velocity_cutoff_hz``); from the first such sample on, every joint sample is read and feeds the
+filter, not only the ticks'. Stamps with jitter: ``tick_tolerance_s`` (settings) is how early a sample may
+be and still take a tick's grid point.
 """
 
 from __future__ import annotations
@@ -28,14 +40,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from tal_core.errors import InputError
+from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.ticks import CLOCK_RESET_NS, reaches_tick, tick_after
 
+from .joint_velocity import JointVelocityFilter
 from .leg_odometry import LegImpedance
 from .state_estimator import EstimatorInputError, StateEstimate, StateEstimator, StateEstimatorSettings
 
-JointArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
-"""Joint positions [rad], velocities [rad/s] and measured torques [N m], canonical order."""
+JointArrays = tuple[np.ndarray, "np.ndarray | None", "np.ndarray | None"]
+"""Joint positions [rad], velocities [rad/s] and measured torques [N m], canonical order; velocities None:
+derive them; torques None: none measured (a sensor contact source)."""
+_Pending = tuple[int, float, np.ndarray, "np.ndarray | None", "np.ndarray | None", "np.ndarray | None"]
 
 
 @dataclass(frozen=True)
@@ -84,16 +100,35 @@ class StreamingEstimator:
         self.restarts = 0
         self.duplicates = 0
         self.held_imu_ticks = 0
+        self.nearest_imu_ticks = 0  # ticks whose IMU window was empty and that took the next sample
         self._last_imu_mean: tuple[np.ndarray, np.ndarray] | None = None
         self._next_tick_ns = 0
         self._last_tick_ns: int | None = None
         self._imu: list[tuple[int, np.ndarray, np.ndarray]] = []   # IMU samples after the last tick
         self._last_imu_ns: int | None = None
-        self._pending: tuple[int, float, np.ndarray, np.ndarray, np.ndarray] | None = None  # the next tick
+        self._rejected_imu_ns: int | None = None  # the last rejected IMU sample's stamp
+        self._pending: _Pending | None = None  # the next tick: stamp, t, q, qd, tau, foot contact
+        self._contacts: list[tuple[int, np.ndarray]] = []  # foot contact samples after the last tick
+        self._last_contact_ns: int | None = None
+        self._held_contact: np.ndarray | None = None
+        self.deriving_velocities = False  # a joint state without velocities was seen: all samples are read
+        self._velocity_filter = self._new_velocity_filter()
 
     @property
     def settings(self) -> StateEstimatorSettings:
         return self.estimator.settings
+
+    @property
+    def _tolerance_ns(self) -> int:
+        return round(self.estimator.settings.tick_tolerance_s * 1e9)
+
+    @property
+    def _sensed_contacts(self) -> bool:
+        return self.estimator.settings.leg_odometry.contact_source != "torque"
+
+    def _new_velocity_filter(self) -> JointVelocityFilter:
+        s = self.estimator.settings
+        return JointVelocityFilter(s.joint_velocity_cutoff_hz, s.max_gap_periods * s.period_s)
 
     @property
     def has_initial_pose(self) -> bool:
@@ -102,6 +137,7 @@ class StreamingEstimator:
     def reconfigure(self, settings: StateEstimatorSettings) -> None:
         """New settings from the next tick (``StateEstimator.reconfigure``); restarts keep them."""
         self.estimator.reconfigure(settings)
+        self._velocity_filter.cutoff_hz = settings.joint_velocity_cutoff_hz
 
     # -- inputs -----------------------------------------------------------------------------------------------
     def set_initial_pose(self, position: np.ndarray, world_R_base: np.ndarray) -> list[EstimatorOutput]:
@@ -117,6 +153,7 @@ class StreamingEstimator:
             f, w = self.estimator.check_imu(specific_force, angular_rate)
         except EstimatorInputError as exc:
             self._reject(exc.reason, str(exc))
+            self._rejected_imu_ns = stamp_ns
             return []
         if self._last_imu_ns is not None and stamp_ns == self._last_imu_ns:
             self.duplicates += 1
@@ -136,40 +173,80 @@ class StreamingEstimator:
         """Whether ``add_joints`` would do anything with a sample stamped ``stamp_ns`` (a restart, a repeat, a
         tick): a node may skip deserialising the others (``tal_core.ros.cdr.subscribe_stamped``)."""
         return (self._last_tick_ns is not None and stamp_ns + CLOCK_RESET_NS < self._last_tick_ns) \
-            or stamp_ns == self._last_tick_ns or reaches_tick(stamp_ns, self._next_tick_ns)
+            or stamp_ns == self._last_tick_ns or reaches_tick(stamp_ns, self._next_tick_ns, self._tolerance_ns) \
+            or self.deriving_velocities
 
-    def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays],
-                   t_s: float | None = None) -> list[EstimatorOutput]:
+    def add_contacts(self, stamp_ns: int, values: np.ndarray) -> list[EstimatorOutput]:
+        """One foot contact sample (4 values, LF, RF, LH, RH): forces (raw or [N]) or flags, as the leg
+        odometry's contact_source reads them. Ignored with contact_source torque."""
+        if not self._sensed_contacts:
+            return []
+        contact = np.asarray(values, dtype=float)
+        if contact.shape != (NUM_LEGS,) or not np.all(np.isfinite(contact)):
+            self._reject("contacts", f"foot contact sample needs {NUM_LEGS} finite values, got {values!r}")
+            return []
+        if self._last_contact_ns is not None and stamp_ns <= self._last_contact_ns:
+            if stamp_ns == self._last_contact_ns:
+                self.duplicates += 1
+            elif stamp_ns + CLOCK_RESET_NS >= self._last_contact_ns:
+                self._reject("contacts", f"foot contact stamp {stamp_ns * 1e-9:.6f} s is not after "
+                             f"{self._last_contact_ns * 1e-9:.6f} s")
+            else:  # a restarted clock: the joints or the IMU restart the estimator
+                self._contacts = [(stamp_ns, contact)]
+                self._last_contact_ns = stamp_ns
+            return []
+        self._last_contact_ns = stamp_ns
+        self._contacts.append((stamp_ns, contact))
+        return self._try_tick()
+
+    def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays], t_s: float | None = None,
+                   foot_contact: np.ndarray | None = None) -> list[EstimatorOutput]:
         """One joint-state sample. ``read()`` gives its arrays (called only for a tick's sample, so a node
-        converts only those messages; InputError rejects the sample). ``t_s``: the time [s] the filter sees
-        for it (default stamp_ns * 1e-9; an in-process runner on a float clock passes its own)."""
+        converts only those messages, unless velocities are derived; InputError rejects the sample).
+        ``t_s``: the time [s] the filter sees for it (default stamp_ns * 1e-9; an in-process runner on a
+        float clock passes its own). ``foot_contact``: the feet's sensor values of this stamp, if the
+        sample carries them (else ``add_contacts``)."""
         if self._last_tick_ns is not None and stamp_ns + CLOCK_RESET_NS < self._last_tick_ns:
             self._restart(stamp_ns)
         if stamp_ns == self._last_tick_ns:
             self.duplicates += 1
             return [EstimatorOutput("repeat", stamp_ns)]
-        if not reaches_tick(stamp_ns, self._next_tick_ns):
+        t = stamp_ns * 1e-9 if t_s is None else t_s
+        if not reaches_tick(stamp_ns, self._next_tick_ns, self._tolerance_ns):
+            if self.deriving_velocities:  # every sample feeds the velocity filter
+                try:
+                    self._velocity_filter.update(t, read()[0])
+                except InputError as exc:
+                    self._reject("joints", str(exc))
             return []
         try:
             q, qd, tau = read()
         except InputError as exc:
             self._reject("joints", str(exc))
             return []
+        if qd is None:
+            self.deriving_velocities = True
+            qd = self._velocity_filter.update(t, q)
+        elif self.deriving_velocities:
+            self._velocity_filter.update(t, q)
         out = []
         if self._pending is not None and self._pending[0] < stamp_ns:
             out += self._tick(self._pending)  # its IMU sample never came: run it with what arrived
         # The grid point is taken: later samples before the next one are not ticks, whether or not the
         # IMU sample of this one has arrived yet (topics are delivered in no fixed order).
-        self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
-        self._pending = (stamp_ns, stamp_ns * 1e-9 if t_s is None else t_s, q, qd, tau)
+        self._next_tick_ns = tick_after(stamp_ns, self.period_ns, self._tolerance_ns)
+        contact = None if foot_contact is None else np.asarray(foot_contact, dtype=float)
+        self._pending = (stamp_ns, t, q, qd, tau, contact)
         return out + self._try_tick()
 
     def add_sample(self, stamp_ns: int, specific_force: np.ndarray, angular_rate: np.ndarray,
-                   joint_position: np.ndarray, joint_velocity: np.ndarray, joint_torque: np.ndarray,
-                   t_s: float | None = None) -> list[EstimatorOutput]:
-        """The IMU and joint samples of one stamp (a simulator step, a row of recorded arrays)."""
+                   joint_position: np.ndarray, joint_velocity: np.ndarray | None, joint_torque: np.ndarray | None,
+                   t_s: float | None = None, foot_contact: np.ndarray | None = None) -> list[EstimatorOutput]:
+        """The IMU and joint samples of one stamp (a simulator step, a row of recorded arrays), with the
+        feet's sensor values of that stamp for a sensor contact source."""
         out = self.add_imu(stamp_ns, specific_force, angular_rate)
-        return out + self.add_joints(stamp_ns, lambda: (joint_position, joint_velocity, joint_torque), t_s)
+        return out + self.add_joints(stamp_ns, lambda: (joint_position, joint_velocity, joint_torque), t_s,
+                                     foot_contact)
 
     # -- the tick ---------------------------------------------------------------------------------------------
     def _reject(self, reason: str, message: str) -> None:
@@ -186,17 +263,38 @@ class StreamingEstimator:
         self._last_tick_ns = None
         self._imu.clear()
         self._last_imu_ns = None
+        self._rejected_imu_ns = None
         self._pending = None
+        self._contacts.clear()
+        self._last_contact_ns = None
+        self._held_contact = None
+        self._velocity_filter.reset()
         if self.wait_for_initial_pose:
             self._initial_pose = None
 
     def _try_tick(self) -> list[EstimatorOutput]:
         if self._pending is None or self._last_imu_ns is None or self._last_imu_ns < self._pending[0]:
             return []
+        if self._sensed_contacts and self._pending[5] is None and (
+                self._last_contact_ns is None or self._last_contact_ns < self._pending[0]):
+            return []  # the foot contact sample of this stamp may still come
         return self._tick(self._pending)
 
-    def _tick(self, pending: tuple[int, float, np.ndarray, np.ndarray, np.ndarray]) -> list[EstimatorOutput]:
-        stamp, t_s, q, qd, tau = pending
+    def _tick_contact(self, stamp: int, given: np.ndarray | None) -> np.ndarray | None:
+        """The foot contact values of the tick at ``stamp``: those given with its joint sample, else the
+        latest sample at or before it (held from an earlier tick if none came since)."""
+        if not self._sensed_contacts:
+            return None
+        window = [c for c in self._contacts if c[0] <= stamp]
+        self._contacts = [c for c in self._contacts if c[0] > stamp]
+        if given is not None:
+            self._held_contact = given
+        elif window:
+            self._held_contact = window[-1][1]
+        return self._held_contact
+
+    def _tick(self, pending: _Pending) -> list[EstimatorOutput]:
+        stamp, t_s, q, qd, tau, given_contact = pending
         est = self.estimator
         if not est.initialised:
             if self.wait_for_initial_pose and self._initial_pose is None:
@@ -208,10 +306,18 @@ class StreamingEstimator:
             else:
                 est.initialise_standing(t_s, q, self.initial_xy, world_R_base=self.initial_world_R_base)
             self._last_tick_ns = stamp
+            self._tick_contact(stamp, given_contact)
             return [EstimatorOutput("initial", stamp, None, (q, qd, tau))]
         self._pending = None
         samples = [s for s in self._imu if s[0] <= stamp]
         self._imu = [s for s in self._imu if s[0] > stamp]
+        rejected_in_window = (self._rejected_imu_ns is not None and self._last_tick_ns is not None
+                              and self._last_tick_ns < self._rejected_imu_ns <= stamp)
+        if not samples and not rejected_in_window and self._imu and self._imu[0][0] < stamp + self.period_ns:
+            # IMU stamps with a jitter of their own: none fell in (previous tick, tick], the one that released
+            # the tick is the nearest; it is this tick's, not the next one's.
+            samples = [self._imu.pop(0)]
+            self.nearest_imu_ticks += 1
         if samples:
             f = np.mean([s[1] for s in samples], axis=0)
             w = np.mean([s[2] for s in samples], axis=0)
@@ -222,8 +328,13 @@ class StreamingEstimator:
         else:
             self._reject("no_imu", f"no IMU sample for the tick at {stamp * 1e-9:.6f} s")
             return []
+        contact = self._tick_contact(stamp, given_contact)
+        if self._sensed_contacts and contact is None:
+            self._reject("no_contacts", f"no foot contact sample for the tick at {stamp * 1e-9:.6f} s")
+            return []
         try:
-            estimate = est.update(t_s, f, w, q, qd, tau, impedance=self.impedance, magnetic_field=self.magnetic_field)
+            estimate = est.update(t_s, f, w, q, qd, tau, impedance=self.impedance, magnetic_field=self.magnetic_field,
+                                  foot_contact=contact)
         except EstimatorInputError as exc:
             self._reject(exc.reason, str(exc))
             return []

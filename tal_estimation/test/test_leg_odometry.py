@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from dataclasses import replace as dataclass_replace
 from functools import cache
 
 import numpy as np
@@ -401,3 +402,106 @@ def test_unconfident_or_rigid_impedance_models_no_sinking() -> None:
     np.testing.assert_array_equal(impedance.usable(0.1), [False, False, True, True])
     with pytest.raises(InputError, match="min_confidence"):
         LegOdometrySettings(min_confidence=1.5)
+
+
+# --------------------------------------------------------------------------------------------------------
+# Contact from sensors at the feet (force sensors, binary flags): no joint torques needed
+# --------------------------------------------------------------------------------------------------------
+SCALE = np.array([0.5, 0.4, 0.6, 0.55])    # [N per count] a per-leg calibration (synthetic)
+OFFSET = np.array([20.0, 35.0, 10.0, 0.0])  # [counts] unloaded readings (synthetic)
+
+
+def counts(force_n: np.ndarray) -> np.ndarray:
+    """Raw sensor counts that the calibration above turns into ``force_n`` [N]."""
+    return np.asarray(force_n, float) / SCALE + OFFSET
+
+
+@pytest.mark.parametrize("source", ["force_sensor", "contact_flags"])
+@pytest.mark.parametrize("stance", [(0, 3), (0, 1, 2, 3)], ids=str)
+def test_sensed_contact_recovers_base_velocity_without_torques(source: str, stance: tuple[int, ...]) -> None:
+    """Same motion as the rigid torque test, contact from the feet's sensors and no torques at all."""
+    model = robot("hyq")
+    weight = model.total_mass_kg * G
+    settings = LegOdometrySettings(contact_source=source, foot_force_scale=tuple(SCALE),
+                                   foot_force_offset=tuple(OFFSET))
+    odometry = LegOdometry(model, settings)
+    force = np.zeros((4, 3))
+    for leg in stance:
+        force[leg] = weight / len(stance) * np.array([0.0, 0.0, 1.0])
+    rng = np.random.default_rng(3)
+    qj = joint_positions(model)
+    sample = make_sample(model, BASE_ROTATION, np.zeros(3), BASE_VELOCITY, ANGULAR_VELOCITY, qj,
+                         {leg: np.zeros(3) for leg in stance}, force, free_joint_velocities=rng.uniform(-3, 3, 12))
+    stance_flags = np.array([leg in stance for leg in range(4)])
+    sensor = counts(force[:, 2]) if source == "force_sensor" else stance_flags.astype(float)
+    out = odometry.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, None, foot_contact=sensor)
+    np.testing.assert_allclose(out.base_velocity, BASE_VELOCITY, atol=1e-9)
+    np.testing.assert_array_equal(out.in_contact, stance_flags)
+    assert out.weight_sum == len(stance)
+    if source == "force_sensor":
+        np.testing.assert_allclose(out.force, force, atol=1e-9 * weight)  # calibrated, along the normal
+    else:  # flags: each stance foot carries its share of the weight
+        np.testing.assert_allclose(out.force[:, 2], np.where(stance_flags, weight / len(stance), 0.0))
+
+
+def test_force_sensor_contact_has_hysteresis() -> None:
+    """On above the threshold, held until below (1 - hysteresis) x threshold; a force between the two does
+    not start a contact. Terrain aware: the probability ramps between the thresholds while in contact."""
+    model, qj, sample = standing_on_four_feet()
+    settings = LegOdometrySettings(contact_source="force_sensor", contact_hysteresis_fraction=0.4,
+                                   foot_force_scale=tuple(SCALE), foot_force_offset=tuple(OFFSET))
+    odometry = LegOdometry(model, settings)
+    on = odometry.threshold_n
+    off = 0.6 * on
+    middle = 0.5 * (on + off)
+    sequence = [0.0, middle, 1.1 * on, middle, 0.9 * off, middle, 1.1 * on]
+    expected = [False, False, True, True, False, False, True]
+    seen = []
+    for force_n in sequence:
+        out = odometry.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, None,
+                              foot_contact=counts(np.full(4, force_n)))
+        seen.append(bool(out.in_contact[0]))
+        assert np.all(out.in_contact == out.in_contact[0])
+    assert seen == expected
+    aware = LegOdometry(model, dataclass_replace(settings, mode="terrain_aware"))
+    probabilities = [aware.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, None,
+                                  foot_contact=counts(np.full(4, f))).probability[0] for f in sequence]
+    np.testing.assert_allclose(probabilities, [0.0, 0.0, 1.0, 0.5, 0.0, 0.0, 1.0], atol=1e-12)
+
+
+def test_terrain_aware_sinking_from_force_sensors() -> None:
+    """A soft leg sinks from the sensed force as it does from the torque-derived one (no leg inertia)."""
+    model, qj, sample = standing_on_four_feet()
+    impedance = LegImpedance(np.full(4, 1e4), np.full(4, 3e3), np.tile([0.0, 0.0, 1.0], (4, 1)), np.ones(4, bool))
+    by_torque = LegOdometry(model, LegOdometrySettings(mode="terrain_aware", use_leg_inertia=False))
+    by_sensor = LegOdometry(model, LegOdometrySettings(mode="terrain_aware", contact_source="force_sensor"))
+    for _ in range(5):
+        a = by_torque.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, sample.tau, impedance=impedance)
+        b = by_sensor.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, None, impedance=impedance,
+                             foot_contact=a.force[:, 2])
+    assert np.all(b.penetration > 1e-4)
+    np.testing.assert_allclose(b.penetration, a.penetration, rtol=1e-9)
+    np.testing.assert_allclose(b.base_velocity, a.base_velocity, atol=1e-9)
+
+
+def test_a_contact_source_needs_its_input() -> None:
+    model, qj, sample = standing_on_four_feet()
+    with pytest.raises(InputError, match="needs the feet's sensor values"):
+        LegOdometry(model, LegOdometrySettings(contact_source="contact_flags")).update(
+            DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, sample.tau)
+    with pytest.raises(InputError, match="needs the joint torques"):
+        LegOdometry(model).update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, None)
+    with pytest.raises(InputError, match="contact_source is fixed"):
+        LegOdometry(model).reconfigure(LegOdometrySettings(contact_source="force_sensor"))
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"contact_source": "pressure"}, "contact_source must be one of"),
+    ({"foot_force_scale": (1.0, 1.0, 1.0)}, "foot_force_scale needs 4 finite values"),
+    ({"foot_force_scale": (1.0, 1.0, 0.0, 1.0)}, "foot_force_scale must be > 0"),
+    ({"foot_force_offset": (0.0, math.nan, 0.0, 0.0)}, "foot_force_offset needs 4 finite values"),
+    ({"contact_hysteresis_fraction": 1.0}, "contact_hysteresis_fraction must be in"),
+])
+def test_contact_source_settings_reject_invalid_values(kwargs: dict, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        LegOdometrySettings(**kwargs)

@@ -23,15 +23,18 @@ ImpedanceSource = Callable[[float], "LegImpedance | None"]
 class SensorArrays:
     """Proprioceptive samples, one row per sensor sample. t [s]; specific_force [m/s^2] and angular_rate
     [rad/s] IMU frame; joint_position [rad], joint_velocity [rad/s], joint_torque [N m] canonical order;
-    magnetic_field (optional) [T] IMU frame."""
+    magnetic_field (optional) [T] IMU frame. A robot without them: joint_velocity None (derived by the
+    estimator), joint_torque None (with a sensor contact_source); foot_contact (T, 4) the feet's sensor
+    values (force, raw or [N], or 0/1 flags) for such a source."""
 
     t: np.ndarray
     specific_force: np.ndarray
     angular_rate: np.ndarray
     joint_position: np.ndarray
-    joint_velocity: np.ndarray
-    joint_torque: np.ndarray
+    joint_velocity: np.ndarray | None
+    joint_torque: np.ndarray | None
     magnetic_field: np.ndarray | None = None
+    foot_contact: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -69,8 +72,11 @@ def run_estimator(model: RobotModel, sensors: SensorArrays, settings: StateEstim
     for i, stamp in enumerate(stamps):
         stream.magnetic_field = None if sensors.magnetic_field is None else sensors.magnetic_field[i]
         stream.impedance = None if impedance is None else impedance(stamp * 1e-9)
+        qd = None if sensors.joint_velocity is None else sensors.joint_velocity[i]
+        tau = None if sensors.joint_torque is None else sensors.joint_torque[i]
+        contact = None if sensors.foot_contact is None else sensors.foot_contact[i]
         for out in stream.add_sample(int(stamp), sensors.specific_force[i], sensors.angular_rate[i],
-                                     sensors.joint_position[i], sensors.joint_velocity[i], sensors.joint_torque[i]):
+                                     sensors.joint_position[i], qd, tau, foot_contact=contact):
             if out.estimate is not None:
                 rows.append(out.estimate)
                 if on_tick is not None:

@@ -33,22 +33,26 @@ def base_state_from_odometry(msg: Odometry) -> BaseState:
                      angular_velocity=world_R_base @ np.array([ang.x, ang.y, ang.z]))
 
 
-def canonical_joint_state(msg: JointState, index: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Joint positions [rad] and velocities [rad/s] in canonical order; InputError on bad content."""
+def canonical_joint_state(msg: JointState, index: dict[str, int],
+                          velocities_optional: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """Joint positions [rad] and velocities [rad/s] in canonical order; InputError on bad content. With
+    ``velocities_optional`` a message without velocities (an empty list) gives None for them."""
     n = len(index)
-    if len(msg.position) != len(msg.name) or len(msg.velocity) != len(msg.name):
+    no_velocities = velocities_optional and len(msg.velocity) == 0
+    if len(msg.position) != len(msg.name) or (len(msg.velocity) != len(msg.name) and not no_velocities):
         raise InputError(f"joint_states has {len(msg.name)} names, {len(msg.position)} positions and "
                          f"{len(msg.velocity)} velocities")
     q = np.full(n, np.nan)
     qd = np.full(n, np.nan)
-    for name, position, velocity in zip(msg.name, msg.position, msg.velocity):
+    velocities = [0.0] * len(msg.name) if no_velocities else msg.velocity
+    for name, position, velocity in zip(msg.name, msg.position, velocities):
         k = index.get(name)
         if k is None:
             raise InputError(f"joint_states names unknown joint '{name}'")
         q[k], qd[k] = position, velocity
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
         raise InputError("joint_states lacks joints or has NaN/inf values")
-    return q, qd
+    return q, None if no_velocities else qd
 
 
 def heightmap_grid(msg: HeightMap) -> HeightMapGrid:
