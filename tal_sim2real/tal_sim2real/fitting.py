@@ -36,6 +36,31 @@ class Fit:
         return self.n_obs * math.log(max(self.cost, 1e-300) / self.n_obs) + self.n_params * math.log(self.n_obs)
 
 
+def information_criterion(cost: float, n_eff: float, n_params: int) -> float:
+    """BIC of Gaussian residuals with ``cost`` (sum of squares) on ``n_eff`` effective samples and
+    ``n_params`` fitted parameters: n log(cost / n) + k log(n). Used to choose between a global effect and its
+    per-leg or per-joint variant: each extra parameter costs log(n_eff)."""
+    n = max(float(n_eff), 2.0)
+    return n * math.log(max(cost, 1e-300) / n) + n_params * math.log(n)
+
+
+def effective_samples(residual: np.ndarray) -> float:
+    """Effective number of independent samples of a (samples, channels) residual: per channel
+    N (1 - rho) / (1 + rho) with rho its lag-1 autocorrelation (>= 0), summed over channels. White noise
+    counts every sample; a slowly varying model error counts few (so its fit is not over-rewarded)."""
+    r = np.asarray(residual, dtype=float)
+    if r.ndim == 1:
+        r = r[:, None]
+    total = 0.0
+    for col in r.T:
+        col = col - col.mean()
+        denom = float(col @ col)
+        rho = float(col[1:] @ col[:-1]) / denom if denom > 0 else 0.0
+        rho = min(max(rho, 0.0), 0.999)
+        total += len(col) * (1.0 - rho) / (1.0 + rho)
+    return max(total, 2.0)
+
+
 def fit_least_squares(
     candidates: list[Candidate],
     residual: Residual,

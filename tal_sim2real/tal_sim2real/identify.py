@@ -31,9 +31,9 @@ import numpy as np
 from tal_core.robot_description import load_robot_description
 
 from .dynamics import dynamics_subsystem
-from .library import CANDIDATES, missing_signals
+from .library import CANDIDATES, VARIANTS, missing_signals
 from .measured import MeasuredData, load_measured
-from .model import SimModel
+from .model import PARAMETER_NAMES, SimModel
 from .outcomes import Finding, Identification, Settings, SubsystemResult
 from .phases import infer_gait, leg_contacts, leg_phases
 from .subsystems import imu_subsystem, torque_path_subsystem
@@ -88,18 +88,45 @@ def identify(
         findings += found
     for f in findings:
         if f.status == "named":
-            values.update(f.values)
+            values.update(_model_values(f.values))
+    leg_gain = next((f for f in findings if f.status == "named" and f.candidate == "leg_torque_gain"), None)
     dynamics = [c for c in usable if c.subsystem == "dynamics"]
     steps = 0
     if dynamics:
-        result, found, steps = dynamics_subsystem(data, description, dynamics, nominal, windows, settings, phases)
+        result, found, steps = dynamics_subsystem(
+            data,
+            description,
+            dynamics,
+            nominal,
+            windows,
+            settings,
+            phases,
+            (leg_gain.where, next(iter(leg_gain.values.values()))) if leg_gain is not None else None,
+        )
         subsystems["dynamics"] = result
+        sensor = next((f for f in found if f.candidate == "leg_torque_sensor_gain"), None)
+        if sensor is not None and leg_gain is not None:
+            # the dynamics says the leg's measured torques, not its delivered ones, carry the gain: the torque
+            # path's per-leg gain is that leg's torque-sensor gain
+            found.remove(sensor)
+            (key,) = sensor.values
+            sensor.intervals = {key: next(iter(leg_gain.intervals.values()), (float("nan"), float("nan")))}
+            sensor.cost_ratio = leg_gain.cost_ratio
+            findings.remove(leg_gain)
+            findings.append(sensor)
+            tp = subsystems.get("torque_path")
+            if tp is not None:
+                tp.named = tuple(sensor.label if n == leg_gain.label else n for n in tp.named)
+                if tp.remainder is not None:
+                    tp.remainder.verdict = tp.remainder.verdict.replace(leg_gain.label, sensor.label)
+                    tp.verdict = tp.remainder.verdict
         findings += found
         for f in found:
             if f.status == "named":
-                values.update(f.values)
+                values.update(_model_values(f.values))
     updated = nominal.with_values(values)
     order = {c.name: i for i, c in enumerate(CANDIDATES)}
+    order.update({v.name: len(CANDIDATES) + i for i, v in enumerate(VARIANTS)})
     findings.sort(key=lambda f: order[f.candidate])
     return Identification(
         str(bag),
@@ -113,6 +140,12 @@ def identify(
         dict(data.rejected),
         gait,
     )
+
+
+def _model_values(values: dict[str, float]) -> dict[str, float]:
+    """The sim_bridge parameters among a finding's values (per-leg and per-joint variants are not: the
+    bridge's effects are global; they stay in the report)."""
+    return {k: v for k, v in values.items() if k in PARAMETER_NAMES}
 
 
 def _interleaved_blocks(data: MeasuredData, start_s: float, settings: Settings) -> tuple[np.ndarray, np.ndarray]:

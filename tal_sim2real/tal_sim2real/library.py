@@ -151,6 +151,91 @@ CANDIDATES: tuple[Candidate, ...] = (
 CANDIDATES_BY_NAME = {c.name: c for c in CANDIDATES}
 
 
+LEGS = ("LF", "RF", "LH", "RH")
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A per-leg or per-joint version of an effect whose physics is per actuator or per sensor (issue 34,
+    item 3). It is tried only where the remainder of the chosen model points (the leg or joint holding most
+    of the excess), and chosen over the global effect only when an information criterion that charges for
+    the extra parameters says so: a global effect stays global.
+
+    ``template`` is the parameter with ``{}`` where the leg (``lf``) or joint (``lh_kfe``) goes; ``base``
+    the global candidate it refines ("" for none). These parameters are not sim_bridge parameters (its
+    effects are global): a named variant is reported, not written into the updated model."""
+
+    name: str
+    base: str
+    scope: str  # "leg" | "joint"
+    subsystem: str
+    template: Parameter
+    description: str
+
+    def parameter(self, where: str) -> Parameter:
+        t = self.template
+        return Parameter(t.name.format(where.lower()), t.lower, t.upper, t.probe, t.log, t.unit)
+
+    def candidate(self, where: str) -> Candidate:
+        """The variant at ``where`` (a leg such as "RF" or a joint such as "lh_kfe") as a one-parameter
+        candidate named ``<name>``."""
+        base = CANDIDATES_BY_NAME.get(self.base)
+        return Candidate(
+            self.name,
+            self.subsystem,
+            (self.parameter(where),),
+            base.required_signals if base else ("joint_states.effort", "base_state"),
+            base.experiment if base else "any motion",
+            f"{self.description} ({where})",
+        )
+
+
+VARIANTS: tuple[Variant, ...] = (
+    Variant(
+        "leg_torque_gain",
+        "torque_gain",
+        "leg",
+        "torque_path",
+        Parameter("torque_gain_{}", 0.3, 2.0, 0.9, False, "-"),
+        "delivered/commanded torque gain of one leg's actuators",
+    ),
+    Variant(
+        "leg_actuator_delay",
+        "actuator_delay",
+        "leg",
+        "torque_path",
+        Parameter("actuator_delay_{}_s", 0.0, 0.05, 0.005, False, "s"),
+        "transport delay of one leg's joint torques",
+    ),
+    Variant(
+        "leg_torque_sensor_gain",
+        "",
+        "leg",
+        "torque_path",
+        Parameter("torque_sensor_gain_{}", 0.3, 2.0, 0.9, False, "-"),
+        "gain of one leg's torque sensors (measured/delivered): the torque path sees it as the leg's torque "
+        "gain, the dynamics driven by the measured torques tells it apart (the delivered torque is the "
+        "measured one divided by it)",
+    ),
+    Variant(
+        "encoder_offset",
+        "",
+        "joint",
+        "dynamics",
+        Parameter("encoder_offset_{}_rad", -0.3, 0.3, 0.03, False, "rad"),
+        "constant offset of one joint's encoder (measured - true angle)",
+    ),
+)
+VARIANTS_BY_NAME = {v.name: v for v in VARIANTS}
+
+
+def where_of(parameter_name: str, variant: Variant) -> str:
+    """The leg ("RF") or joint ("lh_kfe") a variant parameter name refers to."""
+    head, _, tail = variant.template.name.partition("{}")
+    core = parameter_name[len(head) : len(parameter_name) - len(tail)]
+    return core.upper() if variant.scope == "leg" else core
+
+
 def missing_signals(candidate: Candidate, available: set[str]) -> list[str]:
     """Signals the candidate needs that the data lack."""
     return [s for s in candidate.required_signals if s not in available]

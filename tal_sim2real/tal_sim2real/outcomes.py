@@ -44,6 +44,12 @@ class Finding:
     intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
     cost_ratio: float | None = None  # fitted cost / nominal cost on the fitting data
     note: str = ""
+    where: str = ""  # per-leg / per-joint variants (library.VARIANTS): the leg ("RF") or joint ("lh_kfe")
+
+    @property
+    def label(self) -> str:
+        """The candidate's name with its leg or joint, e.g. ``leg_torque_gain[RF]``."""
+        return f"{self.candidate}[{self.where}]" if self.where else self.candidate
 
 
 @dataclass

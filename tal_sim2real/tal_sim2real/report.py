@@ -13,7 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .identify import Identification  # noqa: E402
-from .library import CANDIDATES_BY_NAME  # noqa: E402
+from .library import CANDIDATES_BY_NAME, VARIANTS_BY_NAME  # noqa: E402
 
 
 def _fmt(value: float) -> str:
@@ -175,8 +175,15 @@ def write_report(
         for f in named:
             for k, v in f.values.items():
                 lo, hi = f.intervals.get(k, (math.nan, math.nan))
-                lines.append(f"| {f.candidate} | {k} | {_fmt(v)} | [{_fmt(lo)}, {_fmt(hi)}] |")
+                lines.append(f"| {f.label} | {k} | {_fmt(v)} | [{_fmt(lo)}, {_fmt(hi)}] |")
         lines.append("")
+        if any(f.where for f in named):
+            lines += [
+                "Per-leg and per-joint effects (`leg_*`, `encoder_offset`) are not sim_bridge parameters (its effects "
+                "are global): they are left out of `model_updated.yaml`; a sensor effect (torque-sensor gain, encoder "
+                "offset) is a calibration of the recording, not of the simulator.",
+                "",
+            ]
     else:
         lines += ["## Named effects", "", "None: no missing effect found.", ""]
     lines += [
@@ -201,10 +208,7 @@ def write_report(
     ]
     for f in result.findings:
         ratio = "" if f.cost_ratio is None else f"{f.cost_ratio:.3g}"
-        lines.append(
-            f"| {f.candidate} ({CANDIDATES_BY_NAME[f.candidate].description}) | {f.subsystem} | {f.status} | "
-            f"{ratio} | {f.note} |"
-        )
+        lines.append(f"| {f.label} ({_description(f.candidate)}) | {f.subsystem} | {f.status} | {ratio} | {f.note} |")
     if result.rejected_samples:
         lines += ["", f"Rejected samples (out-of-order, repeated stamps or non-finite): {result.rejected_samples}"]
     lines += ["", "## Plots", "", f"![gap per channel]({plot_channels(result, out_dir / 'gap_channels.png').name})"]
@@ -226,3 +230,9 @@ def write_report(
     path = out_dir / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _description(name: str) -> str:
+    if name in CANDIDATES_BY_NAME:
+        return CANDIDATES_BY_NAME[name].description
+    return VARIANTS_BY_NAME[name].description

@@ -107,9 +107,11 @@ class SegmentSimulator:
         sim.set_contact_model(model.course, effects)
         return sim
 
-    def predict(self, model: SimModel, plan: SegmentPlan) -> np.ndarray:
+    def predict(self, model: SimModel, plan: SegmentPlan, q_offset_rad: np.ndarray | None = None) -> np.ndarray:
         """(segments, samples, STATE_SIZE) predicted states at the plan's sample offsets, laid out as in
-        ``state_vector``."""
+        ``state_vector``. ``q_offset_rad``: (12,) encoder offsets (measured - true joint angle [rad]): the
+        segments start from the measured angles minus them and the predicted angles are read through the
+        same encoders (plus them)."""
         sim = self._configure(model)
         base = self.data.base
         assert base is not None
@@ -121,7 +123,7 @@ class SegmentSimulator:
                 base.quat_xyzw[i0],
                 base.lin_vel_world_m_s[i0],
                 base.ang_vel_world_rad_s[i0],
-                self.data.q_rad[i0],
+                self.data.q_rad[i0] if q_offset_rad is None else self.data.q_rad[i0] - q_offset_rad,
                 self.data.qd_rad_s[i0],
             )
             if self.torque_source == "command":
@@ -134,10 +136,13 @@ class SegmentSimulator:
                     out[s, j] = state_vector(sim)
                     j = min(j + 1, len(offsets) - 1)
             self.simulated_steps += plan.horizon_steps
+        if q_offset_rad is not None:
+            out[..., Q_START : Q_START + len(q_offset_rad)] += q_offset_rad
         return out
 
 
 STATE_SIZE = 3 + 4 + 3 + 3 + 12 + 12
+Q_START = 3 + 4 + 3 + 3  # joint angles in ``state_vector``
 
 
 def state_vector(sim: Simulation) -> np.ndarray:

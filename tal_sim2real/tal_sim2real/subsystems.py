@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 
-from .fitting import Fit, fit_scalar
+from .fitting import Fit, effective_samples, fit_scalar, information_criterion
 from .imu_bias import estimate_bias, imu_residuals
-from .library import Candidate
+from .library import CANDIDATES_BY_NAME, LEGS, VARIANTS_BY_NAME, Candidate, Variant
 from .measured import MeasuredData, white_noise_std
 from .outcomes import (
     ACCEL_BIAS_FLOOR_M_S2,
@@ -64,9 +64,33 @@ def torque_path_subsystem(
             pair = _coordinate_descent([best, other], candidates, cost_of, n, dt)
             if pair.bic() < best.bic() - settings.min_bic_drop:
                 best = pair
+    # per-leg variants (issue 34 item 3), tried on the leg holding most of the chosen model's excess
+    best, variant = _leg_variants(problem, best, nominal_fit, id_slice, floor, settings, dt)
     accepted = best is not nominal_fit and best.bic() < nominal_fit.bic() - settings.min_bic_drop
+    if variant is not None and not accepted:
+        variant = None
     reached = problem.max_limit_fraction(id_slice)
     findings = []
+    if variant is not None:
+        name, where, pname = variant
+        findings.append(
+            Finding(
+                name,
+                "torque_path",
+                "named",
+                {pname: best.values[pname]},
+                {pname: best.intervals[pname]},
+                best.cost / nominal_cost,
+                f"leg {where}"
+                + (
+                    " on top of the global effect"
+                    if CANDIDATES_BY_NAME[VARIANTS_BY_NAME[name].base].parameters[0].name in best.values
+                    else " only"
+                )
+                + "; chosen over the global effect by an information criterion on the effective samples",
+                where,
+            )
+        )
     for c in candidates:
         fit = fits[c.name]
         if accepted and c.name in best.candidates:
@@ -99,6 +123,7 @@ def torque_path_subsystem(
     named_values = best.values if accepted else {}
     r_ho0 = problem.residual({}, ho_slice)
     r_ho1 = problem.residual(named_values, ho_slice)
+    labels = tuple(f"{n}[{variant[1]}]" if variant is not None and n == variant[0] else n for n in best.candidates)
     result = SubsystemResult(
         "torque_path",
         floor,
@@ -107,7 +132,7 @@ def torque_path_subsystem(
         float(r_ho0 @ r_ho0),
         float(r_ho1 @ r_ho1),
         problem.noise_std_nm(ho_slice) ** 2 * len(r_ho0),
-        best.candidates if accepted else (),
+        labels if accepted else (),
     )
     # the remainder per joint, leg and gait phase against each joint's own torque-sensor noise
     n_joints = problem.effort.shape[1]
@@ -135,6 +160,86 @@ def torque_path_subsystem(
     result.channels_before = {"joint_torque_nm": math.sqrt(float(r_ho0 @ r_ho0) / len(r_ho0))}
     result.channels_after = {"joint_torque_nm": math.sqrt(float(r_ho1 @ r_ho1) / len(r_ho1))}
     return result, findings
+
+
+LEG_VARIANTS = ("leg_torque_gain", "leg_actuator_delay")
+"""Per-leg variants of the torque path tried where the remainder points (the sensor-gain variant has the same
+torque-path signature as the actuator gain; the dynamics tells them apart, see dynamics.py)."""
+
+
+def _leg_variants(
+    problem: TorquePathProblem,
+    best: Fit,
+    nominal_fit: Fit,
+    id_slice: slice | np.ndarray,
+    floor: float,
+    settings: Settings,
+    dt: float,
+) -> tuple[Fit, tuple[str, str, str] | None]:
+    """Per-leg variants of the torque path, proposed by the remainder: when the chosen model ``best`` leaves
+    more than twice the floor, the leg holding most of its excess gets, for each variant, (a) the leg's own
+    value with the global effect removed (the effect is on that leg only) and (b) the leg's own value on top
+    of the global effect. The choice between ``best``, the nominal model and these is by an information
+    criterion on the effective number of samples (``fitting.effective_samples`` of the lowest-cost option's
+    residual, the same for all options), with the usual ``min_bic_drop`` margin to leave ``best``: each extra
+    parameter costs log(n_eff), so a global effect stays global. Returns the chosen fit and (variant, leg,
+    parameter) when a variant is chosen."""
+    if best.cost <= 2.0 * floor:
+        return best, None
+    r = problem.residual_matrix(best.values, id_slice)
+    sigma2 = floor / r.size
+    excess = [float(np.sum(r[:, 3 * i : 3 * i + 3] ** 2)) - 3 * len(r) * sigma2 for i in range(len(LEGS))]
+    leg = LEGS[int(np.argmax(excess))]
+    n = r.size
+
+    def cost_of(vals: dict[str, float]) -> float:
+        rr = problem.residual(vals, id_slice)
+        return float(rr @ rr)
+
+    options: list[tuple[Fit, tuple[str, str, str] | None]] = [(best, None), (nominal_fit, None)]
+    for vname in LEG_VARIANTS:
+        variant: Variant = VARIANTS_BY_NAME[vname]
+        p = variant.parameter(leg)
+        base = CANDIDATES_BY_NAME[variant.base]
+        base_param = base.parameters[0].name
+        for keep_base in (False, True):
+            if keep_base and base_param not in best.values:
+                continue
+            others = dict(best.values)
+            names = list(best.candidates)
+            if not keep_base:
+                others.pop(base_param, None)
+                names = [c for c in names if c != variant.base]
+            candidate = variant.candidate(leg)
+            if vname == "leg_actuator_delay":
+                fit = fit_scalar(
+                    candidate,
+                    lambda v, o=others, pn=p.name: cost_of({**o, pn: v}),
+                    n,
+                    np.arange(0.0, p.upper + 1e-12, dt),
+                    integer_step=dt,
+                )
+            else:
+                fit = fit_scalar(candidate, lambda v, o=others, pn=p.name: cost_of({**o, pn: v}), n)
+            intervals = {k: v for k, v in best.intervals.items() if k in others}
+            intervals.update(fit.intervals)
+            options.append(
+                (
+                    Fit((*names, vname), {**others, **fit.values}, intervals, fit.cost, n, fit.evaluations),
+                    (vname, leg, p.name),
+                )
+            )
+    lowest = min(options, key=lambda o: o[0].cost)[0]
+    n_eff = effective_samples(problem.residual_matrix(lowest.values, id_slice))
+
+    def ic(fit: Fit) -> float:
+        return information_criterion(fit.cost, n_eff, fit.n_params)
+
+    incumbent = ic(best)
+    chosen = min(options, key=lambda o: ic(o[0]))
+    if chosen[1] is None or ic(chosen[0]) >= incumbent - settings.min_bic_drop:
+        return best, None
+    return chosen
 
 
 def _coordinate_descent(

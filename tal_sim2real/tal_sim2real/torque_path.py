@@ -36,21 +36,44 @@ def delivered_torque(
     low_nm: np.ndarray,
     high_nm: np.ndarray,
     *,
-    delay_s: float = 0.0,
+    delay_s: float | np.ndarray = 0.0,
     lag_s: float = 0.0,
-    gain: float = 1.0,
+    gain: float | np.ndarray = 1.0,
     limit_scale: float = 1.0,
 ) -> np.ndarray:
     """(N, J) torque [N m] the actuators deliver for the (N, J) command in force at each physics step,
-    starting from rest (zero history): delay (rounded to steps) -> first-order lag -> gain -> clip."""
-    steps = int(round(delay_s / dt_s))
+    starting from rest (zero history): delay (rounded to steps) -> first-order lag -> gain -> clip.
+    ``delay_s`` and ``gain`` may be (J,) arrays: one value per joint (per-leg variants)."""
+    steps = np.broadcast_to(np.round(np.asarray(delay_s, dtype=float) / dt_s).astype(int), command_nm.shape[1:])
     delayed = np.zeros_like(command_nm)
-    if steps < len(command_nm):
-        delayed[steps:] = command_nm[: len(command_nm) - steps]
+    for s in np.unique(steps):
+        cols = steps == s
+        if s < len(command_nm):
+            delayed[s:, cols] = command_nm[: len(command_nm) - s, cols]
     if lag_s > 0.0:
         alpha = 1.0 - math.exp(-dt_s / lag_s)
         delayed = lfilter([alpha], [1.0, alpha - 1.0], delayed, axis=0)
     return np.clip(gain * delayed, limit_scale * low_nm, limit_scale * high_nm)
+
+
+LEGS = ("lf", "rf", "lh", "rh")
+
+
+def per_joint(values: dict[str, float], n_joints: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(gain, delay [s], sensor gain) per joint from global and per-leg parameters (legs of three joints in
+    the order LF, RF, LH, RH)."""
+    gain = np.full(n_joints, values.get("torque_gain", 1.0))
+    delay = np.full(n_joints, values.get("actuator_delay_s", 0.0))
+    sensor = np.ones(n_joints)
+    for i, leg in enumerate(LEGS):
+        cols = slice(3 * i, 3 * i + 3)
+        if f"torque_gain_{leg}" in values:
+            gain[cols] = values[f"torque_gain_{leg}"]
+        if f"actuator_delay_{leg}_s" in values:
+            delay[cols] = values[f"actuator_delay_{leg}_s"]
+        if f"torque_sensor_gain_{leg}" in values:
+            sensor[cols] = values[f"torque_sensor_gain_{leg}"]
+    return gain, delay, sensor
 
 
 class TorquePathProblem:
@@ -72,17 +95,25 @@ class TorquePathProblem:
 
     def residual(self, values: dict[str, float], window: slice | np.ndarray) -> np.ndarray:
         """Flattened (measured - predicted) joint torques [N m] over the window."""
+        return self.residual_matrix(values, window).ravel()
+
+    def residual_matrix(self, values: dict[str, float], window: slice | np.ndarray) -> np.ndarray:
+        """(samples, joints) measured - predicted joint torques [N m] over the window. Besides the global
+        parameters, ``values`` may hold per-leg variants (``torque_gain_rf``, ``actuator_delay_rf_s``: the
+        leg's value replaces the global one; ``torque_sensor_gain_rf``: the leg's sensors read that times
+        the delivered torque)."""
+        gain, delay, sensor = per_joint(values, self.effort.shape[1])
         predicted = delivered_torque(
             self.command,
             self.data.dt_s,
             self.low,
             self.high,
-            delay_s=values.get("actuator_delay_s", 0.0),
+            delay_s=delay,
             lag_s=values.get("actuator_lag_s", 0.0),
-            gain=values.get("torque_gain", 1.0),
+            gain=gain,
             limit_scale=values.get("torque_limit_scale", 1.0),
         )
-        return (self.effort[window] - predicted[window]).ravel()
+        return self.effort[window] - sensor * predicted[window]
 
     def max_limit_fraction(self, window: slice | np.ndarray) -> float:
         """Largest commanded torque in the window as a fraction of the nominal limit: a torque limit above
