@@ -56,6 +56,10 @@ max_defer() { if [ "$1" = realtime ]; then echo 0.006; else echo 0.0; fi; }
 # The tce is not what the bridge waits for: in lockstep a later joint sample (up to the next control tick, the
 # wbc waits for the tce's answer before the one after) may come before its tick's base state (another topic).
 tce_max_defer() { if [ "$1" = realtime ]; then echo 0.006; else echo 0.004; fi; }
+# In lockstep every consumer of the heightmap (wbc, tce, vfa, vpa) waits for the map due at its tick: the bridge
+# publishes one every 50 ms of sim time (sim_bridge.heightmap_rate_hz 20), and DDS gives no order between topics
+# (a CI machine delivered a map after the next tick's joint state). On the wall clock nobody waits for maps.
+map_period() { if [ "$1" = realtime ]; then echo 0.0; else echo 0.05; fi; }
 
 walk() {
     local gait="$1" speed="$2" course="${3:-flat_rigid}" state_source="${4:-estimate}" duration="${DURATION_S:-20.0}"
@@ -69,7 +73,8 @@ walk() {
         # The map must reach the footholds (~0.5 m ahead of the base) plus half a 33-cell FEC patch.
         nodes+=(tal_perception/vfa)
         vfa=(-s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121"
-             -s "vfa.use_sim_time:=true" -s "vfa.summary_path:=$dir/vfa_summary.json")
+             -s "vfa.use_sim_time:=true" -s "vfa.summary_path:=$dir/vfa_summary.json"
+             -s "vfa.map_period_s:=$(map_period "$mode")")
         topics="${topics%]}, 'footholds']"
     fi
     echo "[run] $SCENARIO: HyQ ${gait}s at $speed m/s on '$course' for $duration s of sim time ($mode)," \
@@ -77,6 +82,7 @@ walk() {
     bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge \
         -s "sim_bridge.course:=$course" -s "sim_bridge.duration_s:=$duration" -s "sim_bridge.mode:=$mode" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" -s "wbc.max_defer_s:=$(max_defer "$mode")" \
+        -s "wbc.heightmap_period_s:=$(map_period "$mode")" \
         -s "wbc.gait:=$gait" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" -s "wbc.state_source:=$state_source" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
@@ -104,6 +110,7 @@ stance() {
         -s "sim_bridge.heightmap_rows:=81" -s "sim_bridge.heightmap_cols:=81" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=crawl" -s "wbc.contact_model:=compliant" -s "wbc.impedance_source:=tce" \
+        -s "wbc.heightmap_period_s:=$(map_period lockstep)" -s "tce.heightmap_period_s:=$(map_period lockstep)" \
         -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" \
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=terrain_aware" \
@@ -152,6 +159,8 @@ tour() {
         -s "wbc.max_defer_s:=$(max_defer "$mode")" -s "tce.max_defer_s:=$(tce_max_defer "$mode")" \
         -s "vfa.answer_every_gait_state:=$lockstep" -s "wbc.wait_for_footholds:=$lockstep" \
         -s "wbc.body_pose_period_s:=$pose_period" -s "wbc.wait_for_impedance:=$lockstep" \
+        -s "wbc.heightmap_period_s:=$(map_period "$mode")" -s "tce.heightmap_period_s:=$(map_period "$mode")" \
+        -s "vfa.map_period_s:=$(map_period "$mode")" -s "vpa.map_period_s:=$(map_period "$mode")" \
         -s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \

@@ -179,3 +179,32 @@ def test_tce_node_waits_for_the_base_state_of_its_tick(context) -> None:
         assert node.summary()["late_base_ticks"] == 0
     finally:
         node.destroy_node()
+
+
+def test_tce_node_answers_a_repeated_joint_state_again_and_waits_for_the_map_of_its_tick(context) -> None:
+    """The bridge repeats its first state until the first command: each repeat gets the last answer again (the
+    first one may have been published before DDS matched the wbc's reader). With heightmap_period_s the tick at
+    the map's grid point waits for that map."""
+    node = TceNode(context=context, parameter_overrides=[Parameter("heightmap_period_s", value=0.008)])
+    published = node.pub = Caught(TerrainImpedance)
+    try:
+        node._on_base(base_at_rest(node, 0))
+        node._on_joints(standing_joints(node, 0))
+        assert published.messages == []                      # waits for the map of 0 ms
+        node._on_heightmap(heightmap(0))
+        assert len(published.messages) == 1
+        node._on_joints(standing_joints(node, 0))             # a repeat: the same answer again
+        first, again = published.messages
+        assert again.header == first.header and list(again.samples) == list(first.samples)
+        np.testing.assert_array_equal(again.stiffness_normal, first.stiffness_normal)  # NaN: no estimate yet
+        assert node.summary()["answers_resent"] == 1 and node.tce.estimates[0].samples == 1
+        node._on_base(base_at_rest(node, 4 * MS))
+        node._on_joints(standing_joints(node, 4 * MS))        # the map of 0 ms is due: at once
+        node._on_base(base_at_rest(node, 8 * MS))
+        node._on_joints(standing_joints(node, 8 * MS))
+        assert [m.header.stamp.nanosec for m in published.messages] == [0, 0, 4 * MS]
+        node._on_heightmap(heightmap(8 * MS))
+        assert [m.header.stamp.nanosec for m in published.messages] == [0, 0, 4 * MS, 8 * MS]
+        assert node.summary()["late_heightmaps"] == 0 and node.summary()["late_heightmap_ticks"] == 0
+    finally:
+        node.destroy_node()

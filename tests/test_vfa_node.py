@@ -192,3 +192,32 @@ def test_answer_every_gait_state_sends_an_empty_answer_without_news(context, spi
         assert vfa.counters()["empty_answers"] == 2 and vfa.counters()["published_messages"] == 1
     finally:
         stop(executor, vfa, wbc.node)
+
+
+def test_a_repeated_gait_state_gets_the_same_answer_and_map_period_holds_a_gait_state_for_its_map(
+        context, spin_until) -> None:
+    """A wbc re-sends a gait state whose answer is overdue (lost before DDS matched): the vfa sends its answer
+    again without deciding again. With map_period_s a gait state waits for the map due at it, however late the
+    map comes (lockstep runs repeat themselves)."""
+    vfa, wbc, executor = start(context, answer_every_gait_state=True, map_period_s=0.05)
+    try:
+        assert spin_until(executor, wbc.matched, 20.0)
+        wbc.maps.publish(wbc.heightmap(950 * MS))
+        assert spin_until(executor, lambda: len(vfa.maps_inbox) == 1, 5.0)
+        wbc.gait.publish(wbc.gait_state(1000 * MS))            # its map (950 ms) is here
+        assert spin_until(executor, lambda: len(wbc.footholds) == 1, 10.0)
+        wbc.gait.publish(wbc.gait_state(1000 * MS))            # re-sent: answered again, not decided again
+        assert spin_until(executor, lambda: len(wbc.footholds) == 2, 10.0)
+        assert [by_leg(m).keys() for m in wbc.footholds] == [{0, 3}, {0, 3}] and vfa.gait_states == 1
+        assert vfa.counters()["answers_resent"] == 1
+        wbc.gait.publish(wbc.gait_state(1004 * MS))            # due: the map of 1000 ms, not here yet
+        spin_until(executor, lambda: False, 0.5)
+        assert len(wbc.footholds) == 2 and vfa.counters()["gait_states_held_for_maps"] == 1
+        wbc.maps.publish(wbc.heightmap(1000 * MS, gap_at_x=wbc.nominal(0)[0]))
+        assert spin_until(executor, lambda: len(wbc.footholds) == 3, 10.0)
+        assert ns_from_stamp(wbc.footholds[2].header.stamp) == 1004 * MS
+        lf = by_leg(wbc.footholds[2])[0]                       # the gap map came into use: LF moved off it
+        assert abs(lf.selected.x - wbc.nominal(0)[0]) >= 0.09
+        assert vfa.counters()["late_maps"] == 0 and vfa.counters()["gait_states_released_without_map"] == 0
+    finally:
+        stop(executor, vfa, wbc.node)

@@ -311,3 +311,42 @@ def test_live_parameters_take_effect_at_the_next_tick(context, spin_until) -> No
         executor.shutdown()
         wbc.destroy_node()
         robot.node.destroy_node()
+
+
+def test_a_tick_waiting_for_a_lost_answer_sends_its_gait_state_again(context, spin_until) -> None:
+    """wait_for_footholds (lockstep): the tick at 4 ms waits for the answer to the gait state of 0 ms. A producer
+    that never got that gait state (DDS matched its reader after it was sent) gets it again after RESEND_AFTER_S
+    of wall time; its answer completes the tick, and an answer sent twice is used once."""
+    from tal_control.wbc_node import RESEND_AFTER_S
+    from tal_msgs.msg import FootholdArray
+
+    wbc, robot, executor = standing_wbc_with_robot(context, Parameter("wait_for_footholds", value=True))
+    producer = rclpy.create_node("vfa", context=context)
+    gait_states: list[GaitState] = []
+    producer.create_subscription(GaitState, "gait_state", gait_states.append, 10)
+    footholds = producer.create_publisher(FootholdArray, "footholds", 10)
+    executor.add_node(producer)
+    try:
+        assert spin_until(executor, lambda: robot.matched() and footholds.get_subscription_count() >= 1
+                          and wbc.pub_gait.get_subscription_count() >= 1, 20.0)
+        robot.publish_odom(0)
+        robot.publish_joints(0)
+        assert spin_until(executor, lambda: len(robot.commands) == 1 and len(gait_states) == 1, 10.0)
+        gait_states.clear()                        # as if it had been lost
+        robot.publish_odom(4_000_000)
+        robot.publish_joints(4_000_000)
+        assert spin_until(executor, lambda: len(gait_states) >= 1, 10.0 * RESEND_AFTER_S)
+        assert gait_states[0].header.stamp.nanosec == 0 and wbc.gait_state_resends >= 1
+        assert len(robot.commands) == 1            # the tick at 4 ms still waits
+        answer = FootholdArray()
+        answer.header.stamp = stamp_from_ns(0)
+        answer.header.frame_id = "world"
+        footholds.publish(answer)
+        footholds.publish(answer)                  # the producer answered the re-sent state too
+        assert spin_until(executor, lambda: len(robot.commands) == 2, 10.0)
+        assert spin_until(executor, lambda: wbc.summary()["repeated_answers"] == 1, 5.0)
+        assert wbc.summary()["gait_state_resends"] == wbc.gait_state_resends
+    finally:
+        executor.shutdown()
+        for node in (wbc, robot.node, producer):
+            node.destroy_node()

@@ -13,7 +13,10 @@ Stamps are integer nanoseconds of sim time. Ticks lie on the grid k * period_ns 
 - A tick whose base state is older than ``stale_periods`` control periods is a safe-mode tick (joint
   damping hold); the first normal tick after it leaves safe mode.
 - A heightmap comes into use at the first tick at least one control period after its stamp (one stamped
-  with the tick itself may arrive before or after the tick's joint state).
+  with the tick itself may arrive before or after the tick's joint state). With ``heightmap_period_ns`` (the
+  bridge publishes its map on that sim-time grid) a tick also waits for the map due at it: DDS gives no order
+  between topics, and a large map can arrive after the next tick's joint state even in lockstep. Maps that
+  came after the tick that should have used them are counted (``late_heightmaps``).
 - Inputs computed from an earlier tick (``lagged``: terrain impedance, footholds, body pose references,
   stamped with the tick they answer) are held and handed to the first tick at least one control period
   after their stamp, in stamp order. A tick also waits for the answer to the previous tick of every input
@@ -29,7 +32,9 @@ Stamps are integer nanoseconds of sim time. Ticks lie on the grid k * period_ns 
   forgotten and the grid starts again (the node starts its controller afresh). Base states and contacts
   that jump back likewise replace the held ones.
 - The driver repeats the state it last got an answer for (a command sent before DDS matched): the policy
-  says so, and the node sends the same command again.
+  says so, and the node sends the same command again. Likewise a producer may send its answer again (the
+  node re-sends a gait state whose answers are overdue: DDS may drop what is published before a late
+  subscriber matched); a lagged input with the stamp of the newest one is a repeat and is dropped.
 - ``command_source_wait_s``: the first tick waits (wall time) until a command source exists.
 - The watchdog (``watchdog_timeout_s`` of steady time after the last joint state was handled) trips into
   safe mode while the driver is silent.
@@ -47,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from tal_core.errors import InputError
-from tal_core.ticks import CLOCK_RESET_NS, TICK_TOLERANCE_NS, reaches_tick, tick_after
+from tal_core.ticks import CLOCK_RESET_NS, TICK_TOLERANCE_NS, StampedInbox, reaches_tick, tick_after
 
 from .velocity_command import VelocityCommandInput
 
@@ -72,7 +77,9 @@ class TickPolicyConfig:
     clock the next sample comes 1 ms later, before the estimator's answer, so real-time runs wait longer).
     waited_inputs: lagged inputs (``WbcTickPolicy.lagged``) a tick waits for, the previous tick's answer.
     waited_periods_ns: (name, P) of waited inputs answered every P [ns] of sim time (default: every tick).
-    gait_driven: waited inputs computed from the wbc's gait_state (no first answer before the first tick)."""
+    gait_driven: waited inputs computed from the wbc's gait_state (no first answer before the first tick).
+    heightmap_period_ns: the heightmap's publishing period [ns] on the sim-time grid: a tick waits for the map
+    due at it (0: maps are used as they arrive)."""
 
     period_ns: int
     stale_periods: int = 3
@@ -84,6 +91,7 @@ class TickPolicyConfig:
     waited_inputs: tuple[str, ...] = ()
     waited_periods_ns: tuple[tuple[str, int], ...] = ()
     gait_driven: tuple[str, ...] = ()
+    heightmap_period_ns: int = 0
 
     def __post_init__(self) -> None:
         if self.period_ns <= 0:
@@ -92,6 +100,8 @@ class TickPolicyConfig:
             raise InputError(f"tick policy: stale_periods must be >= 1, got {self.stale_periods!r}")
         if self.max_defer_ns < 0:
             raise InputError(f"tick policy: max_defer_ns must be >= 0, got {self.max_defer_ns!r}")
+        if self.heightmap_period_ns < 0:
+            raise InputError(f"tick policy: heightmap_period_ns must be >= 0, got {self.heightmap_period_ns!r}")
         if self.base_period_ns is not None and self.base_period_ns <= 0:
             raise InputError(f"tick policy: base_period_ns must be > 0 or None, got {self.base_period_ns!r}")
         for name in ("command_source_wait_s", "watchdog_timeout_s"):
@@ -159,8 +169,10 @@ def _accepts(held: Stamped | None, stamp_ns: int) -> bool:
 @dataclass
 class _Counters:
     ticks: int = 0                   # normal ticks computed
+    repeated_answers: int = 0        # lagged inputs received again with the newest stamp (dropped)
     deferred_ticks: int = 0          # ticks whose base state (or contacts) had not arrived with their joint state
     ticks_without_waited: int = 0    # ticks run (past max_defer) without the previous tick's waited input
+    ticks_without_heightmap: int = 0  # ticks run (past max_defer) without the heightmap due at them
     ticks_without_contacts: int = 0  # contacts expected, none fresh for the tick (the plan used)
     watchdog_trips: int = 0          # safe-mode commands asked for by the watchdog
     command_source_waits: int = 0    # ticks held back waiting for a command source
@@ -195,7 +207,7 @@ class WbcTickPolicy:
         self._deferred_tick_ns: int | None = None
         self._answered_ns: int | None = None
         self._heightmap: Any = None
-        self._pending_heightmaps: list[Stamped] = []  # received, not yet in use
+        self._heightmaps = StampedInbox(config.period_ns, period_ns=config.heightmap_period_ns)  # not yet in use
         self._lagged: list[tuple[int, str, Any]] = []  # (stamp, name, value): received, not yet released
         self._newest_lagged: dict[str, int] = {}
         self._fed_s: float | None = None
@@ -205,6 +217,7 @@ class WbcTickPolicy:
                                    else clock() + config.command_source_wait_s)
         self._waited = tuple(config.waited_inputs)
         self.unanswered_inputs: tuple[str, ...] = ()  # waited inputs that gave no first answer in time
+        self.deferred_for: tuple[str, ...] = ()  # what the deferred tick lacks (diagnostics)
 
     # -- configuration -------------------------------------------------------------------------------------
     @property
@@ -223,6 +236,34 @@ class WbcTickPolicy:
     @property
     def heightmap_in_use(self) -> Any:
         return self._heightmap
+
+    @property
+    def waiting_for_answers(self) -> bool:
+        """Whether the deferred tick waits for a waited input's answer (the node may re-send its gait state)."""
+        return self._deferred_tick_ns is not None and "waited inputs" in self.deferred_for
+
+    @property
+    def late_heightmaps(self) -> int:
+        """Maps that arrived after the tick that should have used them."""
+        return self._heightmaps.late
+
+    def first_tick_waits_for(self) -> tuple[str, ...]:
+        """What the first tick still waits for (empty once it is computed, or when nothing is missing), for a
+        node to say why a lockstep run does not start."""
+        if self.next_tick_ns > 0:  # the first tick has been decided
+            return ()
+        out = [what for what, missing in (("a joint state", self._joints is None), ("a base state", self._base is None))
+               if missing]
+        if self._source_deadline_s is not None and not self.command_source_found():
+            out.append("a cmd_vel_stamped publisher")
+        if self._inputs_deadline_s is not None:
+            gait_driven = self.config.gait_driven
+            out += [f"the first {name} answer" for name in self._waited
+                    if name not in gait_driven and name not in self._newest_lagged]
+            if any(name in gait_driven for name in self._waited) and not self.producers_ready():
+                out.append("the footholds / body pose producers' gait_state subscriptions")
+        out += [f"its {what}" for what in self.deferred_for if what != "waited inputs"]
+        return tuple(out)
 
     # -- arrivals ------------------------------------------------------------------------------------------
     def wants_joint_state(self, stamp_ns: int) -> bool:
@@ -280,15 +321,22 @@ class WbcTickPolicy:
         if newest is not None and stamp_ns + CLOCK_RESET_NS < newest:
             self._lagged = [item for item in self._lagged if item[1] != name]  # the producer restarted
             newest = None
+        if newest is not None and int(stamp_ns) == newest:
+            self.counters.repeated_answers += 1  # a producer re-sent its answer (resend_gait_state): have it once
+            return Arrival()
         self._lagged.append((int(stamp_ns), name, value))
         self._newest_lagged[name] = int(stamp_ns) if newest is None else max(newest, int(stamp_ns))
         if name in self._waited:
             return self._decided()
         return Arrival()
 
-    def heightmap(self, stamp_ns: int, heightmap: Any) -> None:
-        """A valid heightmap; it comes into use at the first tick one control period after its stamp."""
-        self._pending_heightmaps.append(Stamped(stamp_ns, heightmap))
+    def heightmap(self, stamp_ns: int, heightmap: Any) -> Arrival:
+        """A valid heightmap; it comes into use at the first tick one control period after its stamp, and may
+        complete a tick that waits for it."""
+        self._heightmaps.add(stamp_ns, heightmap)
+        if self.config.heightmap_period_ns and self._deferred_tick_ns is not None:
+            return self._decided()
+        return Arrival()
 
     def answered(self, stamp_ns: int) -> None:
         """A command stamped ``stamp_ns`` was sent (the driver may repeat that state until it gets it)."""
@@ -356,15 +404,22 @@ class WbcTickPolicy:
         contacts_missing = self.config.contacts and (
             self._contacts is None or self._contacts.stamp_ns < stamp - TICK_TOLERANCE_NS)
         waited_missing = self._waited_missing(stamp)
-        if ((base_stamp < self.expected_base_stamp(stamp) - TICK_TOLERANCE_NS or contacts_missing
-             or waited_missing) and not deferred_before):
+        map_missing = self._heightmaps.awaited(stamp) is not None
+        base_missing = base_stamp < self.expected_base_stamp(stamp) - TICK_TOLERANCE_NS
+        if (base_missing or contacts_missing or waited_missing or map_missing) and not deferred_before:
+            self.deferred_for = tuple(name for name, missing in (
+                ("base state", base_missing), ("contacts", contacts_missing),
+                ("waited inputs", waited_missing), ("heightmap", map_missing)) if missing)
             if self._deferred_tick_ns is None:
                 self._deferred_tick_ns = stamp
             self.counters.deferred_ticks += 1
             return None, missing
         self._deferred_tick_ns = None
+        self.deferred_for = ()
         if waited_missing:
             self.counters.ticks_without_waited += 1
+        if map_missing:
+            self.counters.ticks_without_heightmap += 1
         self.next_tick_ns = tick_after(stamp, self.config.period_ns)
         command = self.commands.at_tick(stamp)
         self._update_heightmap(stamp)
@@ -432,14 +487,13 @@ class WbcTickPolicy:
 
         A map stamped with the tick itself (or just before it) may arrive before or after the tick's joint
         state (another topic, no order between them), so using it at once made lockstep runs depend on
-        delivery order; the maps of earlier ticks have been delivered by the time the next tick's joint
-        state comes (the driver waited for this tick's command in between).
+        delivery order. The maps of earlier ticks usually have been delivered by the time the next tick's
+        joint state comes, but not always (a CI machine showed otherwise): with ``heightmap_period_ns`` the
+        tick waits for its map (``_decide``).
         """
-        cutoff = stamp_ns - self.config.period_ns + TICK_TOLERANCE_NS
-        due = [m for m in self._pending_heightmaps if m.stamp_ns <= cutoff]
+        due = self._heightmaps.due(stamp_ns)
         if due:
-            self._heightmap = max(due, key=lambda m: m.stamp_ns).value
-            self._pending_heightmaps = [m for m in self._pending_heightmaps if m.stamp_ns > cutoff]
+            self._heightmap = due[-1][1]
 
     def _restart(self, stamp_ns: int) -> None:
         """The clock jumped back to ``stamp_ns`` (simulation restarted): forget the inputs and the grid (the
@@ -452,7 +506,7 @@ class WbcTickPolicy:
         self._deferred_tick_ns = None
         self._answered_ns = None
         self.commands.reset()
-        self._pending_heightmaps.clear()
+        self._heightmaps.clear()
         self._lagged = [item for item in self._lagged if item[0] <= stamp_ns]
         self._newest_lagged = {name: stamp for name, stamp in self._newest_lagged.items() if stamp <= stamp_ns}
 

@@ -24,8 +24,9 @@ sim time: a stamped command applies from its stamp's tick; a heightmap, foothold
 terrain impedance (each stamped with the tick it was computed for) from the first tick one control period
 after their stamp, in stamp order. A tick also waits for the answer to the previous tick of the TCE
 (wait_for_impedance, c3WBC on the tce), of the vfa (wait_for_footholds, with the vfa's
-answer_every_gait_state) and of the vpa (body_pose_period_s: its update period), so the whole graph repeats
-itself bit for bit in lockstep; the first tick waits for the TCE's first answer and for the vfa's and vpa's
+answer_every_gait_state) and of the vpa (body_pose_period_s: its update period), and with heightmap_period_s
+for the heightmap due at it (DDS gives no order between topics: a large map can come after the next tick's
+joint state), so the whole graph repeats itself bit for bit in lockstep; the first tick waits for the TCE's first answer and for the vfa's and vpa's
 gait_state subscriptions to be discovered (up to command_source_wait_s).
 
 Live parameters (``ros2 param set``, validated, effective from the next tick unless said otherwise): the
@@ -40,6 +41,7 @@ structure and are read-only.
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -99,6 +101,10 @@ def _policy_counter(name: str, doc: str) -> property:
     return property(lambda node: getattr(node.policy.counters, name), doc=doc)
 
 
+RESEND_AFTER_S = 0.25
+"""[s] of wall time a tick waits for the answers to the last gait state before the wbc sends it again."""
+
+
 class WbcNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("wbc", **kwargs)
@@ -145,10 +151,22 @@ class WbcNode(Node):
                              waited_inputs=self._waited_inputs(p),
                              waited_periods_ns=((("body_pose", round(p["body_pose_period_s"] * 1e9)),)
                                                 if p["body_pose_period_s"] > 0.0 else ()),
-                             gait_driven=("footholds", "body_pose")),
+                             gait_driven=("footholds", "body_pose"),
+                             heightmap_period_ns=round(p["heightmap_period_s"] * 1e9)),
             self.command_input, command_source_found=lambda: self.count_publishers("cmd_vel_stamped") > 0,
             producers_ready=self._gait_consumers_ready)
         self.stats = TrackingStats()
+        self._start_s = time.monotonic()
+        self.create_timer(5.0, self._report_first_tick_wait, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # A producer's answer published before DDS matched its writer with our reader (or a gait state before
+        # our writer matched the producer's reader) is lost, and a lockstep tick would wait for it until the
+        # bridge times out: a tick that waits this long for answers sends the last gait state again, and the
+        # producers answer a repeated gait state with their last answer (the policy drops repeats).
+        self._last_gait_state: bytes | None = None
+        self._overdue_since: tuple[int, float] | None = None
+        self.gait_state_resends = 0
+        self.create_timer(RESEND_AFTER_S, self._resend_overdue_gait_state,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
 
         self.pub_command = self.create_publisher(JointCommand, "joint_command", 10)
         self.pub_gait = self.create_publisher(GaitState, "gait_state", 10)
@@ -215,6 +233,10 @@ class WbcNode(Node):
             "max_defer_s": declare(self, "max_defer_s", 0.0,
                                    "[s] sim time a tick waits for its base state before running on a later joint "
                                    "sample (0: the next sample; real-time runs: a few ms)", low=0.0, high=0.1),
+            "heightmap_period_s": declare(self, "heightmap_period_s", 0.0,
+                                          "[s] the heightmap's publishing period on the sim-time grid: a tick "
+                                          "waits for the map due at it (lockstep); 0: maps are used as they arrive",
+                                          low=0.0, high=10.0),
             "command_source_wait_s": declare(self, "command_source_wait_s", 0.0,
                                              "[s] wall time the first tick waits for a cmd_vel_stamped "
                                              "publisher to be discovered (lockstep: sim time starts with the "
@@ -471,9 +493,30 @@ class WbcNode(Node):
         except InputError as exc:
             self._reject("heightmap", exc)
             return
-        self.policy.heightmap(ns_from_stamp(msg.header.stamp), grid)
+        self._act(self.policy.heightmap(ns_from_stamp(msg.header.stamp), grid))
 
     # -- the tick -----------------------------------------------------------------------------------------
+    def _resend_overdue_gait_state(self) -> None:
+        """The deferred tick has waited RESEND_AFTER_S (wall time) for answers: send the last gait state again."""
+        if not self.policy.waiting_for_answers or self._last_gait_state is None:
+            self._overdue_since = None
+            return
+        now, tick = time.monotonic(), self.policy.next_tick_ns
+        if self._overdue_since is None or self._overdue_since[0] != tick:
+            self._overdue_since = (tick, now)
+        elif now - self._overdue_since[1] >= RESEND_AFTER_S:
+            self.pub_gait.publish(self._last_gait_state)
+            self.gait_state_resends += 1
+            self._overdue_since = (tick, now)
+
+    def _report_first_tick_wait(self) -> None:
+        """Every 5 s of wall time until the first tick is computed: what it waits for (a lockstep run that does
+        not start says why)."""
+        missing = self.policy.first_tick_waits_for()
+        if missing:
+            self.get_logger().warn(f"first tick still waiting after {time.monotonic() - self._start_s:.0f} s for: "
+                                   + "; ".join(missing))
+
     def _act(self, arrival: Arrival) -> None:
         """Do what the tick policy decided for an arrival."""
         if arrival.repeat_answer:
@@ -515,7 +558,8 @@ class WbcNode(Node):
         self._publish_command(stamp_ns, effort=out.tau)
         self.stats.add(stamp_ns * 1e-9, base, out)
         stamp = self._joints_stamp_msg(stamp_ns)
-        self.pub_gait.publish(self._gait_writer(out, stamp_ns))
+        self._last_gait_state = self._gait_writer(out, stamp_ns)
+        self.pub_gait.publish(self._last_gait_state)
         if self.pub_diag.get_subscription_count():  # 250 Hz of per-joint arrays: built only for a listener
             self.pub_diag.publish(wbc_diagnostics_message(stamp, self.mode, self.p["contact_model"],
                                                           self.rejected_inputs, self.controller.wbc.failed_solves,
@@ -572,6 +616,8 @@ class WbcNode(Node):
                                              "contacts for the tick (the gait plan used).")
     ticks_without_waited = _policy_counter("ticks_without_waited", "Ticks run (past max_defer_s) without the "
                                            "previous tick's terrain impedance (wait_for_impedance).")
+    ticks_without_heightmap = _policy_counter("ticks_without_heightmap", "Ticks run (past max_defer_s) without "
+                                              "the heightmap due at them (heightmap_period_s).")
     command_source_waits = _policy_counter("command_source_waits", "Ticks held back waiting for a cmd_vel_stamped "
                                            "publisher.")
 
@@ -587,6 +633,10 @@ class WbcNode(Node):
                 "deferred_ticks": self.deferred_ticks, "watchdog_trips": self.watchdog_trips,
                 "ticks_without_contacts": self.ticks_without_contacts,
                 "ticks_without_waited": self.ticks_without_waited,
+                "ticks_without_heightmap": self.ticks_without_heightmap,
+                "late_heightmaps": self.policy.late_heightmaps,
+                "gait_state_resends": self.gait_state_resends,
+                "repeated_answers": self.policy.counters.repeated_answers,
                 "unanswered_inputs": list(self.policy.unanswered_inputs),
                 "touchdown_searches_per_leg": self.controller.touchdown_search.searches.tolist(),
                 "early_touchdowns_per_leg": self.controller.touchdown_search.early_touchdowns.tolist(),

@@ -409,3 +409,55 @@ def test_the_first_tick_waits_for_gait_driven_producers_to_be_discovered() -> No
     clock.now_s += 6.0
     assert step(never, 0).tick is not None and never.unanswered_inputs == ("footholds",)
     assert step(never, 4 * MS).tick is not None
+
+
+def test_with_the_heightmap_period_a_tick_waits_for_the_map_due_at_it() -> None:
+    """Maps every 50 ms: the tick at 4 ms waits for the map of 0 ms, the one at 56 ms for the map of 50 ms (it
+    arrives after the joint state: DDS gives no order between topics); a map that comes after the tick that
+    should have used it is late (counted). Without the period the tick would have used the older map."""
+    p = policy(heightmap_period_ns=50 * MS)
+    assert step(p, 0).tick is not None                   # nothing due before the first control period
+    assert step(p, 4 * MS).tick is None and p.deferred_for == ("heightmap",)
+    assert p.first_tick_waits_for() == ()                 # the first tick is done: nothing to report
+    arrival = p.heightmap(0, "map@0")
+    assert arrival.tick is not None and arrival.tick.stamp_ns == 4 * MS and arrival.tick.heightmap == "map@0"
+    for k in range(8, 53, 4):
+        assert step(p, k * MS).tick.heightmap == "map@0", k
+    assert step(p, 56 * MS).tick is None
+    assert p.heightmap(50 * MS, "map@50").tick.heightmap == "map@50"
+    p.heightmap(100 * MS, "map@100")
+    assert step(p, 104 * MS).tick.heightmap == "map@100" and p.late_heightmaps == 0
+    unwaited = policy()                                    # without the period: used as it arrives
+    step(unwaited, 0)
+    assert step(unwaited, 54 * MS).tick.heightmap is None
+    unwaited.heightmap(50 * MS, "map@50")                  # after the tick that should have used it
+    assert unwaited.late_heightmaps == 1
+    bounded = policy(heightmap_period_ns=50 * MS, max_defer_ns=2 * MS)
+    step(bounded, 0)
+    assert step(bounded, 4 * MS).tick is None and step(bounded, 7 * MS).tick is not None
+    assert bounded.counters.ticks_without_heightmap == 1
+    with pytest.raises(InputError, match="heightmap_period_ns"):
+        TickPolicyConfig(period_ns=PERIOD, heightmap_period_ns=-1)
+
+
+def test_a_repeated_answer_is_dropped_and_says_the_tick_waits_for_answers() -> None:
+    """A producer answers a re-sent gait state again: the repeat (the newest stamp again) is used once."""
+    p = policy(waited_inputs=("footholds",))
+    step(p, 0)
+    assert step(p, 4 * MS).tick is None and p.waiting_for_answers
+    first = p.lagged("footholds", 0, "f@0")
+    assert first.tick is not None and first.tick.inputs == (("footholds", "f@0"),) and not p.waiting_for_answers
+    assert p.lagged("footholds", 0, "f@0 again").tick is None and p.counters.repeated_answers == 1
+    p.lagged("footholds", 4 * MS, "f@4")
+    assert step(p, 8 * MS).tick.inputs == (("footholds", "f@4"),)
+
+
+def test_the_first_tick_says_what_it_waits_for() -> None:
+    clock = FakeClock()
+    p = policy(waited_inputs=("impedance",), command_source_wait_s=5.0, clock=clock, found=lambda: False)
+    assert p.first_tick_waits_for() == ("a joint state", "a base state", "a cmd_vel_stamped publisher",
+                                        "the first impedance answer")
+    step(p, 0)
+    assert p.first_tick_waits_for() == ("a cmd_vel_stamped publisher", "the first impedance answer")
+    clock.now_s += 6.0
+    assert step(p, 0).tick is not None and p.first_tick_waits_for() == ()

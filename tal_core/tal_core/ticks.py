@@ -24,35 +24,135 @@ class StampedInbox:
     """Inputs stamped with the tick they were computed for (a heightmap, a foothold), held until the consumer's
     first tick at least ``lag_ns`` after their stamp and then handed over in stamp order. A consumer that
     used an input stamped with its own tick would depend on whether it arrived before or after the tick's
-    other inputs (other topics, no order between them); one period later it has arrived in lockstep.
+    other inputs (other topics, no order between them).
+
+    The lag alone does not make a consumer deterministic: DDS gives no order between topics, and a large
+    message (a heightmap) can arrive after the consumer's next tick even in lockstep. With ``period_ns`` (the
+    producer publishes on the sim-time grid k * period_ns, as the bridge its heightmap) the consumer can ask
+    ``awaited(tick)`` for the input due at a tick that has not arrived yet, and hold the tick until it does.
+    An input newer than all before it that arrives after a tick that should have used it is counted in ``late``
+    (its tick used an older one: the run then depends on delivery order); repeats are not.
+
     At most ``keep`` inputs are held (the oldest are dropped, counted); inputs from before a restarted clock
     (stamped more than ``CLOCK_RESET_NS`` after the tick asking) are forgotten."""
 
-    def __init__(self, lag_ns: int, keep: int = 64) -> None:
-        if lag_ns < 0 or keep < 1:
-            raise ValueError(f"StampedInbox needs lag_ns >= 0 and keep >= 1, got {lag_ns} and {keep}")
+    def __init__(self, lag_ns: int, keep: int = 64, period_ns: int = 0) -> None:
+        if lag_ns < 0 or keep < 1 or period_ns < 0:
+            raise ValueError(f"StampedInbox needs lag_ns >= 0, keep >= 1 and period_ns >= 0, got {lag_ns}, {keep} "
+                             f"and {period_ns}")
         self.lag_ns = int(lag_ns)
         self.keep = int(keep)
+        self.period_ns = int(period_ns)
         self.dropped = 0
+        self.late = 0
         self._items: list[tuple[int, int, object]] = []  # (stamp, arrival, item)
         self._arrivals = 0
+        self._newest_ns: int | None = None   # the newest stamp received (awaited)
+        self._cutoff_ns: int | None = None   # the newest cutoff handed over (late)
 
     def __len__(self) -> int:
         return len(self._items)
 
     def add(self, stamp_ns: int, item: object) -> None:
+        stamp_ns = int(stamp_ns)
+        if self._newest_ns is not None and stamp_ns + CLOCK_RESET_NS < self._newest_ns:
+            self.clear()  # the producer's clock restarted
+        if self._cutoff_ns is not None and stamp_ns <= self._cutoff_ns and (self._newest_ns is None
+                                                                          or stamp_ns > self._newest_ns):
+            self.late += 1  # newer than anything before, yet a tick has passed that should have used it
+        self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
         self._arrivals += 1
-        self._items.append((int(stamp_ns), self._arrivals, item))
+        self._items.append((stamp_ns, self._arrivals, item))
         if len(self._items) > self.keep:
             self._items.sort(key=lambda entry: entry[:2])
             del self._items[0]
             self.dropped += 1
 
+    def clear(self) -> None:
+        """Forget the held inputs and what arrived (a restarted clock)."""
+        self._items.clear()
+        self._newest_ns = self._cutoff_ns = None
+
+    def due_stamp(self, tick_ns: int) -> int | None:
+        """With ``period_ns``: the grid stamp of the newest input due at ``tick_ns`` (None: none due yet, or no
+        period)."""
+        if not self.period_ns:
+            return None
+        due = ((tick_ns - self.lag_ns + TICK_TOLERANCE_NS) // self.period_ns) * self.period_ns
+        return due if due >= 0 else None
+
+    def awaited(self, tick_ns: int) -> int | None:
+        """The stamp of the input due at ``tick_ns`` that has not arrived (nor any newer one); None when nothing
+        is awaited (no period, nothing due yet, or it is here)."""
+        due = self.due_stamp(tick_ns)
+        if due is None or (self._newest_ns is not None and self._newest_ns >= due - TICK_TOLERANCE_NS):
+            return None
+        return due
+
+    def has_due(self, tick_ns: int) -> bool:
+        """Whether ``due(tick_ns)`` would hand something over (without handing it over)."""
+        cutoff = tick_ns - self.lag_ns + TICK_TOLERANCE_NS
+        return any(stamp <= cutoff for stamp, _, _ in self._items)
+
     def due(self, tick_ns: int) -> list[tuple[int, object]]:
         """(stamp, item) of the held inputs stamped at least ``lag_ns`` before ``tick_ns``, oldest first."""
         cutoff = tick_ns - self.lag_ns + TICK_TOLERANCE_NS
+        if self._cutoff_ns is not None and tick_ns + CLOCK_RESET_NS < self._cutoff_ns:
+            self._cutoff_ns = None  # the consumer's clock restarted
+        self._cutoff_ns = cutoff if self._cutoff_ns is None else max(self._cutoff_ns, cutoff)
         self._items = [entry for entry in self._items if entry[0] <= tick_ns + CLOCK_RESET_NS]
         due = sorted((entry for entry in self._items if entry[0] <= cutoff), key=lambda entry: entry[:2])
         if due:
             self._items = [entry for entry in self._items if entry[0] > cutoff]
         return [(stamp, item) for stamp, _, item in due]
+
+
+class HeldTicks:
+    """A consumer that ticks on a message (the vfa and the vpa on the wbc's gait state) and holds each tick
+    until the periodic inputs due at it (``StampedInbox.awaited``) have arrived, releasing ticks in order.
+    A held tick is released anyway, counted in ``released_late``, once a tick more than ``max_defer_ns`` after
+    it is offered (the producer is gone, or the run is not in lockstep)."""
+
+    def __init__(self, inboxes: list[StampedInbox], max_defer_ns: int = 0) -> None:
+        if max_defer_ns < 0:
+            raise ValueError(f"HeldTicks needs max_defer_ns >= 0, got {max_defer_ns}")
+        self.inboxes = inboxes
+        self.max_defer_ns = int(max_defer_ns)
+        self.held_ticks = 0       # ticks that waited
+        self.released_late = 0    # ticks released without what they waited for
+        self._held: list[tuple[int, object]] = []
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+    def waiting(self, stamp_ns: int) -> bool:
+        return any(inbox.awaited(stamp_ns) is not None for inbox in self.inboxes)
+
+    def offer(self, stamp_ns: int, item: object) -> list[tuple[int, object]]:
+        """A new tick: the ticks (stamp, item) to run now, in order (maybe none, maybe older held ones)."""
+        stamp_ns = int(stamp_ns)
+        if self._held and stamp_ns + CLOCK_RESET_NS < self._held[-1][0]:
+            released, self._held = self._held, []  # the clock restarted: run what was held, as it is
+            self.released_late += len(released)
+            return released + self.offer(stamp_ns, item)
+        if not self._held and not self.waiting(stamp_ns):
+            return [(stamp_ns, item)]
+        if self.waiting(stamp_ns):
+            self.held_ticks += 1
+        self._held.append((stamp_ns, item))
+        return self._release(stamp_ns)
+
+    def arrived(self) -> list[tuple[int, object]]:
+        """An awaited input arrived: the held ticks now complete, in order."""
+        return self._release(None)
+
+    def _release(self, newest_ns: int | None) -> list[tuple[int, object]]:
+        out = []
+        while self._held:
+            stamp, item = self._held[0]
+            if self.waiting(stamp):
+                if newest_ns is None or newest_ns <= stamp + self.max_defer_ns:
+                    break
+                self.released_late += 1
+            out.append(self._held.pop(0))
+        return out

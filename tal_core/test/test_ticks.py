@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from tal_core.ticks import CLOCK_RESET_NS, StampedInbox, reaches_tick, tick_after
+from tal_core.ticks import CLOCK_RESET_NS, HeldTicks, StampedInbox, reaches_tick, tick_after
 
 MS = 1_000_000
 
@@ -43,3 +43,47 @@ def test_a_tolerance_for_jittered_stamps() -> None:
     assert not reaches_tick(4 * MS - 300_000, 4 * MS)
     assert reaches_tick(4 * MS - 300_000, 4 * MS, tolerance_ns=400_000)
     assert tick_after(4 * MS - 300_000, 2 * MS, tolerance_ns=400_000) == 6 * MS
+
+
+def test_an_inbox_with_the_producers_period_says_which_input_a_tick_awaits_and_counts_late_ones() -> None:
+    """Heightmaps every 50 ms used one 4 ms tick after their stamp: the tick at 54 ms awaits the map of 50 ms
+    (a newer one will do); a map that arrives after the tick that should have used it is late."""
+    inbox = StampedInbox(lag_ns=4 * MS, period_ns=50 * MS)
+    assert inbox.awaited(0) is None and inbox.due_stamp(0) is None  # nothing due before the first lag
+    assert inbox.awaited(4 * MS) == 0
+    inbox.add(0, "map@0")
+    assert inbox.awaited(4 * MS) is None and inbox.awaited(53 * MS) is None and inbox.awaited(54 * MS) == 50 * MS
+    assert inbox.has_due(4 * MS) and not inbox.has_due(0) and inbox.due(4 * MS) == [(0, "map@0")]
+    assert inbox.due(58 * MS) == [] and inbox.late == 0
+    inbox.add(50 * MS, "map@50")                    # after the 58 ms tick, which should have used it
+    inbox.add(50 * MS, "map@50")                    # a repeat is not late again
+    assert inbox.late == 1
+    inbox.add(100 * MS, "map@100")                  # a newer map will do
+    assert inbox.awaited(54 * MS) is None and inbox.awaited(104 * MS) is None and inbox.awaited(154 * MS) == 150 * MS
+    assert StampedInbox(lag_ns=4 * MS).awaited(54 * MS) is None  # without a period nothing is awaited
+    inbox.add(CLOCK_RESET_NS + 100 * MS, "later")
+    inbox.add(0, "restarted")                       # a clock that jumps back forgets what arrived
+    assert inbox.awaited(54 * MS) == 50 * MS and len(inbox) == 1
+    with pytest.raises(ValueError, match="period_ns >= 0"):
+        StampedInbox(lag_ns=0, period_ns=-1)
+
+
+def test_held_ticks_wait_for_their_inputs_and_run_in_order() -> None:
+    maps = StampedInbox(lag_ns=4 * MS, period_ns=50 * MS)
+    maps.add(0, "map@0")
+    held = HeldTicks([maps], max_defer_ns=0)
+    assert held.offer(50 * MS, "gait@50") == [(50 * MS, "gait@50")]  # its map (0 ms) is here: at once
+    assert held.offer(54 * MS, "gait@54") == [] and len(held) == 1     # awaits the map of 50 ms
+    assert held.arrived() == [] and held.held_ticks == 1
+    maps.add(50 * MS, "map@50")
+    assert held.arrived() == [(54 * MS, "gait@54")] and len(held) == 0
+    # A tick past max_defer releases an older held one without its input, counted; the new one still waits.
+    assert held.offer(104 * MS, "gait@104") == []
+    assert held.offer(108 * MS, "gait@108") == [(104 * MS, "gait@104")] and held.released_late == 1
+    maps.add(100 * MS, "map@100")
+    assert held.arrived() == [(108 * MS, "gait@108")]
+    patient = HeldTicks([StampedInbox(lag_ns=4 * MS, period_ns=50 * MS)], max_defer_ns=10 * MS)
+    assert patient.offer(4 * MS, "a") == [] and patient.offer(8 * MS, "b") == []
+    assert patient.offer(16 * MS, "c") == [(4 * MS, "a")] and patient.released_late == 1
+    with pytest.raises(ValueError, match="max_defer_ns"):
+        HeldTicks([], max_defer_ns=-1)

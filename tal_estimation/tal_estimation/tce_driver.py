@@ -21,6 +21,13 @@ whether the joint state or the base state arrives first (lockstep runs repeat bi
 is computed when that base state arrives (``set_base`` returns it) or, with whatever base state is there
 (counted in ``late_base_ticks``), on the first joint sample more than ``max_defer_s`` after it: the robot
 moved on.
+
+Heightmaps streamed with ``add_heightmap`` come into use at the first tick at or after their stamp. With
+``heightmap_period_s`` (the publisher's period on the sim-time grid, as the bridge's) a tick also waits for
+the map of its grid point, so that it does not depend on whether the map or the joint state arrived first
+(DDS gives no order between topics; the heightmaps are robot-centred, so the terrain under a foot differs
+slightly from one map to the next); maps that came after the tick that should have used them are counted in
+``late_heightmaps``, ticks run without theirs in ``late_heightmap_ticks``.
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ import numpy as np
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
 from tal_core.state import BaseState
-from tal_core.ticks import TICK_TOLERANCE_NS, reaches_tick, tick_after
+from tal_core.ticks import TICK_TOLERANCE_NS, StampedInbox, reaches_tick, tick_after
 
 from .streaming import JointArrays
 from .tce import (
@@ -86,11 +93,14 @@ class TceDriver:
 
     def __init__(self, model: RobotModel, settings: TceSettings | None = None, *, period_s: float = 0.004,
                  stale_state_periods: int = 3, on_reject: Callable[[Exception], None] | None = None,
-                 base_period_s: float | None = None, max_defer_s: float = 0.0) -> None:
+                 base_period_s: float | None = None, max_defer_s: float = 0.0,
+                 heightmap_period_s: float = 0.0) -> None:
         if base_period_s is not None and base_period_s <= 0.0:
             raise InputError(f"TceDriver: base_period_s must be > 0 or None, got {base_period_s!r}")
         if max_defer_s < 0.0:
             raise InputError(f"TceDriver: max_defer_s must be >= 0, got {max_defer_s!r}")
+        if not (math.isfinite(heightmap_period_s) and heightmap_period_s >= 0.0):
+            raise InputError(f"TceDriver: heightmap_period_s must be finite and >= 0, got {heightmap_period_s!r}")
         self.model = model
         self.tce = TerrainComplianceEstimator(model, settings)
         self.period_ns = round(period_s * 1e9)
@@ -104,6 +114,8 @@ class TceDriver:
         self.samples_outside_map = 0
         self.stale_ticks = 0
         self.late_base_ticks = 0
+        self.late_heightmap_ticks = 0
+        self._terrain = StampedInbox(0, period_ns=round(heightmap_period_s * 1e9))
         self.rejected = 0
         self._accelerations = FiniteDifferenceAcceleration(max_gap_s=1.5 * period_s)
         self._next_tick_ns = 0
@@ -122,12 +134,34 @@ class TceDriver:
         """The undeformed terrain: height(x, y) [m] (NaN where unknown) and, optionally, the unit normal."""
         self.height, self.normal = height, normal
 
+    @property
+    def late_heightmaps(self) -> int:
+        """Streamed maps that arrived after the tick that should have used them."""
+        return self._terrain.late
+
+    def add_heightmap(self, stamp_ns: int, height: HeightFunction, normal: NormalFunction | None = None
+                      ) -> TceTick | None:
+        """A streamed map (see the module docstring): in use from the first tick at or after ``stamp_ns``; the
+        waiting tick it completes, if any."""
+        self._terrain.add(stamp_ns, (height, normal))
+        return self._run_pending() if self._pending is not None and self._ready(self._pending[0]) else None
+
     def set_base(self, stamp_ns: int, base: BaseState) -> TceTick | None:
         """The latest base state (world frame) and its stamp; the waiting tick it completes, if any."""
         self._base = (stamp_ns, base)
-        if self._pending is not None and stamp_ns >= self._expected_base_stamp(self._pending[0]):
+        if self._pending is not None and self._ready(self._pending[0]):
             return self._run_pending()
         return None
+
+    def _ready(self, stamp_ns: int) -> bool:
+        """Whether the base state and the map a tick at ``stamp_ns`` waits for have arrived."""
+        return (self._base is not None and self._base[0] >= self._expected_base_stamp(stamp_ns)
+                and self._terrain.awaited(stamp_ns) is None)
+
+    def _use_terrain(self, stamp_ns: int) -> None:
+        due = self._terrain.due(stamp_ns)
+        if due:
+            self.height, self.normal = due[-1][1]
 
     def wants_joints(self, stamp_ns: int) -> bool:
         """Whether ``add_joints`` would do anything with a sample stamped ``stamp_ns`` (a tick, or the end of
@@ -140,11 +174,15 @@ class TceDriver:
         tick). ``t_s``: the tick's time [s] (default stamp_ns * 1e-9)."""
         late = self._run_pending(late=True) if self._overdue(stamp_ns) else None
         waits = self.base_period_ns is not None
-        if not reaches_tick(stamp_ns, self._next_tick_ns) or self.height is None or (self._base is None and not waits):
+        if not reaches_tick(stamp_ns, self._next_tick_ns):
+            return late
+        map_awaited = self._terrain.awaited(stamp_ns) is not None
+        no_terrain = self.height is None and not map_awaited and not self._terrain.has_due(stamp_ns)
+        if no_terrain or (self._base is None and not waits):
             return late
         self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
         t = stamp_ns * 1e-9 if t_s is None else t_s
-        if self._base is None or self._base[0] < self._expected_base_stamp(stamp_ns):
+        if not self._ready(stamp_ns) and (waits or map_awaited):
             arrays = self._read(read)
             if arrays is not None:
                 self._pending = (stamp_ns, t, arrays)
@@ -166,7 +204,10 @@ class TceDriver:
         stamp_ns, t_s, arrays = self._pending
         self._pending = None
         if late:
-            self.late_base_ticks += 1
+            if self._terrain.awaited(stamp_ns) is not None:
+                self.late_heightmap_ticks += 1
+            else:
+                self.late_base_ticks += 1
         return self._tick(stamp_ns, t_s, arrays)
 
     def _read(self, read: Callable[[], JointArrays]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -182,6 +223,7 @@ class TceDriver:
             self.on_reject(exc)
 
     def _tick(self, stamp_ns: int, t_s: float, arrays: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TceTick | None:
+        self._use_terrain(stamp_ns)
         if self._base is None or stamp_ns - self._base[0] > self.stale_state_periods * self.period_ns:
             self.stale_ticks += 1
             return None

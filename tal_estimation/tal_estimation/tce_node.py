@@ -6,7 +6,8 @@ experiments that reproduce it use ground truth), terrain/heightmap (the undeform
 feet). When it ticks and what a tick does is ``tal_estimation.tce_driver.TceDriver`` (shared with the
 offline runners): ticks lie on the sim-time grid k * control_period_s and wait for the base state of their
 own stamp (ground truth comes at the control rate, the estimate every estimate_period_s; wait_for_base false:
-the latest as it arrives), up to max_defer_s past the tick on the wall clock; a base state older than
+the latest as it arrives), up to max_defer_s past the tick on the wall clock, and with heightmap_period_s
+for the heightmap of their grid point; a base state older than
 ``stale_state_periods`` skips the tick; feet outside the heightmap give no sample (counted). This node
 converts messages and publishes. Thresholds, stale_state_periods and summary_path are live parameters.
 """
@@ -52,6 +53,10 @@ class TceNode(Node):
         max_defer = declare(self, "max_defer_s", 0.0,
                             "[s] sim time a tick waits for its base state past the next joint sample (0: lockstep; "
                             "on the wall clock the next sample comes 1 ms later)", low=0.0, high=0.1)
+        heightmap_period = declare(self, "heightmap_period_s", 0.0,
+                                   "[s] the heightmap's publishing period on the sim-time grid: a tick waits for "
+                                   "the map of its grid point (lockstep); 0: maps are used as they arrive",
+                                   low=0.0, high=10.0)
         settings = TceSettings(
             window=declare(self, "window", 250, "[-] samples per leg (thesis: 250 at 250 Hz)", low=2, high=100000),
             min_samples=declare(self, "min_samples", 50, "[-] stance samples before a first estimate", low=1,
@@ -80,7 +85,8 @@ class TceNode(Node):
         base_period = (period if base_source == "ground_truth" else estimate_period) if wait_for_base else None
         self.driver = TceDriver(self.model, settings, period_s=period, stale_state_periods=stale_periods,
                                 on_reject=lambda exc: self._reject("joint_states", exc),
-                                base_period_s=base_period, max_defer_s=max_defer)
+                                base_period_s=base_period, max_defer_s=max_defer,
+                                heightmap_period_s=heightmap_period)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
         self.rejected_inputs = 0
         self.summary_path = declare(self, "summary_path", "", "JSON file for the end-of-run summary (final "
@@ -90,7 +96,14 @@ class TceNode(Node):
         self.pub = self.create_publisher(TerrainImpedance, "terrain_impedance", 10)
         self._writer = ImpedanceWriter()
         topic = "ground_truth/odom" if base_source == "ground_truth" else "state_estimate"
-        subscribe_stamped(self, JointState, "joint_states", self._on_joints, 10, wants=self.driver.wants_joints,
+        # The bridge repeats its first state until the first command: the answer to it may have been published
+        # before DDS matched our writer with the wbc's reader (a lockstep wbc waits for it), so a repeated joint
+        # state gets the last answer again (the wbc drops repeats).
+        self._last_answer: bytes | None = None
+        self._answered_ns: int | None = None
+        self.answers_resent = 0
+        subscribe_stamped(self, JointState, "joint_states", self._on_joints, 10,
+                          wants=lambda stamp: self.driver.wants_joints(stamp) or stamp == self._answered_ns,
                           on_error=lambda exc: self._reject("joint_states", exc))
         self.create_subscription(Odometry, topic, self._on_base, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
@@ -132,9 +145,15 @@ class TceNode(Node):
         except InputError as exc:
             self._reject("heightmap", exc)
             return
-        self.driver.set_terrain(lambda x, y: float(grid.height_at(x, y)))
+        self._publish(self.driver.add_heightmap(ns_from_stamp(msg.header.stamp),
+                                                lambda x, y: float(grid.height_at(x, y))))
 
     def _on_joints(self, msg: JointState) -> None:
+        stamp_ns = ns_from_stamp(msg.header.stamp)
+        if stamp_ns == self._answered_ns and self._last_answer is not None:
+            self.pub.publish(self._last_answer)
+            self.answers_resent += 1
+            return
         self._publish(self.driver.add_joints(ns_from_stamp(msg.header.stamp),
                                              lambda: joint_state_arrays(msg, self.joint_index)))
 
@@ -143,7 +162,8 @@ class TceNode(Node):
             return
         stamp = tick.stamp_ns
         assert stamp is not None
-        self.pub.publish(self._writer(stamp, tick))
+        self._last_answer, self._answered_ns = self._writer(stamp, tick), stamp
+        self.pub.publish(self._last_answer)
         if (self.ticks - 1) % HISTORY_DECIMATION == 0:
             self.history.append([stamp * 1e-9] + [e.stiffness_n_per_m for e in tick.estimates]
                                 + [float(e.valid) for e in tick.estimates])
@@ -158,6 +178,7 @@ class TceNode(Node):
             "ticks": self.ticks, "rejected_inputs": self.rejected_inputs,
             "stale_ticks": self.driver.stale_ticks, "late_base_ticks": self.driver.late_base_ticks,
             "samples_outside_map": self.samples_outside_map,
+            "answers_resent": self.answers_resent, "late_heightmaps": self.driver.late_heightmaps, "late_heightmap_ticks": self.driver.late_heightmap_ticks,
             "edge_samples_per_leg": self.tce.edge_samples.tolist(),
             "final": {leg.name: {"stiffness_n_per_m": clean(e.stiffness_n_per_m),
                                  "damping_ns_per_m": clean(e.damping_ns_per_m), "confidence": e.confidence,

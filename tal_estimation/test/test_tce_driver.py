@@ -203,3 +203,42 @@ def test_a_waiting_tick_runs_late_when_the_robot_moves_on() -> None:
     assert tick is not None and tick.stamp_ns == 8 * MS
     with pytest.raises(InputError, match="base_period_s must be > 0"):
         TceDriver(RobotModel.from_name("hyq"), base_period_s=0.0)
+
+
+def test_with_the_heightmap_period_a_tick_waits_for_the_map_of_its_grid_point() -> None:
+    """Maps every 8 ms, streamed: the tick at 8 ms uses the map of 8 ms whether it arrives before or after the
+    joint state (the maps differ by 1 mm here, as robot-centred maps differ under a foot); a map that comes after
+    its tick is late (counted), and a tick whose map never comes runs late on the next sample past max_defer_s."""
+    base = standing()[0]
+    results = []
+    for map_first in (True, False):
+        driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.004, heightmap_period_s=0.008)
+        ticks = []
+        for k in range(13):
+            events = [("joints", k)] + ([("base", k)] if k % 4 == 0 else []) + ([("map", k)] if k % 8 == 0 else [])
+            for kind, stamp in (events[::-1] if map_first else events):
+                if kind == "joints":
+                    tick = driver.add_joints(stamp * MS, read())
+                elif kind == "base":
+                    tick = driver.set_base(stamp * MS, base)
+                else:
+                    tick = driver.add_heightmap(stamp * MS, lambda x, y, h=-0.001 * stamp / 8: h)
+                if tick is not None:
+                    ticks.append(tick)
+        assert driver.late_heightmaps == 0 and driver.late_heightmap_ticks == 0
+        results.append([(t.stamp_ns, t.samples[Leg.LF].penetration_m) for t in ticks])
+    assert [stamp for stamp, _ in results[0]] == [0, 4 * MS, 8 * MS, 12 * MS]
+    assert results[0] == results[1]
+    assert results[0][2][1] == pytest.approx(results[0][1][1] - 0.001)  # 8 ms: on the map of 8 ms
+    lost = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.004, max_defer_s=0.002,
+                     heightmap_period_s=0.008)
+    lost.set_base(0, base)
+    lost.add_heightmap(0, flat)
+    assert lost.add_joints(0, read()) is not None
+    lost.set_base(8 * MS, base)
+    assert lost.add_joints(8 * MS, read()) is None  # waits for the map of 8 ms
+    assert lost.add_joints(11 * MS, read()) is not None and lost.late_heightmap_ticks == 1
+    lost.add_heightmap(8 * MS, flat)
+    assert lost.late_heightmaps == 1
+    with pytest.raises(InputError, match="heightmap_period_s"):
+        TceDriver(RobotModel.from_name("hyq"), heightmap_period_s=-1.0)

@@ -13,8 +13,11 @@ Bad input (NaN, wrong array sizes, wrong frame, stamps
 going backwards) is rejected, counted by reason and logged at most once per second; it never stops
 the node. A heightmap comes into use at the first gait state ``map_lag_s`` (one control period) after its
 stamp (``tal_core.ticks.StampedInbox``: one stamped with the tick itself may arrive before or after that
-tick's gait state, so lockstep runs repeat themselves). A heightmap with the stamp of the one in use is a
-duplicate: ignored, counted apart. A clock
+tick's gait state). With ``map_period_s`` (lockstep: the bridge's heightmap period) a gait state also waits
+for the map due at it (``tal_core.ticks.HeldTicks``): DDS gives no order between topics, and a large map can
+come after the next gait state, so lockstep runs repeat themselves bit for bit; maps that came after the
+gait state that should have used them are counted (``late_maps``). A heightmap with the stamp of the one in
+use is a duplicate: ignored, counted apart. A clock
 that jumps back by more than 0.5 s (a restarted simulation) restarts the planner. A missing or stale
 map, or a patch without a safe candidate, publishes the nominal foothold with ``safe_candidate_found``
 false (see ``vfa_planner``).
@@ -34,7 +37,7 @@ from tal_core.heightmap import HeightMapGrid
 from tal_core.robot_model import RobotModel
 from tal_core.ros.conversions import heightmap_grid
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
-from tal_core.ticks import CLOCK_RESET_NS, StampedInbox
+from tal_core.ticks import CLOCK_RESET_NS, HeldTicks, StampedInbox
 from tal_msgs.msg import Foothold, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
@@ -123,7 +126,15 @@ class VfaNode(Node):
                                                "(a wbc with wait_for_footholds waits for it)")
         map_lag_s = declare(self, "map_lag_s", 0.004, "[s] a heightmap is used from the first gait state this "
                             "long after its stamp (the control period)", low=0.0, high=1.0)
-        self.maps_inbox = StampedInbox(round(map_lag_s * 1e9))
+        map_period_s = declare(self, "map_period_s", 0.0, "[s] the heightmap's publishing period on the sim-time "
+                               "grid: a gait state waits for the map due at it (lockstep); 0: maps are used as "
+                               "they arrive", low=0.0, high=10.0)
+        self.maps_inbox = StampedInbox(round(map_lag_s * 1e9), period_ns=round(map_period_s * 1e9))
+        self.held = HeldTicks([self.maps_inbox])
+        self._newest_gait_ns: int | None = None
+        self._last_answer: FootholdArray | None = None
+        self._answered_ns: int | None = None
+        self.answers_resent = 0
         self._newest_map_ns: int | None = None
         self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
                                     "('' = none)",
@@ -169,6 +180,8 @@ class VfaNode(Node):
             return
         self._newest_map_ns = stamp_ns
         self.maps_inbox.add(stamp_ns, (grid, stamp_s))
+        for _, gait_state in self.held.arrived():
+            self._update(gait_state)
 
     def _use_maps(self, stamp_ns: int) -> None:
         """The heightmaps due at the gait state stamped ``stamp_ns``, oldest first."""
@@ -184,6 +197,19 @@ class VfaNode(Node):
                 self.duplicate_maps += 1  # the simulator repeats its first sample until the wbc answers
 
     def _on_gait_state(self, msg: GaitState) -> None:
+        stamp_ns = ns_from_stamp(msg.header.stamp)
+        if stamp_ns == self._newest_gait_ns:
+            # The wbc sends a gait state again when our answer is overdue (lost before DDS matched): answer again.
+            if self._last_answer is not None and stamp_ns == self._answered_ns:
+                self.pub_footholds.publish(self._last_answer)
+                self.answers_resent += 1
+            return
+        self._newest_gait_ns = stamp_ns
+        for _, gait_state in self.held.offer(stamp_ns, msg):
+            self._update(gait_state)
+
+    def _update(self, msg: GaitState) -> None:
+        """One gait state whose maps are here: the selections, and the answer."""
         self._use_maps(ns_from_stamp(msg.header.stamp))
         try:
             decisions = self.planner.update(gait_snapshot_from_message(msg))
@@ -202,6 +228,7 @@ class VfaNode(Node):
         out.header.stamp = msg.header.stamp
         out.header.frame_id = FRAME
         self.pub_footholds.publish(out)
+        self._last_answer, self._answered_ns = out, ns_from_stamp(msg.header.stamp)
         self.published_messages += 1 if decisions else 0
         self.empty_answers += 0 if decisions else 1
         self.published_footholds += len(decisions)
@@ -223,7 +250,8 @@ class VfaNode(Node):
         timing = np.array(self.selection_ms)
         return {
             "selector": self.selector_name, "gait_states": self.gait_states, "heightmaps": self.maps,
-            "duplicate_heightmaps": self.duplicate_maps,
+            "duplicate_heightmaps": self.duplicate_maps, "late_maps": self.maps_inbox.late,
+            "gait_states_held_for_maps": self.held.held_ticks, "answers_resent": self.answers_resent, "gait_states_released_without_map": self.held.released_late,
             "published_messages": self.published_messages, "published_footholds": self.published_footholds,
             "empty_answers": self.empty_answers,
             **{f"decisions_{k}": v for k, v in c.by_status.items()},

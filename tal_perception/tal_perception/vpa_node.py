@@ -15,8 +15,10 @@ The update runs in the gait-state callback: with the CNN it took a median of 15.
 stamps going backwards) is rejected, counted by reason and logged at most once per second; it never
 stops the node. A missing or stale map holds the default pose (nominal height, level), flagged with
 ``optimal`` false and counted. Heightmaps and footholds come into use at the first update ``input_lag_s``
-(one control period) after their stamp (``tal_core.ticks.StampedInbox``), so that lockstep runs repeat
-themselves.
+(one control period) after their stamp (``tal_core.ticks.StampedInbox``); with ``map_period_s`` (lockstep:
+the bridge's heightmap period) a gait state also waits for the map due at it (``tal_core.ticks.HeldTicks``),
+so that lockstep runs repeat themselves bit for bit. Maps that came after the update that should have used
+them are counted (``late_maps``). The TBR baseline's footholds are not waited for.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
-from tal_core.ticks import StampedInbox
+from tal_core.ticks import HeldTicks, StampedInbox
 from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
@@ -83,7 +85,16 @@ class VpaNode(Node):
                                             "clock)", low=0.05, high=60.0)
         input_lag = round(declare(self, "input_lag_s", 0.004, "[s] a heightmap or foothold is used from the first "
                                   "update this long after its stamp (the control period)", low=0.0, high=1.0) * 1e9)
-        self.maps_inbox, self.footholds_inbox = StampedInbox(input_lag), StampedInbox(input_lag)
+        map_period = round(declare(self, "map_period_s", 0.0, "[s] the heightmap's publishing period on the sim-time "
+                                   "grid: an update waits for the map due at it (lockstep); 0: maps are used as "
+                                   "they arrive", low=0.0, high=10.0) * 1e9)
+        self.maps_inbox = StampedInbox(input_lag, period_ns=map_period)
+        self.footholds_inbox = StampedInbox(input_lag)
+        self.held = HeldTicks([self.maps_inbox])
+        self._newest_gait_ns: int | None = None
+        self._last_answer: BodyPoseReference | None = None
+        self._answered_ns: int | None = None
+        self.answers_resent = 0
         self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
                                     "('' = none)",
                                     on_change=lambda value: setattr(self, "summary_path", value))
@@ -104,7 +115,7 @@ class VpaNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, "vpa/diagnostics", 10)
         # 250 Hz in, an update every update_period_s: only the gait states the planner uses are deserialised.
         subscribe_stamped(self, GaitState, "gait_state", self._on_gait_state, 10,
-                          wants=lambda stamp: self.planner.wants(stamp),
+                          wants=lambda stamp: self.planner.wants(stamp) or stamp == self._answered_ns,
                           on_error=lambda exc: self._reject("gait_state", str(exc)))
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
@@ -126,6 +137,8 @@ class VpaNode(Node):
             self._reject(exc.reason, str(exc))
             return
         self.maps_inbox.add(ns_from_stamp(msg.header.stamp), (grid, stamp_s))
+        for _, gait_state in self.held.arrived():
+            self._update(gait_state)
 
     def _on_footholds(self, msg: FootholdArray) -> None:
         valid = []
@@ -150,6 +163,19 @@ class VpaNode(Node):
                 self.planner.set_foothold(leg, point)
 
     def _on_gait_state(self, msg: GaitState) -> None:
+        stamp_ns = ns_from_stamp(msg.header.stamp)
+        if stamp_ns == self._newest_gait_ns:
+            # The wbc sends a gait state again when our answer is overdue (lost before DDS matched): answer again.
+            if self._last_answer is not None and stamp_ns == self._answered_ns:
+                self.pub_pose.publish(self._last_answer)
+                self.answers_resent += 1
+            return
+        self._newest_gait_ns = stamp_ns
+        for _, gait_state in self.held.offer(stamp_ns, msg):
+            self._update(gait_state)
+
+    def _update(self, msg: GaitState) -> None:
+        """One gait state whose maps are here: the planner's update, and the reference it gives."""
         self._use_inputs(ns_from_stamp(msg.header.stamp))
         try:
             snapshot = gait_snapshot_from_message(msg)
@@ -173,6 +199,7 @@ class VpaNode(Node):
         out.header.stamp = msg.header.stamp
         out.header.frame_id = FRAME
         self.pub_pose.publish(out)
+        self._last_answer, self._answered_ns = out, ns_from_stamp(msg.header.stamp)
         self.published += 1
 
     # -- outputs ------------------------------------------------------------------------------------
@@ -180,6 +207,9 @@ class VpaNode(Node):
         timing = np.array(self.update_ms)
         return {
             "source": self.source, "published": self.published, "restarts": self.planner.restarts,
+            "late_maps": self.maps_inbox.late, "updates_held_for_maps": self.held.held_ticks,
+            "updates_released_without_map": self.held.released_late,
+            "answers_resent": self.answers_resent,
             **{f"status_{k}": v for k, v in sorted(self.by_status.items())},
             **{f"rejected_{k}": v for k, v in sorted(self.rejections.items())},
             "update_time_median_ms": round(float(np.median(timing)), 3) if timing.size else 0.0,
