@@ -133,7 +133,7 @@ class WbcNode(Node):
         self._command_writer = JointCommandWriter(self.joint_names)
         self.command_input = VelocityCommandInput(p["max_linear_velocity_m_s"], p["max_yaw_rate_rad_s"])
         # The simulator's heightmap is in the true world frame; the estimate drifts in z (map_alignment).
-        self.map_aligner = (HeightmapAligner(p["map_alignment_time_constant_s"])
+        self.map_aligner = (HeightmapAligner(p["map_alignment_time_constant_s"], p["map_alignment_max_rate_m_s"])
                             if p["state_source"] == "estimate" and p["map_alignment_time_constant_s"] > 0.0
                             else None)
         self.rejected_inputs = 0
@@ -157,6 +157,7 @@ class WbcNode(Node):
             producers_ready=self._gait_consumers_ready)
         self.stats = TrackingStats()
         self._start_s = time.monotonic()
+        self._body_pose: tuple[float, float, float] | None = None  # the last body pose reference (map frame)
         self.create_timer(5.0, self._report_first_tick_wait, clock=Clock(clock_type=ClockType.STEADY_TIME))
         # A producer's answer published before DDS matched its writer with our reader (or a gait state before
         # our writer matched the producer's reader) is lost, and a lockstep tick would wait for it until the
@@ -224,6 +225,11 @@ class WbcNode(Node):
                 "into the estimate's frame (measured at the loaded stance feet); 0 = use the map as it is",
                 low=0.0, high=100.0,
                 on_change=self._live("map_alignment_time_constant_s", self._set_map_alignment)),
+            "map_alignment_max_rate_m_s": declare(
+                self, "map_alignment_max_rate_m_s", 0.05,
+                "[m/s] bound on the alignment offset's rate (a touchdown on an unmapped step must not yank the "
+                "body; the estimate's z drifts up to ~0.2 m/s while the feet sink into soft ground)",
+                low=0.001, high=10.0, on_change=self._live("map_alignment_max_rate_m_s", self._set_map_rate)),
             "control_period_s": declare(self, "control_period_s", 0.004, "[s] control tick", low=0.0005,
                                         high=0.1),
             "stale_state_periods": declare(self, "stale_state_periods", 3,
@@ -365,9 +371,13 @@ class WbcNode(Node):
         if time_constant_s <= 0.0:
             self.map_aligner = None
         elif self.map_aligner is None:
-            self.map_aligner = HeightmapAligner(time_constant_s)
+            self.map_aligner = HeightmapAligner(time_constant_s, self.p["map_alignment_max_rate_m_s"])
         else:
             self.map_aligner.time_constant_s = float(time_constant_s)
+
+    def _set_map_rate(self, rate_m_s: float) -> None:
+        if self.map_aligner is not None:
+            self.map_aligner.max_rate_m_s = float(rate_m_s)
 
     def _set_stale_periods(self, periods: int) -> None:
         self.policy.set_stale_periods(periods)
@@ -485,6 +495,7 @@ class WbcNode(Node):
             elif name == "footholds":
                 self._apply_footholds(value)
             elif name == "body_pose":
+                self._body_pose = value
                 self.controller.motion.set_body_pose_reference(*value)
 
     def _on_heightmap(self, msg: HeightMap) -> None:
@@ -542,6 +553,11 @@ class WbcNode(Node):
         world_height = height
         if height is not None and self.map_aligner is not None:
             height = self.map_aligner.aligned(height)
+            if self._body_pose is not None and self._body_pose[0] is not None:
+                # The vpa's base height is a world (map) height: it moves with the map into the estimate's frame.
+                world_base_height, roll, pitch = self._body_pose
+                self.controller.motion.set_body_pose_reference(world_base_height + self.map_aligner.offset_m,
+                                                               roll, pitch)
         normal = (lambda x, y: heightmap_normal(grid, x, y)) if grid is not None else None
         try:
             out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, tick.command, height, normal,
