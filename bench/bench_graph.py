@@ -45,7 +45,7 @@ with requires_env("bench_graph"):
     from tal_lab.graph_report import bench_rates
     from tal_lab.run_report import fall_of
 
-DEFAULT_DURATION_S = 40.0  # the tour's sim time (scripts/run_scenario.sh)
+DEFAULT_DURATION_S = 40.0  # [s] both tours (make run's lockstep tour is 60 s; the real-time one falls by 35 s)
 DEFAULT_RUNS = 3
 GOALS = {
     "graph_cpu_s_per_sim_s": 1.5,
