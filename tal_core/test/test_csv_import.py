@@ -171,3 +171,54 @@ def test_a_quaternion_that_is_not_unit_and_an_empty_file_are_refused(tmp_path: P
     (tmp_path / "empty.csv").write_text("")
     with pytest.raises(CsvImportError, match="empty.csv line 1: the file is empty"):
         import_csv(tmp_path / "empty.csv", ColumnMap.from_dict(raw), tmp_path / "bag2")
+
+
+def test_a_log_with_foot_force_sensors_and_no_torques_imports_to_foot_contacts(tmp_path: Path) -> None:
+    """A Go1-style log: joint positions and velocities (no torques), IMU, raw foot force counts and contact
+    flags under the log's own leg names (FR, FL, RR, RL) go to /joint_states and /foot_contacts in tal's leg
+    order (LF, RF, LH, RH); exported back in the log's units and columns it reads the same."""
+    legs = {"LF": "FL", "RF": "FR", "LH": "RL", "RH": "RR"}
+    joints = [f"{leg}_{j}" for leg in legs for j in ("hip", "thigh", "calf")]
+    cmap = ColumnMap.from_dict({
+        "time": {"column": "stamp", "unit": "s"},
+        "joint_states": {"joints": joints, "position": {"column": "q_{joint}", "unit": "rad"},
+                         "velocity": {"column": "dq_{joint}", "unit": "rad/s"}},
+        "imu": {"angular_velocity": {a: {"column": f"w{a}", "unit": "rad/s"} for a in "xyz"},
+                "linear_acceleration": {a: {"column": f"a{a}", "unit": "m/s^2"} for a in "xyz"}},
+        "foot_contacts": {"legs": list(legs.values()), "force": {"column": "foot_force_{leg}", "unit": "count"},
+                          "in_contact": {"column": "contact_{leg}", "unit": "-"}}})
+    header = (["stamp"] + [f"q_{j}" for j in joints] + [f"dq_{j}" for j in joints]
+              + [f"w{a}" for a in "xyz"] + [f"a{a}" for a in "xyz"]
+              + [f"foot_force_{n}" for n in ("FR", "FL", "RR", "RL")] + [f"contact_{n}" for n in ("FR", "FL", "RR", "RL")])
+    rows = []
+    for k in range(5):
+        force = {"FR": 10 + k, "FL": 200 + k, "RR": 300 + k, "RL": 15 + k}   # counts: FL and RR in stance
+        row = {"stamp": 0.002 * k, **{f"q_{j}": 0.1 * i for i, j in enumerate(joints)},
+               **{f"dq_{j}": 0.0 for j in joints}, "wx": 0.0, "wy": 0.0, "wz": 0.01, "ax": 0.0, "ay": 0.0,
+               "az": 9.81, **{f"foot_force_{n}": f for n, f in force.items()},
+               **{f"contact_{n}": int(f > 100) for n, f in force.items()}}
+        rows.append([row[h] for h in header])
+    log = tmp_path / "go1.csv"
+    with log.open("w", newline="") as stream:
+        csv.writer(stream).writerows([header, *rows])
+    report = import_csv(log, cmap, tmp_path / "bag")
+    assert report.rows == 5 and report.messages["/foot_contacts"] == 5 and report.messages["/joint_states"] == 5
+    feet = [m.message for m in BagReader(tmp_path / "bag").messages(["/foot_contacts"])]
+    assert [f.z for f in feet[2].force] == [202.0, 12.0, 17.0, 302.0]          # LF=FL, RF=FR, LH=RL, RH=RR
+    assert list(feet[2].in_contact) == [True, False, False, True]
+    joint_states = next(iter(BagReader(tmp_path / "bag").messages(["/joint_states"]))).message
+    assert list(joint_states.effort) == [] and list(joint_states.name) == joints
+    from tal_estimation.messages import foot_contact_values
+    assert foot_contact_values(feet[2], "force_sensor").tolist() == [202.0, 12.0, 17.0, 302.0]
+    assert foot_contact_values(feet[2], "contact_flags").tolist() == [1.0, 0.0, 0.0, 1.0]
+    assert export_csv(tmp_path / "bag", cmap, tmp_path / "again.csv") == 5
+    with (tmp_path / "again.csv").open(newline="") as stream:
+        again = list(csv.reader(stream))
+    exported = dict(zip(again[0], again[3], strict=True))
+    assert float(exported["foot_force_FL"]) == 202.0 and float(exported["contact_FR"]) == 0.0
+    with pytest.raises(CsvImportError, match="four distinct names"):
+        ColumnMap.from_dict({"time": {"column": "t", "unit": "s"},
+                             "foot_contacts": {"legs": ["FL", "FL", "RL", "RR"], "force": {"column": "f", "unit": "N"}}})
+    with pytest.raises(CsvImportError, match="not a unit of force"):
+        ColumnMap.from_dict({"time": {"column": "t", "unit": "s"},
+                             "foot_contacts": {"force": {"column": "f_{leg}", "unit": "kg"}}})

@@ -13,6 +13,15 @@ factors. Example (the shipped, documented one is ``tal_core/config/csv_maps/hyq_
     imu:
       angular_velocity: {x: {column: gx, unit: deg/s}, y: ..., z: ...}
       linear_acceleration: {x: {column: ax, unit: g}, y: ..., z: ...}
+    foot_contacts:                                       # robots with foot sensors (optional)
+      legs: [FL, FR, RL, RR]                             # the log's names of LF, RF, LH, RH ({leg})
+      force: {column: "foot_force_{leg}", unit: count}   # raw counts (calibrated by the estimator) or N
+      in_contact: {column: "contact_{leg}", unit: "-"}   # binary flags: non-zero is contact
+
+Foot contacts go to ``/foot_contacts`` (tal_msgs/ContactState, frame "base"): each foot's scalar force
+reading in ``force[leg].z`` (what the estimator's ``contact_source:=force_sensor`` reads: raw counts with its
+``foot_force_scale`` / ``foot_force_offset`` calibration, or newtons) and the flags in ``in_contact`` (what
+``contact_source:=contact_flags`` reads). A log without joint torques maps no ``effort``.
 
 Every value ends in SI units (rad, rad/s, N m, m, m/s, m/s^2) in the frames the graph uses (IMU and twist
 in the base frame, pose in the world frame). Bad input is named precisely: a missing column names the
@@ -38,6 +47,7 @@ import yaml
 from geometry_msgs.msg import Point, Quaternion, Vector3
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, JointState
+from tal_msgs.msg import ContactState
 
 from tal_core.errors import InputError
 from tal_core.ros.bag_io import BagWriter
@@ -54,6 +64,7 @@ UNITS: dict[str, tuple[str, float]] = {
     "m": ("length", 1.0), "cm": ("length", 1e-2), "mm": ("length", 1e-3),
     "m/s": ("velocity", 1.0), "mm/s": ("velocity", 1e-3),
     "m/s^2": ("acceleration", 1.0), "g": ("acceleration", 9.80665),
+    "N": ("force", 1.0), "count": ("force", 1.0),  # count: a raw sensor reading, calibrated downstream
     "-": ("dimensionless", 1.0),
 }
 
@@ -63,6 +74,8 @@ IMU_SIGNALS = {"angular_velocity": "angular velocity", "linear_acceleration": "a
 ODOM_SIGNALS = {"position": "length", "orientation_xyzw": "dimensionless", "linear_velocity": "velocity",
                 "angular_velocity": "angular velocity"}
 AXES = {"orientation_xyzw": ("x", "y", "z", "w")}
+FOOT_SIGNALS = {"force": "force", "in_contact": "dimensionless"}
+LEGS = ("LF", "RF", "LH", "RH")  # tal's leg order (ContactState)
 
 
 class CsvImportError(InputError):
@@ -116,6 +129,7 @@ class ColumnMap:
     imu: dict[str, list[Column]]  # signal -> x, y, z
     odom: dict[str, list[Column]]  # signal -> axes
     topics: dict[str, str]
+    feet: dict[str, list[Column]] = field(default_factory=dict)  # signal -> LF, RF, LH, RH
 
     @classmethod
     def load(cls, path: str | Path) -> ColumnMap:
@@ -158,7 +172,8 @@ class ColumnMap:
         time_spec = need(raw, "time", "the map")
         time_col = column(time_spec, "time", "time")
         offset = float(time_spec.get("offset_s", 0.0))
-        topics = {"joint_states": "/joint_states", "imu": "/imu", "ground_truth": "/ground_truth/odom"}
+        topics = {"joint_states": "/joint_states", "imu": "/imu", "ground_truth": "/ground_truth/odom",
+                  "foot_contacts": "/foot_contacts"}
         joints: list[str] = []
         joint_columns: dict[str, list[Column]] = {}
         js = raw.get("joint_states")
@@ -173,11 +188,27 @@ class ColumnMap:
                                              for j in joints]
         imu = cls._vectors(raw.get("imu"), IMU_SIGNALS, "imu", column, topics, "imu")
         odom = cls._vectors(raw.get("ground_truth"), ODOM_SIGNALS, "ground_truth", column, topics, "ground_truth")
-        if not joint_columns and not imu and not odom:
-            raise CsvImportError(f"column map {source}: maps no signal (joint_states, imu or ground_truth)")
+        feet: dict[str, list[Column]] = {}
+        fc = raw.get("foot_contacts")
+        if fc is not None:
+            names = [str(n) for n in fc.get("legs", LEGS)] if isinstance(fc, dict) else []
+            if len(names) != len(LEGS) or len(set(names)) != len(names):
+                raise CsvImportError(f"column map {source}: foot_contacts.legs must be four distinct names (the "
+                                     f"log's LF, RF, LH, RH), got {names}")
+            topics["foot_contacts"] = str(fc.get("topic", topics["foot_contacts"]))
+            for signal, quantity in FOOT_SIGNALS.items():
+                if signal in fc:
+                    for leg, name in zip(LEGS, names):
+                        c = column(fc[signal], quantity, f"foot_contacts.{signal} of {leg}")
+                        feet.setdefault(signal, []).append(Column(c.name.replace("{leg}", name), c.factor, c.what))
+            if not feet:
+                raise CsvImportError(f"column map {source}: foot_contacts maps neither force nor in_contact")
+        if not joint_columns and not imu and not odom and not feet:
+            raise CsvImportError(f"column map {source}: maps no signal (joint_states, imu, ground_truth or "
+                                 f"foot_contacts)")
         if odom and not {"position", "orientation_xyzw"} <= set(odom):
             raise CsvImportError(f"column map {source}: ground_truth needs at least position and orientation_xyzw")
-        return cls(source, time_col, offset, joints, joint_columns, imu, odom, topics)
+        return cls(source, time_col, offset, joints, joint_columns, imu, odom, topics, feet)
 
     @staticmethod
     def _vectors(spec, signals: dict[str, str], section: str, column, topics: dict[str, str],
@@ -198,7 +229,7 @@ class ColumnMap:
 
     def columns(self) -> Iterator[Column]:
         yield self.time
-        for group in (*self.joint_columns.values(), *self.imu.values(), *self.odom.values()):
+        for group in (*self.joint_columns.values(), *self.imu.values(), *self.odom.values(), *self.feet.values()):
             yield from group
 
     def bind(self, header: list[str], csv_name: str) -> None:
@@ -212,7 +243,7 @@ class ColumnMap:
             return Column(c.name, c.factor, c.what, index[c.name])
 
         self.time = resolve(self.time)
-        for group in (self.joint_columns, self.imu, self.odom):
+        for group in (self.joint_columns, self.imu, self.odom, self.feet):
             for key, cols in group.items():
                 group[key] = [resolve(c) for c in cols]
 
@@ -266,6 +297,18 @@ def _messages(cmap: ColumnMap, row: list[str], csv_name: str, line: int, t_ns: i
                 x, y, z = values[signal]
                 setattr(msg.twist.twist, target, Vector3(x=x, y=y, z=z))
         out.append((cmap.topics["ground_truth"], msg))
+    if cmap.feet:
+        msg = ContactState()
+        msg.header.stamp, msg.header.frame_id = stamp, "base"
+        if "force" in cmap.feet:
+            msg.force = [Vector3(x=0.0, y=0.0, z=_value(row, c, csv_name, line)) for c in cmap.feet["force"]]
+        if "in_contact" in cmap.feet:
+            flags = [_value(row, c, csv_name, line) != 0.0 for c in cmap.feet["in_contact"]]
+            msg.in_contact = flags
+            msg.probability = [float(f) for f in flags]
+        msg.penetration = [math.nan] * len(LEGS)
+        msg.penetration_rate = [math.nan] * len(LEGS)
+        out.append((cmap.topics["foot_contacts"], msg))
     return out
 
 
@@ -332,6 +375,8 @@ def export_csv(bag: str | Path, cmap: ColumnMap, csv_path: str | Path) -> int:
         topics.append(cmap.topics["imu"])
     if cmap.odom:
         topics.append(cmap.topics["ground_truth"])
+    if cmap.feet:
+        topics.append(cmap.topics["foot_contacts"])
     header = [c.name for c in cmap.columns()]
     pending: dict[int, dict[str, object]] = {}
     written = 0
@@ -372,6 +417,12 @@ def _row_values(cmap: ColumnMap, t_ns: int, slot: dict[str, object]) -> list[flo
         for signal, cols in cmap.odom.items():
             v, axes = sources[signal]
             values += [getattr(v, a) / c.factor for a, c in zip(axes, cols, strict=True)]
+    if cmap.feet:
+        feet = slot[cmap.topics["foot_contacts"]]
+        if "force" in cmap.feet:
+            values += [f.z / c.factor for f, c in zip(feet.force, cmap.feet["force"], strict=True)]
+        if "in_contact" in cmap.feet:
+            values += [float(flag) for flag in feet.in_contact]
     return values
 
 
