@@ -126,3 +126,28 @@ def test_invalid_parameters_are_refused_at_start(context) -> None:
         VpaNode(context=context, parameter_overrides=[Parameter("update_period_s", value=0.0)])
     with pytest.raises((ValueError, VpaConfigError), match=r"cost"):
         VpaNode(context=context, parameter_overrides=[Parameter("cost", value="max")])
+
+
+def test_a_repeated_gait_state_gets_the_same_pose_and_map_period_holds_an_update_for_its_map(
+        context, spin_until) -> None:
+    """The wbc re-sends a gait state whose answer is overdue: the vpa sends its pose again without a new update.
+    With map_period_s an update waits for the map due at it."""
+    vpa, wbc, poses, _, executor = start(context, update_period_s=0.05, map_period_s=0.05)
+    try:
+        assert spin_until(executor, lambda: matched(wbc), 20.0)
+        wbc.maps.publish(wbc.heightmap(950 * MS))
+        assert spin_until(executor, lambda: len(vpa.maps_inbox) == 1, 5.0)
+        wbc.gait.publish(wbc.gait_state(1000 * MS))
+        assert spin_until(executor, lambda: len(poses) == 1, 20.0)
+        wbc.gait.publish(wbc.gait_state(1000 * MS))            # re-sent
+        assert spin_until(executor, lambda: len(poses) == 2, 20.0)
+        assert poses[1].base_height == poses[0].base_height and vpa.counters()["answers_resent"] == 1
+        assert sum(v for k, v in vpa.counters().items() if k.startswith("status_")) == 1
+        wbc.gait.publish(wbc.gait_state(1052 * MS))            # due: the map of 1000 ms, not here yet
+        spin_until(executor, lambda: False, 0.5)
+        assert len(poses) == 2 and vpa.counters()["updates_held_for_maps"] == 1
+        wbc.maps.publish(wbc.heightmap(1000 * MS))
+        assert spin_until(executor, lambda: len(poses) == 3, 20.0)
+        assert ns_from_stamp(poses[2].header.stamp) == 1052 * MS and vpa.counters()["late_maps"] == 0
+    finally:
+        stop(executor, vpa, wbc.node)
