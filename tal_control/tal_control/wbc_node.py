@@ -26,8 +26,9 @@ after their stamp, in stamp order. A tick also waits for the answer to the previ
 (wait_for_impedance, c3WBC on the tce), of the vfa (wait_for_footholds, with the vfa's
 answer_every_gait_state) and of the vpa (body_pose_period_s: its update period), and with heightmap_period_s
 for the heightmap due at it (DDS gives no order between topics: a large map can come after the next tick's
-joint state), so the whole graph repeats itself bit for bit in lockstep; the first tick waits for the TCE's first answer and for the vfa's and vpa's
-gait_state subscriptions to be discovered (up to command_source_wait_s).
+joint state), so the whole graph repeats itself bit for bit in lockstep; the first tick waits for the TCE's
+first answer and for the vfa's and vpa's gait_state subscriptions to be discovered (up to
+command_source_wait_s).
 
 Live parameters (``ros2 param set``, validated, effective from the next tick unless said otherwise): the
 task gains K_* and D_*, friction_coefficient, min/max_normal_force_n, touchdown_depth_m,

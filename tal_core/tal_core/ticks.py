@@ -156,3 +156,29 @@ class HeldTicks:
                 self.released_late += 1
             out.append(self._held.pop(0))
         return out
+
+
+class TickAnswers:
+    """A producer's last answer, for a consumer that asks again: DDS drops what a writer publishes before it has
+    matched a late reader, and a lockstep consumer would wait for that answer until its driver times out, so the
+    consumer (or its driver) repeats the tick and the producer answers it again. ``seen(stamp)`` for every tick
+    that arrives: whether it repeats the newest one, and the answer to send again (None: nothing answered it)."""
+
+    def __init__(self) -> None:
+        self.resent = 0
+        self.answered_ns: int | None = None
+        self._answer: object | None = None
+        self._newest_ns: int | None = None
+
+    def seen(self, stamp_ns: int) -> tuple[bool, object | None]:
+        if stamp_ns != self._newest_ns:
+            self._newest_ns = stamp_ns
+            return False, None
+        if self._answer is None or stamp_ns != self.answered_ns:
+            return True, None
+        self.resent += 1
+        return True, self._answer
+
+    def answered(self, stamp_ns: int, answer: object) -> None:
+        """The answer just sent to the tick ``stamp_ns``."""
+        self.answered_ns, self._answer = stamp_ns, answer

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from tal_core.ticks import CLOCK_RESET_NS, HeldTicks, StampedInbox, reaches_tick, tick_after
+from tal_core.ticks import CLOCK_RESET_NS, HeldTicks, StampedInbox, TickAnswers, reaches_tick, tick_after
 
 MS = 1_000_000
 
@@ -87,3 +87,13 @@ def test_held_ticks_wait_for_their_inputs_and_run_in_order() -> None:
     assert patient.offer(16 * MS, "c") == [(4 * MS, "a")] and patient.released_late == 1
     with pytest.raises(ValueError, match="max_defer_ns"):
         HeldTicks([], max_defer_ns=-1)
+
+
+def test_tick_answers_say_which_tick_is_a_repeat_and_what_to_send_again() -> None:
+    answers = TickAnswers()
+    assert answers.seen(0) == (False, None)
+    assert answers.seen(0) == (True, None)               # repeated before it was answered: nothing to send
+    answers.answered(0, "answer@0")
+    assert answers.seen(0) == (True, "answer@0") and answers.resent == 1
+    assert answers.seen(4 * MS) == (False, None) and answers.answered_ns == 0
+    assert answers.seen(4 * MS) == (True, None)          # the answer on record is to another tick

@@ -28,6 +28,7 @@ from tal_core.robot_model import RobotModel
 from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.conversions import base_state_from_odometry, heightmap_grid
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
+from tal_core.ticks import TickAnswers
 from tal_msgs.msg import HeightMap, TerrainImpedance
 
 from .live_settings import with_field
@@ -99,11 +100,9 @@ class TceNode(Node):
         # The bridge repeats its first state until the first command: the answer to it may have been published
         # before DDS matched our writer with the wbc's reader (a lockstep wbc waits for it), so a repeated joint
         # state gets the last answer again (the wbc drops repeats).
-        self._last_answer: bytes | None = None
-        self._answered_ns: int | None = None
-        self.answers_resent = 0
+        self.answers = TickAnswers()
         subscribe_stamped(self, JointState, "joint_states", self._on_joints, 10,
-                          wants=lambda stamp: self.driver.wants_joints(stamp) or stamp == self._answered_ns,
+                          wants=lambda stamp: self.driver.wants_joints(stamp) or stamp == self.answers.answered_ns,
                           on_error=lambda exc: self._reject("joint_states", exc))
         self.create_subscription(Odometry, topic, self._on_base, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
@@ -150,20 +149,21 @@ class TceNode(Node):
 
     def _on_joints(self, msg: JointState) -> None:
         stamp_ns = ns_from_stamp(msg.header.stamp)
-        if stamp_ns == self._answered_ns and self._last_answer is not None:
-            self.pub.publish(self._last_answer)
-            self.answers_resent += 1
+        repeat, again = self.answers.seen(stamp_ns)
+        if again is not None:
+            self.pub.publish(again)
+        if repeat:
             return
-        self._publish(self.driver.add_joints(ns_from_stamp(msg.header.stamp),
-                                             lambda: joint_state_arrays(msg, self.joint_index)))
+        self._publish(self.driver.add_joints(stamp_ns, lambda: joint_state_arrays(msg, self.joint_index)))
 
     def _publish(self, tick: TceTick | None) -> None:
         if tick is None:
             return
         stamp = tick.stamp_ns
         assert stamp is not None
-        self._last_answer, self._answered_ns = self._writer(stamp, tick), stamp
-        self.pub.publish(self._last_answer)
+        answer = self._writer(stamp, tick)
+        self.answers.answered(stamp, answer)
+        self.pub.publish(answer)
         if (self.ticks - 1) % HISTORY_DECIMATION == 0:
             self.history.append([stamp * 1e-9] + [e.stiffness_n_per_m for e in tick.estimates]
                                 + [float(e.valid) for e in tick.estimates])
@@ -178,7 +178,8 @@ class TceNode(Node):
             "ticks": self.ticks, "rejected_inputs": self.rejected_inputs,
             "stale_ticks": self.driver.stale_ticks, "late_base_ticks": self.driver.late_base_ticks,
             "samples_outside_map": self.samples_outside_map,
-            "answers_resent": self.answers_resent, "late_heightmaps": self.driver.late_heightmaps, "late_heightmap_ticks": self.driver.late_heightmap_ticks,
+            "answers_resent": self.answers.resent, "late_heightmaps": self.driver.late_heightmaps,
+            "late_heightmap_ticks": self.driver.late_heightmap_ticks,
             "edge_samples_per_leg": self.tce.edge_samples.tolist(),
             "final": {leg.name: {"stiffness_n_per_m": clean(e.stiffness_n_per_m),
                                  "damping_ns_per_m": clean(e.damping_ns_per_m), "confidence": e.confidence,

@@ -37,7 +37,7 @@ from tal_core.heightmap import HeightMapGrid
 from tal_core.robot_model import RobotModel
 from tal_core.ros.conversions import heightmap_grid
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
-from tal_core.ticks import CLOCK_RESET_NS, HeldTicks, StampedInbox
+from tal_core.ticks import CLOCK_RESET_NS, HeldTicks, StampedInbox, TickAnswers
 from tal_msgs.msg import Foothold, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
@@ -131,10 +131,7 @@ class VfaNode(Node):
                                "they arrive", low=0.0, high=10.0)
         self.maps_inbox = StampedInbox(round(map_lag_s * 1e9), period_ns=round(map_period_s * 1e9))
         self.held = HeldTicks([self.maps_inbox])
-        self._newest_gait_ns: int | None = None
-        self._last_answer: FootholdArray | None = None
-        self._answered_ns: int | None = None
-        self.answers_resent = 0
+        self.answers = TickAnswers()  # a wbc re-sends a gait state whose answer is overdue
         self._newest_map_ns: int | None = None
         self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
                                     "('' = none)",
@@ -198,13 +195,11 @@ class VfaNode(Node):
 
     def _on_gait_state(self, msg: GaitState) -> None:
         stamp_ns = ns_from_stamp(msg.header.stamp)
-        if stamp_ns == self._newest_gait_ns:
-            # The wbc sends a gait state again when our answer is overdue (lost before DDS matched): answer again.
-            if self._last_answer is not None and stamp_ns == self._answered_ns:
-                self.pub_footholds.publish(self._last_answer)
-                self.answers_resent += 1
+        repeat, again = self.answers.seen(stamp_ns)
+        if again is not None:
+            self.pub_footholds.publish(again)
+        if repeat:
             return
-        self._newest_gait_ns = stamp_ns
         for _, gait_state in self.held.offer(stamp_ns, msg):
             self._update(gait_state)
 
@@ -228,7 +223,7 @@ class VfaNode(Node):
         out.header.stamp = msg.header.stamp
         out.header.frame_id = FRAME
         self.pub_footholds.publish(out)
-        self._last_answer, self._answered_ns = out, ns_from_stamp(msg.header.stamp)
+        self.answers.answered(ns_from_stamp(msg.header.stamp), out)
         self.published_messages += 1 if decisions else 0
         self.empty_answers += 0 if decisions else 1
         self.published_footholds += len(decisions)
@@ -251,7 +246,8 @@ class VfaNode(Node):
         return {
             "selector": self.selector_name, "gait_states": self.gait_states, "heightmaps": self.maps,
             "duplicate_heightmaps": self.duplicate_maps, "late_maps": self.maps_inbox.late,
-            "gait_states_held_for_maps": self.held.held_ticks, "answers_resent": self.answers_resent, "gait_states_released_without_map": self.held.released_late,
+            "gait_states_held_for_maps": self.held.held_ticks,
+            "gait_states_released_without_map": self.held.released_late, "answers_resent": self.answers.resent,
             "published_messages": self.published_messages, "published_footholds": self.published_footholds,
             "empty_answers": self.empty_answers,
             **{f"decisions_{k}": v for k, v in c.by_status.items()},

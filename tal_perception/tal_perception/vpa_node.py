@@ -36,7 +36,7 @@ from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.ros.cdr import subscribe_stamped
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
-from tal_core.ticks import HeldTicks, StampedInbox
+from tal_core.ticks import HeldTicks, StampedInbox, TickAnswers
 from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
@@ -91,10 +91,7 @@ class VpaNode(Node):
         self.maps_inbox = StampedInbox(input_lag, period_ns=map_period)
         self.footholds_inbox = StampedInbox(input_lag)
         self.held = HeldTicks([self.maps_inbox])
-        self._newest_gait_ns: int | None = None
-        self._last_answer: BodyPoseReference | None = None
-        self._answered_ns: int | None = None
-        self.answers_resent = 0
+        self.answers = TickAnswers()  # a wbc re-sends a gait state whose answer is overdue
         self.summary_path = declare(self, "summary_path", "", "JSON file for the counters written at shutdown "
                                     "('' = none)",
                                     on_change=lambda value: setattr(self, "summary_path", value))
@@ -115,7 +112,7 @@ class VpaNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, "vpa/diagnostics", 10)
         # 250 Hz in, an update every update_period_s: only the gait states the planner uses are deserialised.
         subscribe_stamped(self, GaitState, "gait_state", self._on_gait_state, 10,
-                          wants=lambda stamp: self.planner.wants(stamp) or stamp == self._answered_ns,
+                          wants=lambda stamp: self.planner.wants(stamp) or stamp == self.answers.answered_ns,
                           on_error=lambda exc: self._reject("gait_state", str(exc)))
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
@@ -164,13 +161,11 @@ class VpaNode(Node):
 
     def _on_gait_state(self, msg: GaitState) -> None:
         stamp_ns = ns_from_stamp(msg.header.stamp)
-        if stamp_ns == self._newest_gait_ns:
-            # The wbc sends a gait state again when our answer is overdue (lost before DDS matched): answer again.
-            if self._last_answer is not None and stamp_ns == self._answered_ns:
-                self.pub_pose.publish(self._last_answer)
-                self.answers_resent += 1
+        repeat, again = self.answers.seen(stamp_ns)
+        if again is not None:
+            self.pub_pose.publish(again)
+        if repeat:
             return
-        self._newest_gait_ns = stamp_ns
         for _, gait_state in self.held.offer(stamp_ns, msg):
             self._update(gait_state)
 
@@ -199,7 +194,7 @@ class VpaNode(Node):
         out.header.stamp = msg.header.stamp
         out.header.frame_id = FRAME
         self.pub_pose.publish(out)
-        self._last_answer, self._answered_ns = out, ns_from_stamp(msg.header.stamp)
+        self.answers.answered(ns_from_stamp(msg.header.stamp), out)
         self.published += 1
 
     # -- outputs ------------------------------------------------------------------------------------
@@ -209,7 +204,7 @@ class VpaNode(Node):
             "source": self.source, "published": self.published, "restarts": self.planner.restarts,
             "late_maps": self.maps_inbox.late, "updates_held_for_maps": self.held.held_ticks,
             "updates_released_without_map": self.held.released_late,
-            "answers_resent": self.answers_resent,
+            "answers_resent": self.answers.resent,
             **{f"status_{k}": v for k, v in sorted(self.by_status.items())},
             **{f"rejected_{k}": v for k, v in sorted(self.rejections.items())},
             "update_time_median_ms": round(float(np.median(timing)), 3) if timing.size else 0.0,

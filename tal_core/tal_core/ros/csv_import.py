@@ -47,11 +47,11 @@ import yaml
 from geometry_msgs.msg import Point, Quaternion, Vector3
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, JointState
-from tal_msgs.msg import ContactState
 
 from tal_core.errors import InputError
 from tal_core.ros.bag_io import BagWriter
 from tal_core.ros.node_utils import stamp_from_ns
+from tal_msgs.msg import ContactState
 
 LOG = logging.getLogger("tal.csv_import")
 
