@@ -13,6 +13,13 @@ topic costs it. Variants of the subscriber:
 - ``events_raw_peek``: EventsExecutor, raw CDR bytes; the header stamp read from the bytes
   (``tal_core.ros.cdr.stamp_ns_of``) and only one message in four (a 250 Hz control tick) deserialised.
 - ``single_raw_peek``: the same on the SingleThreadedExecutor.
+- ``events_view``: EventsExecutor, raw CDR bytes, every message read in place (``tal_core.ros.cdr.CdrReader``
+  and ``tal_core.ros.conversions.JointStateReader``: the canonical arrays, no Python message built), as the
+  nodes take their inputs.
+
+Then, in one process without DDS, the time to decode one message of each type the nodes take at the control
+rate or above: ``rclpy.serialization.deserialize_message`` (a Python message) against ``CdrReader.read`` plus
+the fields a node reads (median of 5 runs of 2,000).
 
 Writes ``bench/out/bench_messages.json``; prints a markdown table. Never a pass/fail test.
 """
@@ -30,7 +37,7 @@ import time
 from common import progress_for, write_json
 
 progress = progress_for("bench_messages")
-VARIANTS = ("single", "events", "single_raw_peek", "events_raw_peek")
+VARIANTS = ("single", "events", "single_raw_peek", "events_raw_peek", "events_view")
 NAMES = [f"{leg}_{joint}" for leg in ("lf", "rf", "lh", "rh") for joint in ("haa_joint", "hfe_joint", "kfe_joint")]
 
 
@@ -83,8 +90,19 @@ def subscriber(variant: str, seconds: float) -> dict:
             counts["deserialised"] += 1
             _ = msg.position[0]
 
-    raw = variant.endswith("raw_peek")
-    node.create_subscription(JointState, "bench/joint_states", on_raw if raw else on_message, 50, raw=raw)
+    from tal_core.ros.cdr import CdrReader
+    from tal_core.ros.conversions import JointStateReader
+
+    reader, arrays = CdrReader(JointState), JointStateReader({name: i for i, name in enumerate(NAMES)}, efforts=True)
+
+    def on_view(data: bytes) -> None:
+        counts["received"] += 1
+        counts["deserialised"] += 1
+        _ = arrays(reader.read(data))[0][0]
+
+    raw = variant.endswith("raw_peek") or variant.endswith("view")
+    callback = on_view if variant.endswith("view") else on_raw if raw else on_message
+    node.create_subscription(JointState, "bench/joint_states", callback, 50, raw=raw)
     executor = EventsExecutor() if variant.startswith("events") else SingleThreadedExecutor()
     executor.add_node(node)
     # Discovery and the first messages before the clock starts.
@@ -104,6 +122,49 @@ def subscriber(variant: str, seconds: float) -> dict:
     return {"variant": variant, "wall_s": wall, "cpu_s": cpu, "cpu_share_of_one_core": cpu / wall,
             "messages_per_s": counts["received"] / wall, "deserialised_per_s": counts["deserialised"] / wall,
             "cpu_us_per_message": 1e6 * cpu / max(1, counts["received"])}
+
+
+def decode_times(repeats: int = 2000) -> list[dict]:
+    """[us] per message: deserialise into a Python message vs read in place, for the graph's hot inputs."""
+    import numpy as np
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import Imu, JointState
+
+    from tal_core.ros.cdr import CdrReader
+    from tal_core.ros.conversions import JointStateReader, base_state_from_odometry_view
+    from tal_msgs.msg import ContactState, TerrainImpedance
+
+    odometry = Odometry(child_frame_id="base")
+    odometry.header.frame_id = "world"
+    odometry.pose.pose.orientation.w = 1.0
+    joints = JointStateReader({name: i for i, name in enumerate(NAMES)}, efforts=True)
+    cases = [
+        ("sensor_msgs/JointState (12 joints)", JointState(name=NAMES, position=[0.1] * 12, velocity=[0.2] * 12,
+                                                          effort=[0.3] * 12), lambda v: joints(v)),
+        ("sensor_msgs/Imu", Imu(), lambda v: (v.vector("linear_acceleration"), v.vector("angular_velocity"))),
+        ("nav_msgs/Odometry", odometry, base_state_from_odometry_view),
+        ("tal_msgs/ContactState", ContactState(), lambda v: v.array("in_contact")),
+        ("tal_msgs/TerrainImpedance", TerrainImpedance(), lambda v: (v.array("stiffness_normal"), v.array("valid"),
+                                                                     v.vectors("normal"))),
+    ]
+    rows = []
+    for name, msg, use in cases:
+        data, reader, msg_type = serialize_message(msg), CdrReader(type(msg)), type(msg)
+        times = {"deserialise": [], "in_place": []}
+        for _ in range(5):
+            t0 = time.perf_counter()
+            for _ in range(repeats):
+                deserialize_message(data, msg_type)
+            t1 = time.perf_counter()
+            for _ in range(repeats):
+                use(reader.read(data))
+            t2 = time.perf_counter()
+            times["deserialise"].append(1e6 * (t1 - t0) / repeats)
+            times["in_place"].append(1e6 * (t2 - t1) / repeats)
+        rows.append({"message": name, "deserialise_us": float(np.median(times["deserialise"])),
+                     "in_place_us": float(np.median(times["in_place"]))})
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -132,12 +193,21 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             pub.wait()
         results.append(json.loads(out.strip().splitlines()[-1]))
+    progress("decoding in one process")
+    decode = decode_times()
+    print("| message | deserialise (Python message) [us] | read in place (CdrReader + fields) [us] | ratio |")
+    print("|---|---|---|---|")
+    for row in decode:
+        print(f"| {row['message']} | {row['deserialise_us']:.1f} | {row['in_place_us']:.1f} | "
+              f"{row['deserialise_us'] / row['in_place_us']:.1f}x |")
+    print()
     print("| subscriber | messages/s | deserialised/s | CPU share of one core | CPU per message [us] |")
     print("|---|---|---|---|---|")
     for r in results:
         print(f"| {r['variant']} | {r['messages_per_s']:.0f} | {r['deserialised_per_s']:.0f} | "
               f"{r['cpu_share_of_one_core']:.3f} | {r['cpu_us_per_message']:.1f} |")
-    write_json("bench_messages", {"rate_hz": args.rate_hz, "seconds": args.seconds, "results": results},
+    write_json("bench_messages", {"rate_hz": args.rate_hz, "seconds": args.seconds, "results": results,
+                                  "decode": decode},
                log=progress)
     return 0
 

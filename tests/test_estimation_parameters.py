@@ -15,6 +15,7 @@ from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 
+from tal_core.ros.cdr import CdrView, view_of
 from tal_core.ros.node_utils import stamp_from_ns
 from tal_estimation.state_estimator_node import StateEstimatorNode
 from tal_estimation.tce_node import TceNode
@@ -44,7 +45,7 @@ def set_one(node, name: str, value):
     return node.set_parameters([Parameter(name, value=value)])[0]
 
 
-def standing_joints(node, stamp_ns: int) -> JointState:
+def standing_joints(node, stamp_ns: int) -> CdrView:
     """The robot standing on its nominal joints with the torques holding its weight on four feet."""
     model = node.model
     q = np.asarray(model.description.nominal_joint_positions_rad, float)
@@ -57,14 +58,14 @@ def standing_joints(node, stamp_ns: int) -> JointState:
     names = list(model.description.joint_names)
     msg = JointState(name=names, position=q.tolist(), velocity=[0.0] * len(names), effort=tau.tolist())
     msg.header.stamp = stamp_from_ns(stamp_ns)
-    return msg
+    return view_of(msg)  # what the node's subscription hands its callback
 
 
-def imu_at_rest(stamp_ns: int) -> Imu:
+def imu_at_rest(stamp_ns: int) -> CdrView:
     msg = Imu()
     msg.header.stamp = stamp_from_ns(stamp_ns)
     msg.linear_acceleration.z = 9.81
-    return msg
+    return view_of(msg)
 
 
 def feed(node: StateEstimatorNode, ks) -> None:
@@ -128,12 +129,12 @@ def heightmap(stamp_ns: int) -> HeightMap:
     return msg
 
 
-def base_at_rest(node: TceNode, stamp_ns: int) -> Odometry:
+def base_at_rest(node: TceNode, stamp_ns: int) -> CdrView:
     msg = Odometry()
     msg.header.stamp = stamp_from_ns(stamp_ns)
     msg.pose.pose.position.z = node.model.nominal_base_height_m
     msg.pose.pose.orientation.w = 1.0
-    return msg
+    return view_of(msg)
 
 
 def test_tce_live_parameters_take_effect_from_the_next_tick(context) -> None:

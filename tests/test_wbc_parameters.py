@@ -16,6 +16,7 @@ from tal_control.cmd_vel_script_node import CmdVelScriptNode
 from tal_control.motion.gait import TROT
 from tal_control.stand_controller_node import StandControllerNode
 from tal_control.wbc_node import WbcNode
+from tal_core.ros.cdr import CdrView, view_of
 from tal_core.ros.node_utils import stamp_from_ns
 
 pytestmark = pytest.mark.ros
@@ -25,12 +26,12 @@ def set_one(node, name: str, value):
     return node.set_parameters([Parameter(name, value=value)])[0]
 
 
-def joint_state(node: WbcNode, stamp_ns: int) -> JointState:
+def joint_state(node: WbcNode, stamp_ns: int) -> CdrView:
     names = node.joint_names
     msg = JointState(name=names, position=list(node.model.description.nominal_joint_positions_rad),
                      velocity=[0.0] * len(names), effort=[0.0] * len(names))
     msg.header.stamp = stamp_from_ns(stamp_ns)
-    return msg
+    return view_of(msg)  # what the node's subscription hands its callback
 
 
 @pytest.mark.parametrize(("name", "value"), [("gait", "crawl"), ("control_period_s", 0.002),

@@ -82,6 +82,50 @@ class JointCommandWriter:
         return t.data()
 
 
+class WbcDiagnosticsWriter:
+    """tal_msgs/WbcDiagnostics of a solved tick as serialised bytes, the same content as
+    ``wbc_diagnostics_message(..., out=out)``: one ``CdrTemplate`` per (solver status text, contact model), the
+    only strings that change for fixed joint names."""
+
+    def __init__(self, joint_names: Sequence[str]) -> None:
+        self.joint_names = list(joint_names)
+        self._templates: dict[tuple[str, str], CdrTemplate] = {}
+
+    def __call__(self, stamp_ns: int, mode: int, contact_model: str, rejected_inputs: int, failed_qps: int,
+                 out: TickOutput) -> bytes:
+        sol = out.solution
+        key = (sol.status, contact_model)
+        t = self._templates.get(key)
+        if t is None:
+            msg = WbcDiagnostics(contact_model=contact_model, qp_status_text=sol.status,
+                                 joint_names=self.joint_names, desired_torque=[0.0] * len(self.joint_names))
+            msg.header.frame_id = "world"
+            t = self._templates[key] = CdrTemplate(msg)
+        t.set_stamp(stamp_ns)
+        t.field("mode")[0] = mode
+        t.field("rejected_inputs")[0] = rejected_inputs
+        t.field("failed_qps")[0] = failed_qps
+        t.field("qp_status")[0] = sol.status_val
+        t.field("qp_iterations")[0] = sol.iterations
+        t.field("qp_solve_time")[0] = sol.solve_time_s
+        t.field("cycle_time")[0] = sol.cycle_time_s
+        t.field("slack_norm")[0] = sol.slack_norm
+        t.field("stance")[:] = np.asarray(out.targets.stance, bool)
+        t.field("desired_force")[:] = sol.forces
+        penetration = t.field("desired_penetration")
+        if "penetration" in sol.extras:
+            penetration[:] = [float(out.targets.normals[leg] @ sol.extras["penetration"][leg]) for leg in range(4)]
+        else:
+            penetration[:] = 0.0
+        w = sol.desired_wrench
+        t.set_xyz("desired_com_wrench.force", w[:3])
+        t.set_xyz("desired_com_wrench.torque", w[3:6])
+        t.set_xyz("com_position_error", out.targets.trunk.com_position - out.measured.com)
+        t.set_xyz("orientation_error", orientation_error(out.targets.trunk.world_R_base, out.measured.world_R_base()))
+        t.field("desired_torque")[:] = sol.tau
+        return t.data()
+
+
 def wbc_diagnostics_message(stamp, mode: int, contact_model: str, rejected_inputs: int, failed_qps: int,
                             out: TickOutput | None = None, joint_names: Sequence[str] = (),
                             reason: str = "") -> WbcDiagnostics:

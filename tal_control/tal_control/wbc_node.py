@@ -56,8 +56,8 @@ from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError, TalCoreError
 from tal_core.robot_model import RobotModel
-from tal_core.ros.cdr import subscribe_stamped
-from tal_core.ros.conversions import base_state_from_odometry, canonical_joint_state, heightmap_grid, heightmap_normal
+from tal_core.ros.cdr import CdrView, subscribe_view
+from tal_core.ros.conversions import JointStateReader, base_state_from_odometry_view, heightmap_grid, heightmap_normal
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_msgs.msg import (
     BodyPoseReference,
@@ -76,7 +76,7 @@ from .map_alignment import HeightmapAligner
 from .motion.footholds import DEFAULT_K_FEEDBACK
 from .motion.gait import PRESETS as GAITS
 from .motion.generator import MotionParameters
-from .msg_conversions import GaitStateWriter, JointCommandWriter, wbc_diagnostics_message
+from .msg_conversions import GaitStateWriter, JointCommandWriter, WbcDiagnosticsWriter, wbc_diagnostics_message
 from .tick_policy import Arrival, Mode, Tick, TickPolicyConfig, WbcTickPolicy
 from .tracking_stats import TrackingStats
 from .velocity_command import VelocityCommandInput
@@ -132,6 +132,7 @@ class WbcNode(Node):
         self._last_command: bytes | None = None  # serialised: answered again when the driver repeats a state
         self._gait_writer = GaitStateWriter()
         self._command_writer = JointCommandWriter(self.joint_names)
+        self._diag_writer = WbcDiagnosticsWriter(self.joint_names)
         self.command_input = VelocityCommandInput(p["max_linear_velocity_m_s"], p["max_yaw_rate_rad_s"])
         # The simulator's heightmap is in the true world frame; the estimate drifts in z (map_alignment).
         self.map_aligner = (HeightmapAligner(p["map_alignment_time_constant_s"], p["map_alignment_max_rate_m_s"])
@@ -174,23 +175,28 @@ class WbcNode(Node):
         self.pub_gait = self.create_publisher(GaitState, "gait_state", 10)
         self.pub_diag = self.create_publisher(WbcDiagnostics, "wbc/diagnostics", 10)
         state_topic = "ground_truth/odom" if p["state_source"] == "ground_truth" else "state_estimate"
-        # 1 kHz in, 250 Hz used: only the samples the tick policy acts on are deserialised.
-        subscribe_stamped(self, JointState, "joint_states", self._on_joints, 10,
-                          wants=lambda stamp: self.policy.wants_joint_state(stamp),
-                          on_error=lambda exc: self._reject("joint_states", exc))
-        self.create_subscription(Odometry, state_topic, self._on_base, 10)
+        # The control-rate inputs are read in place from their serialised bytes (tal_core.ros.cdr.CdrReader, no
+        # Python message built); joint states: 1 kHz in, 250 Hz used, only the samples the tick policy acts on.
+        self.read_joints = JointStateReader(self.joint_index)
+        subscribe_view(self, JointState, "joint_states", self._on_joints, 10,
+                       wants=lambda stamp: self.policy.wants_joint_state(stamp),
+                       on_error=lambda exc: self._reject("joint_states", exc))
+        subscribe_view(self, Odometry, state_topic, self._on_base, 10,
+                       on_error=lambda exc: self._reject("base state", exc))
         self.create_subscription(Twist, "cmd_vel", self._on_cmd_vel, 10)
         self.create_subscription(TwistStamped, "cmd_vel_stamped", self._on_cmd_vel_stamped, STAMPED_COMMAND_QOS)
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
         self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         if p["contact_source"] == "ground_truth":
-            self.create_subscription(ContactState, "ground_truth/contacts", self._on_contacts, 10)
+            subscribe_view(self, ContactState, "ground_truth/contacts", self._on_contacts, 10,
+                           on_error=lambda exc: self._reject("contacts", exc))
         self._impedance: LegImpedance | None = None
         self.impedance_gate = ImpedanceGate(p["terrain_stiffness_n_per_m"], p["terrain_damping_ns_per_m"],
                                             p["impedance_min_confidence"])
         if p["contact_model"] == "compliant" and p["impedance_source"] == "tce":
-            self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
+            subscribe_view(self, TerrainImpedance, "terrain_impedance", self._on_impedance, 10,
+                           on_error=lambda exc: self._reject("terrain_impedance", exc))
         # The watchdog is a deadline, not a poll: each joint state handled restarts the timer, so it fires
         # watchdog_timeout_s after the last one (a poll every timeout/3 fired up to 4/3 timeout late), then
         # every watchdog_timeout_s while the silence lasts. Idle (cancelled) until the first joint state.
@@ -397,13 +403,13 @@ class WbcNode(Node):
         self.rejected_inputs += 1
         self.get_logger().warn(f"rejected {what} ({self.rejected_inputs} so far): {exc}", throttle_duration_sec=1.0)
 
-    def _on_joints(self, msg: JointState) -> None:
+    def _on_joints(self, view: CdrView) -> None:
         try:
-            q, qd = canonical_joint_state(msg, self.joint_index)
+            q, qd, _ = self.read_joints(view)
         except InputError as exc:
             self._reject("joint_states", exc)
             return
-        stamp = ns_from_stamp(msg.header.stamp)
+        stamp = view.stamp_ns
         arrival = self.policy.joint_state(stamp, (q, qd))
         if arrival.restarted:
             self.get_logger().warn(f"joint_states time jumped back to {stamp * 1e-9:.3f} s: restarting the "
@@ -413,17 +419,17 @@ class WbcNode(Node):
             self._last_command = None
         self._act(arrival)
 
-    def _on_base(self, msg: Odometry) -> None:
+    def _on_base(self, view: CdrView) -> None:
         try:
-            base = base_state_from_odometry(msg)
+            base = base_state_from_odometry_view(view)
         except InputError as exc:
             self._reject("base state", exc)
             return
-        self._act(self.policy.base_state(ns_from_stamp(msg.header.stamp), base))
+        self._act(self.policy.base_state(view.stamp_ns, base))
 
-    def _on_contacts(self, msg: ContactState) -> None:
-        flags = np.array(msg.in_contact, dtype=bool)  # bool[4] in the message definition
-        self._act(self.policy.contacts(ns_from_stamp(msg.header.stamp), flags))
+    def _on_contacts(self, view: CdrView) -> None:
+        flags = view.array("in_contact").astype(bool)  # bool[4] in the message definition
+        self._act(self.policy.contacts(view.stamp_ns, flags))
 
     def _on_cmd_vel(self, msg: Twist) -> None:
         try:
@@ -482,10 +488,10 @@ class WbcNode(Node):
             return
         self._act(self.policy.lagged("body_pose", ns_from_stamp(msg.header.stamp), values))
 
-    def _on_impedance(self, msg: TerrainImpedance) -> None:
-        arrays = (np.array(msg.stiffness_normal, dtype=float), np.array(msg.damping_normal, dtype=float),
-                  np.array(msg.valid, dtype=bool), np.array(msg.confidence, dtype=float))
-        self._act(self.policy.lagged("impedance", ns_from_stamp(msg.header.stamp), arrays))
+    def _on_impedance(self, view: CdrView) -> None:
+        arrays = (view.array("stiffness_normal").astype(float), view.array("damping_normal").astype(float),
+                  view.array("valid").astype(bool), view.array("confidence").astype(float))
+        self._act(self.policy.lagged("impedance", view.stamp_ns, arrays))
 
     def _apply_inputs(self, inputs: tuple[tuple[str, Any], ...]) -> None:
         """The lagged inputs released to a tick, in stamp order. Impedance: per leg, the estimate when valid and
@@ -574,13 +580,11 @@ class WbcNode(Node):
                                     self.controller.motion.foot_radius_m, world_height)
         self._publish_command(stamp_ns, effort=out.tau)
         self.stats.add(stamp_ns * 1e-9, base, out)
-        stamp = self._joints_stamp_msg(stamp_ns)
         self._last_gait_state = self._gait_writer(out, stamp_ns)
         self.pub_gait.publish(self._last_gait_state)
         if self.pub_diag.get_subscription_count():  # 250 Hz of per-joint arrays: built only for a listener
-            self.pub_diag.publish(wbc_diagnostics_message(stamp, self.mode, self.p["contact_model"],
-                                                          self.rejected_inputs, self.controller.wbc.failed_solves,
-                                                          out=out, joint_names=self.joint_names))
+            self.pub_diag.publish(self._diag_writer(stamp_ns, self.mode, self.p["contact_model"], self.rejected_inputs,
+                                                    self.controller.wbc.failed_solves, out))
 
     def _safe_mode(self, stamp_ns: int, reason: str) -> None:
         if self.policy.enter_safe_mode():

@@ -43,7 +43,7 @@ import numpy as np
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
-from tal_core.rotations import quat_xyzw_from_rotation
+from tal_core.rotations import cross_rows, quat_xyzw_from_rotation
 
 LEG_ODOMETRY_MODES = ("rigid", "terrain_aware")
 CONTACT_SOURCES = ("torque", "force_sensor", "contact_flags")
@@ -264,7 +264,7 @@ class LegOdometry:
         if terrain_aware:
             # A foot sphere that rolls without slipping: its contact point is still, its centre is not. A
             # foot sunk deeper than its radius is held by the ground around it and does not roll.
-            rolling = self._radius * np.cross(feet.foot_angular_velocities, normals)
+            rolling = self._radius * cross_rows(feet.foot_angular_velocities, normals)
             foot_velocity = np.where((self.penetration < self._radius)[:, None], rolling, 0.0)
             if sensed:
                 normal_force, probability = sensed_force, sensed_probability

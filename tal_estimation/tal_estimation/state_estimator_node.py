@@ -35,8 +35,8 @@ from sensor_msgs.msg import Imu, JointState, MagneticField
 
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
-from tal_core.ros.cdr import subscribe_stamped
-from tal_core.ros.conversions import base_state_from_odometry
+from tal_core.ros.cdr import CdrView, subscribe_view
+from tal_core.ros.conversions import JointStateReader, base_state_from_odometry_view
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_core.rotations import rotation_from_quat_xyzw
 from tal_msgs.msg import ContactState, TerrainImpedance
@@ -45,7 +45,7 @@ from .attitude import AttitudeSettings
 from .drift_statistics import DriftStatistics, StampMatcher
 from .leg_odometry import CONTACT_SOURCES, LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
 from .live_settings import with_field
-from .messages import EstimateWriters, foot_contact_values, joint_state_arrays
+from .messages import EstimateWriters, foot_contact_values
 from .state_estimator import StateEstimate, StateEstimator, StateEstimatorSettings
 from .streaming import EstimatorOutput, StreamingEstimator
 
@@ -138,11 +138,16 @@ class StateEstimatorNode(Node):
         self.pub_state = self.create_publisher(Odometry, "state_estimate", 10)
         self.pub_contact = self.create_publisher(ContactState, "contact_estimate", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "state_estimator/diagnostics", 10)
-        subscribe_stamped(self, JointState, "joint_states", self._on_joints, 50, wants=self.stream.wants_joints,
-                          on_error=lambda exc: self._reject("joints", str(exc)))
-        self.create_subscription(Imu, "imu", self._on_imu, 50)
+        # The inputs are read in place from their serialised bytes (tal_core.ros.cdr.CdrReader): no Python
+        # message is built for the 1 kHz IMU and joint states, the ground truth or the impedance.
+        self.read_joints = JointStateReader(self.joint_index, velocities_optional=self.velocities_optional,
+                                            efforts=True, efforts_optional=self.contact_source != "torque")
+        subscribe_view(self, JointState, "joint_states", self._on_joints, 50, wants=self.stream.wants_joints,
+                       on_error=lambda exc: self._reject("joints", str(exc)))
+        subscribe_view(self, Imu, "imu", self._on_imu, 50, on_error=lambda exc: self._reject("imu", str(exc)))
         if mode == "terrain_aware":
-            self.create_subscription(TerrainImpedance, "terrain_impedance", self._on_impedance, 10)
+            subscribe_view(self, TerrainImpedance, "terrain_impedance", self._on_impedance, 10,
+                           on_error=lambda exc: self._reject("terrain_impedance", str(exc)))
         if use_mag:
             self.create_subscription(MagneticField, "imu/mag", self._on_mag, 10)
         if self.contact_source != "torque":
@@ -188,7 +193,8 @@ class StateEstimatorNode(Node):
 
     def _subscribe_truth(self) -> None:
         if self._truth_subscription is None:
-            self._truth_subscription = self.create_subscription(Odometry, "ground_truth/odom", self._on_truth, 10)
+            self._truth_subscription = subscribe_view(self, Odometry, "ground_truth/odom", self._on_truth, 10,
+                                                      on_error=lambda exc: self._reject("ground_truth", str(exc)))
 
     # -- logging --------------------------------------------------------------------------------------------
     def _reject(self, reason: str, message: str) -> None:
@@ -205,13 +211,13 @@ class StateEstimatorNode(Node):
         self._truth_pairs = StampMatcher()
 
     # -- inputs ---------------------------------------------------------------------------------------------
-    def _on_truth(self, msg: Odometry) -> None:
+    def _on_truth(self, view: CdrView) -> None:
         try:
-            base = base_state_from_odometry(msg)
+            base = base_state_from_odometry_view(view)
         except InputError as exc:
             self._reject("ground_truth", str(exc))
             return
-        stamp = ns_from_stamp(msg.header.stamp)
+        stamp = view.stamp_ns
         if self.summary_path:
             self._add_drift(stamp, self._truth_pairs.add_reference(stamp, base))
         if self.init_source == "ground_truth":
@@ -224,24 +230,23 @@ class StateEstimatorNode(Node):
         else:
             self._reject("mag", "magnetic field has NaN/inf or is zero")
 
-    def _on_impedance(self, msg: TerrainImpedance) -> None:
-        k = np.array(msg.stiffness_normal, float)
-        d = np.array(msg.damping_normal, float)
-        normals = np.array([[n.x, n.y, n.z] for n in msg.normal], float)
+    def _on_impedance(self, view: CdrView) -> None:
+        k = view.array("stiffness_normal").astype(float)
+        d = view.array("damping_normal").astype(float)
+        normals = view.vectors("normal")
         norms = np.linalg.norm(normals, axis=1)
         if not np.all(np.isfinite(normals)) or np.any(norms < 0.5):
             self._reject("terrain_impedance", "normals must be finite unit vectors")
             return
-        valid = np.array(msg.valid, bool) & np.isfinite(k) & np.isfinite(d) & (k > 0) & (d > 0)
+        valid = view.array("valid").astype(bool) & np.isfinite(k) & np.isfinite(d) & (k > 0) & (d > 0)
         # The odometry models sinking only from a confident soft-ground fit (not from a rigid lower bound).
-        confidence = np.nan_to_num(np.array(msg.confidence, float), nan=0.0)
+        confidence = np.nan_to_num(view.array("confidence").astype(float), nan=0.0)
         self.stream.impedance = LegImpedance(k, d, normals / norms[:, None], valid, confidence,
-                                             np.array(msg.rigid, bool))
+                                             view.array("rigid").astype(bool))
 
-    def _on_imu(self, msg: Imu) -> None:
-        f = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
-        w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
-        self._output(self.stream.add_imu(ns_from_stamp(msg.header.stamp), f, w))
+    def _on_imu(self, view: CdrView) -> None:
+        self._output(self.stream.add_imu(view.stamp_ns, view.vector("linear_acceleration").copy(),
+                                         view.vector("angular_velocity").copy()))
 
     def _on_foot_contacts(self, msg: ContactState) -> None:
         try:
@@ -251,11 +256,8 @@ class StateEstimatorNode(Node):
             return
         self._output(self.stream.add_contacts(ns_from_stamp(msg.header.stamp), values))
 
-    def _on_joints(self, msg: JointState) -> None:
-        self._output(self.stream.add_joints(
-            ns_from_stamp(msg.header.stamp),
-            lambda: joint_state_arrays(msg, self.joint_index, velocities_optional=self.velocities_optional,
-                                       efforts_optional=self.contact_source != "torque")))
+    def _on_joints(self, view: CdrView) -> None:
+        self._output(self.stream.add_joints(view.stamp_ns, lambda: self.read_joints(view)))
 
     def _output(self, outputs: list[EstimatorOutput]) -> None:
         for out in outputs:

@@ -31,6 +31,7 @@ from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
 from tal_core.robot_description import RobotDescription
 from tal_core.robot_model import RobotModel
+from tal_core.rotations import cross3
 
 HeightFunction = Callable[[float, float], float]
 NormalFunction = Callable[[float, float], np.ndarray]
@@ -303,7 +304,7 @@ def contact_tangents(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     reference = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     t1 = reference - (reference @ normal) * normal
     t1 /= np.linalg.norm(t1)
-    return t1, np.cross(normal, t1)
+    return t1, cross3(normal, t1)
 
 
 class TerrainComplianceEstimator:

@@ -25,14 +25,14 @@ from sensor_msgs.msg import JointState
 from tal_core.errors import InputError
 from tal_core.legs import LEGS
 from tal_core.robot_model import RobotModel
-from tal_core.ros.cdr import subscribe_stamped
-from tal_core.ros.conversions import base_state_from_odometry, heightmap_grid
+from tal_core.ros.cdr import CdrView, subscribe_view
+from tal_core.ros.conversions import JointStateReader, base_state_from_odometry_view, heightmap_grid
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
 from tal_core.ticks import TickAnswers
 from tal_msgs.msg import HeightMap, TerrainImpedance
 
 from .live_settings import with_field
-from .messages import ImpedanceWriter, joint_state_arrays
+from .messages import ImpedanceWriter
 from .tce import TceSettings, TerrainComplianceEstimator
 from .tce_driver import TceDriver, TceTick
 
@@ -101,10 +101,12 @@ class TceNode(Node):
         # before DDS matched our writer with the wbc's reader (a lockstep wbc waits for it), so a repeated joint
         # state gets the last answer again (the wbc drops repeats).
         self.answers = TickAnswers()
-        subscribe_stamped(self, JointState, "joint_states", self._on_joints, 10,
-                          wants=lambda stamp: self.driver.wants_joints(stamp) or stamp == self.answers.answered_ns,
-                          on_error=lambda exc: self._reject("joint_states", exc))
-        self.create_subscription(Odometry, topic, self._on_base, 10)
+        # Joint and base states are read in place from their serialised bytes (tal_core.ros.cdr.CdrReader).
+        self.read_joints = JointStateReader(self.joint_index, efforts=True)
+        subscribe_view(self, JointState, "joint_states", self._on_joints, 10,
+                       wants=lambda stamp: self.driver.wants_joints(stamp) or stamp == self.answers.answered_ns,
+                       on_error=lambda exc: self._reject("joint_states", exc))
+        subscribe_view(self, Odometry, topic, self._on_base, 10, on_error=lambda exc: self._reject("base state", exc))
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
 
     @property
@@ -130,13 +132,13 @@ class TceNode(Node):
         self.rejected_inputs += 1
         self.get_logger().warn(f"rejected {what} ({self.rejected_inputs} so far): {exc}", throttle_duration_sec=1.0)
 
-    def _on_base(self, msg: Odometry) -> None:
+    def _on_base(self, view: CdrView) -> None:
         try:
-            base = base_state_from_odometry(msg)
+            base = base_state_from_odometry_view(view)
         except InputError as exc:
             self._reject("base state", exc)
             return
-        self._publish(self.driver.set_base(ns_from_stamp(msg.header.stamp), base))
+        self._publish(self.driver.set_base(view.stamp_ns, base))
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
@@ -147,14 +149,14 @@ class TceNode(Node):
         self._publish(self.driver.add_heightmap(ns_from_stamp(msg.header.stamp),
                                                 lambda x, y: float(grid.height_at(x, y))))
 
-    def _on_joints(self, msg: JointState) -> None:
-        stamp_ns = ns_from_stamp(msg.header.stamp)
+    def _on_joints(self, view: CdrView) -> None:
+        stamp_ns = view.stamp_ns
         repeat, again = self.answers.seen(stamp_ns)
         if again is not None:
             self.pub.publish(again)
         if repeat:
             return
-        self._publish(self.driver.add_joints(stamp_ns, lambda: joint_state_arrays(msg, self.joint_index)))
+        self._publish(self.driver.add_joints(stamp_ns, lambda: self.read_joints(view)))
 
     def _publish(self, tick: TceTick | None) -> None:
         if tick is None:

@@ -35,7 +35,7 @@ from tal_core.errors import InputError
 from tal_core.legs import LEGS, NUM_LEGS, Leg
 from tal_core.robot_description import RobotDescription
 from tal_core.robot_model import RobotModel
-from tal_core.rotations import rotation_from_quat_xyzw
+from tal_core.rotations import cross_rows, rotation_from_quat_xyzw
 
 # MotionParameters read at every update (the others shape what the constructor builds)
 RUNTIME_MOTION_PARAMETERS = frozenset({"k_feedback", "touchdown_depth_m", "retarget_until_progress",
@@ -195,7 +195,7 @@ class MotionTargets:
         ``time_to_touchdown`` it predicts where a swinging leg's hip is at touchdown (the ``vfa`` node's
         hip height on the way down a flight of stairs)."""
         lever = self.hip_positions - self.trunk.com_position[None, :]
-        return self.trunk.com_velocity[None, :] + np.cross(self.trunk.angular_velocity[None, :], lever)
+        return self.trunk.com_velocity[None, :] + cross_rows(self.trunk.angular_velocity[None, :], lever)
 
 
 class MotionGenerator:

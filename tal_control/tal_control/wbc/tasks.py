@@ -12,6 +12,7 @@ import pinocchio as pin
 
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
+from tal_core.rotations import cross3
 
 GRAVITY_M_S2 = 9.81
 
@@ -97,7 +98,7 @@ def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     t1 = helper - (helper @ normal) * normal
     t1 /= np.linalg.norm(t1)
-    return t1, np.cross(normal, t1)
+    return t1, cross3(normal, t1)
 
 
 def orientation_error(world_R_desired: np.ndarray, world_R_base: np.ndarray) -> np.ndarray:

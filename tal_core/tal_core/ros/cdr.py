@@ -129,9 +129,11 @@ class CdrTemplate:
         return np.frombuffer(self.buffer, dtype="<f8", count=3 * len(xs), offset=first).reshape(len(xs), 3)
 
 
-def _walk(msg: Any, prefix: str, pos: int, out: dict[str, tuple[int, str, int]]) -> int:
+def _walk(msg: Any, prefix: str, pos: int, out: dict[str, tuple[int, str, int]],
+          shape: list[tuple[int, bytes]] | None = None) -> int:
     """Lay out ``msg``'s fields from payload position ``pos``; record numeric leaves (offsets include the 4-byte
-    encapsulation header); return the position after the message."""
+    encapsulation header); return the position after the message. ``shape`` collects (offset, bytes) of every
+    string (length prefix and characters) and sequence length: what makes two messages' layouts differ."""
     for slot, slot_type in zip(msg.__slots__, msg.SLOT_TYPES):
         name = slot.lstrip("_")
         value = getattr(msg, name)
@@ -139,21 +141,24 @@ def _walk(msg: Any, prefix: str, pos: int, out: dict[str, tuple[int, str, int]])
         if isinstance(slot_type, definition.BasicType):
             pos = _leaf(path, slot_type.typename, 1, pos, out)
         elif isinstance(slot_type, definition.AbstractGenericString):
-            pos = _string(value, pos)
+            pos = _string(value, pos, shape)
         elif isinstance(slot_type, definition.NamespacedType):
-            pos = _walk(value, f"{path}.", pos, out)
+            pos = _walk(value, f"{path}.", pos, out, shape)
         elif isinstance(slot_type, definition.AbstractNestedType):
             if isinstance(slot_type, definition.AbstractSequence):
-                pos = _align(pos, 4) + 4
+                pos = _align(pos, 4)
+                if shape is not None:
+                    shape.append((pos + 4, struct.pack("<I", len(value))))
+                pos += 4
             item = slot_type.value_type
             if isinstance(item, definition.BasicType):
                 pos = _leaf(path, item.typename, len(value), pos, out)
             elif isinstance(item, definition.AbstractGenericString):
                 for text in value:
-                    pos = _string(text, pos)
+                    pos = _string(text, pos, shape)
             else:
                 for i, element in enumerate(value):
-                    pos = _walk(element, f"{path}[{i}].", pos, out)
+                    pos = _walk(element, f"{path}[{i}].", pos, out, shape)
         else:
             raise InputError(f"CdrTemplate: field '{path}' has an unsupported type {slot_type}")
     return pos
@@ -172,5 +177,154 @@ def _leaf(path: str, typename: str, count: int, pos: int, out: dict[str, tuple[i
     return pos + size * count
 
 
-def _string(text: str, pos: int) -> int:
-    return _align(pos, 4) + 4 + len(text.encode("utf-8")) + 1
+def _string(text: str, pos: int, shape: list[tuple[int, bytes]] | None = None) -> int:
+    encoded = text.encode("utf-8") + b"\0"
+    pos = _align(pos, 4)
+    if shape is not None:
+        shape.append((pos + 4, struct.pack("<I", len(encoded)) + encoded))
+    return pos + 4 + len(encoded)
+
+
+class CdrView:
+    """The numeric fields of one serialised message, read in place (see ``CdrReader``): ``array(path)`` a
+    read-only numpy view (a numeric leaf or array, as ``CdrTemplate.field``), ``vectors(path)`` an array of
+    geometry_msgs Point/Vector3 as (n, 3), ``vector(path)`` one Point/Vector3 as (3,), ``stamp_ns``."""
+
+    __slots__ = ("_layout", "data")
+
+    def __init__(self, layout: _ReadLayout, data: bytes) -> None:
+        self._layout = layout
+        self.data = data
+
+    @property
+    def stamp_ns(self) -> int:
+        return stamp_ns_of(self.data)
+
+    @property
+    def message(self) -> Any:
+        """The message this view's layout was learnt from (its strings and sequence lengths are this
+        message's; its numbers are not)."""
+        return self._layout.message
+
+    def array(self, path: str) -> np.ndarray:
+        offset, dtype, count = self._layout.slot(path)
+        return np.frombuffer(self.data, dtype=dtype, count=count, offset=offset)
+
+    def vectors(self, path: str) -> np.ndarray:
+        offset, count = self._layout.xyz_array(path)
+        return np.frombuffer(self.data, dtype="<f8", count=3 * count, offset=offset).reshape(count, 3)
+
+    def vector(self, path: str) -> np.ndarray:
+        offset = self._layout.xyz(path)
+        return np.frombuffer(self.data, dtype="<f8", count=3, offset=offset)
+
+    def quaternion(self, path: str) -> np.ndarray:
+        """A geometry_msgs/Quaternion as (x, y, z, w)."""
+        offset = self._layout.xyz(path, "xyzw")
+        return np.frombuffer(self.data, dtype="<f8", count=4, offset=offset)
+
+
+class _ReadLayout:
+    def __init__(self, msg: Any, length: int) -> None:
+        self.message = msg
+        self.length = length
+        self.offsets: dict[str, tuple[int, str, int]] = {}
+        self.shape: list[tuple[int, bytes]] = []
+        _walk(msg, "", 0, self.offsets, self.shape)
+        self._xyz: dict[str, Any] = {}
+
+    def matches(self, data: bytes) -> bool:
+        if len(data) != self.length:
+            return False
+        for offset, expected in self.shape:
+            if data[offset:offset + len(expected)] != expected:
+                return False
+        return True
+
+    def slot(self, path: str) -> tuple[int, str, int]:
+        try:
+            return self.offsets[path]
+        except KeyError:
+            raise KeyError(f"CdrReader({type(self.message).__name__}) has no numeric field '{path}'") from None
+
+    def xyz(self, path: str, axes: str = "xyz") -> int:
+        """Offset of the contiguous float64 leaves ``axes`` of the nested field ``path``."""
+        key = f"{path}.{axes}"
+        cached = self._xyz.get(key)
+        if cached is None:
+            slots = [self.slot(f"{path}.{axis}") for axis in axes]
+            if any(slot[1] != "<f8" or slot[0] != slots[0][0] + 8 * i for i, slot in enumerate(slots)):
+                raise KeyError(f"CdrReader: '{path}' is not {', '.join(axes)} float64")
+            cached = self._xyz[key] = slots[0][0]
+        return cached
+
+    def xyz_array(self, path: str) -> tuple[int, int]:
+        cached = self._xyz.get(path + "[]")
+        if cached is None:
+            count = 0
+            while f"{path}[{count}].x" in self.offsets:
+                count += 1
+            first = self.xyz(f"{path}[0]") if count else 0
+            if any(self.xyz(f"{path}[{i}]") != first + 24 * i for i in range(count)):
+                raise KeyError(f"CdrReader: '{path}' is not an array of x, y, z float64")
+            cached = self._xyz[path + "[]"] = (first, count)
+        return cached
+
+
+class CdrReader:
+    """Reads serialised messages of one type without building Python messages (rclpy's conversion of a
+    nested message, a Python object per Point or Vector3, dominated the cost of taking one).
+
+    The layout of a message (where each numeric field lies) depends only on its strings and sequence
+    lengths. ``read(data)`` checks them against the layouts learnt so far (a few byte comparisons) and
+    returns a ``CdrView`` of the numbers in place; a message of a new shape is deserialised once to learn its
+    layout (up to ``max_layouts`` are kept, the oldest forgotten). Little-endian CDR only; a big-endian or
+    undecodable message raises (``InputError`` or rclpy's error), as deserialising it would."""
+
+    def __init__(self, msg_type: Any, max_layouts: int = 4) -> None:
+        self.msg_type = msg_type
+        self.max_layouts = max_layouts
+        self._layouts: list[_ReadLayout] = []
+        self.layouts_learnt = 0
+
+    def read(self, data: bytes) -> CdrView:
+        for layout in self._layouts:
+            if layout.matches(data):
+                return CdrView(layout, data)
+        return CdrView(self._learn(data), data)
+
+    def _learn(self, data: bytes) -> _ReadLayout:
+        if len(data) < 4 or not data[1] & 1:
+            raise InputError("CdrReader: not a little-endian CDR message")
+        msg = deserialize_message(data, self.msg_type)
+        layout = _ReadLayout(msg, len(data))
+        if not layout.matches(data):
+            raise InputError(f"CdrReader({self.msg_type.__name__}): message layout not understood")
+        self._layouts.insert(0, layout)
+        del self._layouts[self.max_layouts:]
+        self.layouts_learnt += 1
+        return layout
+
+
+def view_of(msg: Any) -> CdrView:
+    """A ``CdrView`` of a Python message (serialised first): what a node's view callback gets for it."""
+    return CdrReader(type(msg)).read(serialize_message(msg))
+
+
+def subscribe_view(node: Node, msg_type: Any, topic: str, callback: Callable[[CdrView], None], qos: Any, *,
+                   on_error: Callable[[Exception], None], wants: Callable[[int], bool] | None = None) -> Any:
+    """A subscription whose callback gets a ``CdrView`` of each message (``CdrReader``), or of those whose
+    header stamp ``wants``; a message that cannot be read goes to ``on_error`` (counted by the node)."""
+    reader = CdrReader(msg_type)
+
+    def on_raw(data: bytes) -> None:
+        try:
+            if wants is not None and not wants(stamp_ns_of(data)):
+                return
+            view = reader.read(data)
+        except Exception as exc:  # a corrupt sample must not stop the node
+            on_error(exc)
+            return
+        callback(view)
+
+    return node.create_subscription(msg_type, topic, on_raw, qos, raw=True)

@@ -8,6 +8,7 @@ from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
 from tal_core.heightmap import HeightMapGrid
+from tal_core.ros.cdr import CdrView
 from tal_core.rotations import rotation_from_quat_xyzw
 from tal_core.state import BaseState
 from tal_msgs.msg import HeightMap
@@ -16,21 +17,92 @@ from tal_msgs.msg import HeightMap
 def base_state_from_odometry(msg: Odometry) -> BaseState:
     """Base state (world frame) from nav_msgs/Odometry whose twist is in child_frame_id (base), as in ROS."""
     p, o = msg.pose.pose.position, msg.pose.pose.orientation
-    position = np.array([p.x, p.y, p.z])
-    quat = np.array([o.x, o.y, o.z, o.w])
     lin = msg.twist.twist.linear
     ang = msg.twist.twist.angular
-    values = np.concatenate([position, quat, [lin.x, lin.y, lin.z, ang.x, ang.y, ang.z]])
+    return _base_state(np.array([p.x, p.y, p.z, o.x, o.y, o.z, o.w, lin.x, lin.y, lin.z, ang.x, ang.y, ang.z]))
+
+
+def base_state_from_odometry_view(view: CdrView) -> BaseState:
+    """``base_state_from_odometry`` of a serialised nav_msgs/Odometry read in place (``CdrReader``)."""
+    return _base_state(np.concatenate([view.vector("pose.pose.position"), view.quaternion("pose.pose.orientation"),
+                                       view.vector("twist.twist.linear"), view.vector("twist.twist.angular")]))
+
+
+def _base_state(values: np.ndarray) -> BaseState:
+    """Position, quaternion (x, y, z, w) and the base-frame twist (linear, angular) as 13 values."""
     if not np.all(np.isfinite(values)):
         raise InputError("odometry has NaN or inf")
+    quat = values[3:7]
     norm = float(np.linalg.norm(quat))
     if abs(norm - 1.0) > 1e-2:
         raise InputError(f"odometry orientation is not a unit quaternion (norm {norm:.4f})")
     quat = quat / norm
     world_R_base = rotation_from_quat_xyzw(quat)
-    return BaseState(position=position, quat_xyzw=quat,
-                     linear_velocity=world_R_base @ np.array([lin.x, lin.y, lin.z]),
-                     angular_velocity=world_R_base @ np.array([ang.x, ang.y, ang.z]))
+    return BaseState(position=values[:3].copy(), quat_xyzw=quat,
+                     linear_velocity=world_R_base @ values[7:10], angular_velocity=world_R_base @ values[10:13])
+
+
+class JointStateReader:
+    """Canonical joint arrays of serialised sensor_msgs/JointState messages read in place (``CdrReader``): the
+    checks and errors of ``canonical_joint_state`` (and, with ``efforts``, of the efforts as
+    ``tal_estimation.messages.joint_state_arrays``), the name lookup done once per message layout.
+
+    ``__call__(view)`` gives (positions, velocities or None, efforts or None) in canonical order."""
+
+    def __init__(self, index: dict[str, int], *, velocities_optional: bool = False, efforts: bool = False,
+                 efforts_optional: bool = False) -> None:
+        self.index = index
+        self.velocities_optional = velocities_optional
+        self.efforts = efforts
+        self.efforts_optional = efforts_optional
+        self._plans: dict[int, tuple[object, np.ndarray | InputError, bool, bool]] = {}
+
+    def _plan(self, msg: JointState) -> tuple[np.ndarray | InputError, bool, bool]:
+        """Where each named joint goes (or the error every message of this layout gets), whether velocities
+        and efforts are read."""
+        n = len(msg.name)
+        no_velocities = self.velocities_optional and len(msg.velocity) == 0
+        no_efforts = not self.efforts or (self.efforts_optional and len(msg.effort) == 0)
+        if len(msg.position) != n or (len(msg.velocity) != n and not no_velocities):
+            return InputError(f"joint_states has {n} names, {len(msg.position)} positions and "
+                              f"{len(msg.velocity)} velocities"), False, False
+        targets = []
+        for name in msg.name:
+            k = self.index.get(name)
+            if k is None:
+                return InputError(f"joint_states names unknown joint '{name}'"), False, False
+            targets.append(k)
+        if not no_efforts and len(msg.effort) != n:
+            return InputError(f"joint_states has {n} names and {len(msg.effort)} efforts"), False, False
+        return np.array(targets, dtype=np.intp), not no_velocities, not no_efforts
+
+    def __call__(self, view: CdrView) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        msg = view.message
+        entry = self._plans.get(id(msg))
+        if entry is None or entry[0] is not msg:
+            entry = (msg, *self._plan(msg))
+            self._plans[id(msg)] = entry
+            if len(self._plans) > 8:
+                self._plans.pop(next(iter(self._plans)))
+        _, targets, velocities, efforts = entry
+        if isinstance(targets, InputError):
+            raise targets
+        n = len(self.index)
+        q = np.full(n, np.nan)
+        qd = np.full(n, np.nan)
+        if len(targets):
+            q[targets] = view.array("position")
+            qd[targets] = view.array("velocity") if velocities else 0.0
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
+            raise InputError("joint_states lacks joints or has NaN/inf values")
+        tau = None
+        if efforts:
+            tau = np.full(n, np.nan)
+            if len(targets):
+                tau[targets] = view.array("effort")
+            if not np.all(np.isfinite(tau)):
+                raise InputError("joint_states efforts have NaN/inf")
+        return q, qd if velocities else None, tau
 
 
 def canonical_joint_state(msg: JointState, index: dict[str, int],
