@@ -18,8 +18,9 @@ topic costs it. Variants of the subscriber:
   nodes take their inputs.
 
 Then, in one process without DDS, the time to decode one message of each type the nodes take at the control
-rate or above: ``rclpy.serialization.deserialize_message`` (a Python message) against ``CdrReader.read`` plus
-the fields a node reads (median of 5 runs of 2,000).
+rate or above into what a node uses (canonical joint arrays, a base state, the IMU vectors, flags and
+impedance arrays): ``rclpy.serialization.deserialize_message`` and the message conversion against
+``CdrReader.read`` and the view conversion (median of 5 runs of 2,000).
 
 Writes ``bench/out/bench_messages.json``; prints a markdown table. Never a pass/fail test.
 """
@@ -132,30 +133,40 @@ def decode_times(repeats: int = 2000) -> list[dict]:
     from sensor_msgs.msg import Imu, JointState
 
     from tal_core.ros.cdr import CdrReader
-    from tal_core.ros.conversions import JointStateReader, base_state_from_odometry_view
+    from tal_core.ros.conversions import JointStateReader, base_state_from_odometry, base_state_from_odometry_view
+    from tal_estimation.messages import joint_state_arrays
     from tal_msgs.msg import ContactState, TerrainImpedance
 
     odometry = Odometry(child_frame_id="base")
     odometry.header.frame_id = "world"
     odometry.pose.pose.orientation.w = 1.0
     joints = JointStateReader({name: i for i, name in enumerate(NAMES)}, efforts=True)
-    cases = [
+    index = {name: i for i, name in enumerate(NAMES)}
+    joints = JointStateReader(index, efforts=True)
+    cases = [  # (type, message, what a node reads from a Python message, what it reads from a view)
         ("sensor_msgs/JointState (12 joints)", JointState(name=NAMES, position=[0.1] * 12, velocity=[0.2] * 12,
-                                                          effort=[0.3] * 12), lambda v: joints(v)),
-        ("sensor_msgs/Imu", Imu(), lambda v: (v.vector("linear_acceleration"), v.vector("angular_velocity"))),
-        ("nav_msgs/Odometry", odometry, base_state_from_odometry_view),
-        ("tal_msgs/ContactState", ContactState(), lambda v: v.array("in_contact")),
-        ("tal_msgs/TerrainImpedance", TerrainImpedance(), lambda v: (v.array("stiffness_normal"), v.array("valid"),
-                                                                     v.vectors("normal"))),
+                                                          effort=[0.3] * 12),
+         lambda m: joint_state_arrays(m, index), joints),
+        ("sensor_msgs/Imu", Imu(),
+         lambda m: (np.array([m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]),
+                    np.array([m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z])),
+         lambda v: (v.vector("linear_acceleration").copy(), v.vector("angular_velocity").copy())),
+        ("nav_msgs/Odometry", odometry, base_state_from_odometry, base_state_from_odometry_view),
+        ("tal_msgs/ContactState", ContactState(), lambda m: np.array(m.in_contact, dtype=bool),
+         lambda v: v.array("in_contact").astype(bool)),
+        ("tal_msgs/TerrainImpedance", TerrainImpedance(),
+         lambda m: (np.array(m.stiffness_normal, float), np.array(m.valid, bool),
+                    np.array([[n.x, n.y, n.z] for n in m.normal], float)),
+         lambda v: (v.array("stiffness_normal").astype(float), v.array("valid").astype(bool), v.vectors("normal"))),
     ]
     rows = []
-    for name, msg, use in cases:
+    for name, msg, use_message, use in cases:
         data, reader, msg_type = serialize_message(msg), CdrReader(type(msg)), type(msg)
         times = {"deserialise": [], "in_place": []}
         for _ in range(5):
             t0 = time.perf_counter()
             for _ in range(repeats):
-                deserialize_message(data, msg_type)
+                use_message(deserialize_message(data, msg_type))
             t1 = time.perf_counter()
             for _ in range(repeats):
                 use(reader.read(data))
@@ -195,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
         results.append(json.loads(out.strip().splitlines()[-1]))
     progress("decoding in one process")
     decode = decode_times()
-    print("| message | deserialise (Python message) [us] | read in place (CdrReader + fields) [us] | ratio |")
+    print("| message | deserialise + convert [us] | read in place + convert [us] | ratio |")
     print("|---|---|---|---|")
     for row in decode:
         print(f"| {row['message']} | {row['deserialise_us']:.1f} | {row['in_place_us']:.1f} | "
