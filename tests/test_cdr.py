@@ -165,3 +165,31 @@ def test_cross_products_are_numpys() -> None:
     rows_a, rows_b = rng.normal(size=(4, 3)), rng.normal(size=(4, 3))
     assert np.array_equal(cross_rows(rows_a, rows_b), np.cross(rows_a, rows_b))
     assert np.array_equal(cross_rows(a[None, :], rows_b), np.cross(a[None, :], rows_b))
+
+
+def test_bridge_heightmap_bytes_are_the_message() -> None:
+    from tal_core.heightmap import HeightMapGrid
+    from tal_msgs.msg import HeightMap
+    from tal_sim_bridge.sensor_messages import SensorWriters, heightmap_message
+
+    writers = SensorWriters(NAMES, 0.0, 0.0)
+    for rows, cols in ((5, 7), (3, 3), (5, 7)):
+        heights = np.random.default_rng(rows).normal(size=(rows, cols)).astype(np.float32)
+        heights[0, 1] = np.nan  # unknown cells stay NaN
+        grid = HeightMapGrid(center_xy=(1.25, -0.5), yaw=0.3, resolution_m=0.02, heights=heights)
+        ours = deserialize_message(writers.heightmap(1_050_000_000, grid), HeightMap)
+        theirs = heightmap_message(stamp_from_ns(1_050_000_000), grid)
+        assert np.array_equal(np.asarray(ours.heights), np.asarray(theirs.heights), equal_nan=True)
+        ours.heights, theirs.heights = [], []
+        assert ours == theirs
+
+
+def test_bullet_client_keeps_its_functions_until_disconnected() -> None:
+    from tal_sim_bridge._pybullet import BulletClient, pybullet
+
+    client = BulletClient(connection_mode=pybullet.DIRECT)
+    assert client.getNumBodies() == 0 and "getNumBodies" in client.__dict__
+    client.disconnect()
+    assert "getNumBodies" not in client.__dict__
+    with pytest.raises(pybullet.error):
+        client.getNumBodies()

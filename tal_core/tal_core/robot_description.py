@@ -279,9 +279,14 @@ class RobotDescription:
         if not np.isfinite(q).all():
             bad = np.flatnonzero(~np.isfinite(q)).tolist()
             raise InputError(f"torque_limits: non-finite joint position(s) at index {bad}")
-        if all(len(table.joint_angles_rad) == 1 for table in self.torque_limit_tables):
+        constant = self.__dict__.get("_constant_tau_max")
+        if constant is None:
+            constant = (np.array([table.max_torques[0] for table in self.torque_limit_tables])
+                        if all(len(table.joint_angles_rad) == 1 for table in self.torque_limit_tables) else False)
+            object.__setattr__(self, "_constant_tau_max", constant)  # frozen: a cache, not state
+        if constant is not False:
             # Constant limits (no angle table): skip the per-joint interpolation, called at 1 kHz.
-            tau_max = np.array([table.max_torques[0] for table in self.torque_limit_tables])
+            tau_max = constant.copy()
         else:
             tau_max = np.array(
                 [table.max_torque(angle) for table, angle in zip(self.torque_limit_tables, q, strict=True)]

@@ -406,7 +406,7 @@ class Simulation:
 
     def foot_contacts(self) -> list[FootContact]:
         """Ground truth contact per foot, in leg order."""
-        contacts = []
+        feet = []
         ground = set(self.ground_bodies)
         for link in self.foot_links:
             force = np.zeros(3)
@@ -420,11 +420,18 @@ class Simulation:
                 depth = max(depth, -point[8])
                 normal_sum += point[9] * normal
             state = self.client.getLinkState(self.robot, link, computeLinkVelocity=1, computeForwardKinematics=1)
-            position = np.array(state[4])
-            in_contact = bool(np.linalg.norm(normal_sum) > 0.0)
+            feet.append((force, depth, normal_sum, np.array(state[4]), np.array(state[6])))
+        # A foot in the air gets the terrain's normal under it: one course look-up for all of them.
+        airborne = [i for i, foot in enumerate(feet) if not np.linalg.norm(foot[2]) > 0.0]
+        under = (np.asarray(self.course.normal(np.array([feet[i][3][0] for i in airborne]),
+                                               np.array([feet[i][3][1] for i in airborne])), dtype=float)
+                 if airborne else None)
+        contacts = []
+        for i, (force, depth, normal_sum, position, velocity) in enumerate(feet):
+            in_contact = i not in airborne
             normal = (normal_sum / np.linalg.norm(normal_sum) if in_contact
-                      else np.asarray(self.course.normal(position[0], position[1]), dtype=float).reshape(3))
-            contacts.append(FootContact(in_contact, force, depth, normal, position, np.array(state[6])))
+                      else under[airborne.index(i)].reshape(3))
+            contacts.append(FootContact(in_contact, force, depth, normal, position, velocity))
         return contacts
 
     def body_ground_contact(self) -> list[str]:

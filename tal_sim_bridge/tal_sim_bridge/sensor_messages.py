@@ -134,6 +134,7 @@ class SensorWriters:
         contacts.header.frame_id = "world"
         self._contacts = CdrTemplate(contacts)
         self._clock = CdrTemplate(Clock())
+        self._heightmaps: dict[tuple[int, int], CdrTemplate] = {}
 
     def joint_state(self, stamp_ns: int, state: RobotState) -> bytes:
         t = self._joints
@@ -174,6 +175,21 @@ class SensorWriters:
         t.field("penetration")[:] = [c.penetration_m for c in contacts]
         t.field("penetration_rate")[:] = [float(-(c.velocity_m_s @ c.normal)) if c.in_contact else 0.0
                                           for c in contacts]
+        return t.data()
+
+    def heightmap(self, stamp_ns: int, grid: HeightMapGrid) -> bytes:
+        """``heightmap_message`` as bytes: one template per grid size (the map's shape fixes its layout)."""
+        key = (grid.rows, grid.cols)
+        t = self._heightmaps.get(key)
+        if t is None:
+            msg = HeightMap(rows=grid.rows, cols=grid.cols, heights=np.zeros(grid.rows * grid.cols, np.float32))
+            msg.header.frame_id = "world"
+            t = self._heightmaps[key] = CdrTemplate(msg)
+        t.set_stamp(stamp_ns)
+        t.field("center.x")[0], t.field("center.y")[0] = grid.center_xy
+        t.field("yaw")[0] = grid.yaw
+        t.field("resolution")[0] = grid.resolution_m
+        t.field("heights")[:] = np.asarray(grid.heights, dtype=np.float32).ravel()
         return t.data()
 
     def clock(self, stamp_ns: int) -> bytes:

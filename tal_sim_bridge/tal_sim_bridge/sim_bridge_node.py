@@ -36,7 +36,7 @@ from sensor_msgs.msg import Imu, JointState
 
 from tal_core.heightmap import extract_heightmap
 from tal_core.robot_description import load_robot_description
-from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node
 from tal_core.rotations import yaw_from_quat_xyzw
 from tal_core.terrain import load_course
 from tal_msgs.msg import ContactState, HeightMap, JointCommand
@@ -47,7 +47,7 @@ from .errors import CommandRejectedError
 from .fall import DEFAULT_CONFIRM_S, DEFAULT_MIN_HEIGHT_RATIO, FallDetector
 from .latency import CommandLatency
 from .physics import Simulation
-from .sensor_messages import SensorWriters, heightmap_message
+from .sensor_messages import SensorWriters
 from .stepping import LockstepGate, OutputSchedule, RealtimePacer
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
@@ -311,20 +311,20 @@ class SimBridgeNode(Node):
             if record:
                 self.core.record_statistics(state, contacts)
         if due.heightmap:
-            self._publish_heightmap(stamp_from_ns(stamp_ns), state)
+            self._publish_heightmap(stamp_ns, state)
 
     def _publish_sensors(self, stamp_ns: int, state) -> None:
         self.pub_joints.publish(self.writers.joint_state(stamp_ns, state))
         specific_force, angular_rate = self.core.imu.measure(state)
         self.pub_imu.publish(self.writers.imu(stamp_ns, specific_force, angular_rate))
 
-    def _publish_heightmap(self, stamp, state) -> None:
+    def _publish_heightmap(self, stamp_ns: int, state) -> None:
         p = self.params
         yaw = yaw_from_quat_xyzw(state.base_quat_xyzw)
         grid = extract_heightmap(self.core.sim.course, (state.base_position_m[0], state.base_position_m[1]), yaw,
                                  rows=p["heightmap_rows"], cols=p["heightmap_cols"],
                                  resolution_m=p["heightmap_resolution_m"])
-        self.pub_heightmap.publish(heightmap_message(stamp, grid))
+        self.pub_heightmap.publish(self.writers.heightmap(stamp_ns, grid))
 
     # -- end of run -------------------------------------------------------------------------------------
     def _fall_ends_run(self) -> bool:
