@@ -242,3 +242,18 @@ def test_with_the_heightmap_period_a_tick_waits_for_the_map_of_its_grid_point() 
     assert lost.late_heightmaps == 1
     with pytest.raises(InputError, match="heightmap_period_s"):
         TceDriver(RobotModel.from_name("hyq"), heightmap_period_s=-1.0)
+
+
+def test_a_tick_after_a_long_gap_does_not_feed_the_fit() -> None:
+    """Accelerations are finite-differenced across one lost tick; after a longer gap they are unknown (the force
+    would be its static part only, and a swing leg could read as loaded): the tick leaves the windows alone."""
+    base, q, tau = standing()
+    driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004)
+    driver.set_terrain(flat)
+    for t in (0.0, 0.004, 0.012):           # the first tick, the next, one tick lost: all feed the fit
+        driver.step(t, base, q, np.zeros(12), tau)
+    assert [e.samples for e in driver.tce.estimates] == [3, 3, 3, 3] and driver.ticks_without_acceleration == 0
+    before = [e.samples for e in driver.step(0.030, base, q, np.zeros(12), tau).estimates]   # 4.5 periods later
+    assert before == [3, 3, 3, 3] and driver.ticks_without_acceleration == 1
+    tick = driver.step(0.034, base, q, np.zeros(12), tau)                                   # consecutive again
+    assert [e.samples for e in tick.estimates] == [4, 4, 4, 4] and driver.ticks == 5
