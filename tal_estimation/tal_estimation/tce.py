@@ -124,7 +124,8 @@ class KelvinVoigtWindows:
         m = settings.window
         self._data = np.zeros((self.n, 3, m))          # force, penetration, rate
         self._next = np.zeros(self.n, dtype=int)
-        self._count = np.zeros(self.n, dtype=int)
+        self._count = np.zeros(self.n, dtype=int)       # ring slots in use (samples and lost ticks)
+        self._valid = np.zeros((self.n, m), dtype=bool)  # slots holding a sample (not a lost tick)
         self._slots = np.arange(m)
         self._rows = np.arange(self.n)
         self.estimates = [LegEstimate() for _ in range(self.n)]
@@ -137,16 +138,34 @@ class KelvinVoigtWindows:
             return
         rows = self._rows[take]
         self._data[rows, :, self._next[rows]] = sample[take]
+        self._valid[rows, self._next[rows]] = True
         self._next[rows] = (self._next[rows] + 1) % self.settings.window
         self._count[rows] = np.minimum(self._count[rows] + 1, self.settings.window)
 
+    def skip(self, mask: np.ndarray, slots: int) -> None:
+        """Lost ticks: ``slots`` empty slots in each channel where ``mask``, so that the window still spans the
+        time it would have (old samples leave it on time when a consumer loses ticks)."""
+        rows = self._rows[np.asarray(mask, dtype=bool)]
+        for _ in range(min(int(slots), self.settings.window)):
+            if not len(rows):
+                return
+            self._valid[rows, self._next[rows]] = False
+            self._next[rows] = (self._next[rows] + 1) % self.settings.window
+            self._count[rows] = np.minimum(self._count[rows] + 1, self.settings.window)
+
+    def samples(self) -> np.ndarray:
+        """(n,) samples in each channel's window (slots of lost ticks left out)."""
+        m = self.settings.window
+        age = (self._next[:, None] - 1 - self._slots[None, :]) % m
+        return np.count_nonzero((age < self._count[:, None]) & self._valid, axis=1)
+
     def weights(self) -> np.ndarray:
-        """(n, window) weight of every ring slot: zero for empty slots, otherwise linear in recency
-        (the newest sample weighs 1, the oldest 1/count) or uniform."""
+        """(n, window) weight of every ring slot: zero for empty slots and lost ticks, otherwise linear in
+        recency (the newest slot weighs 1, the oldest 1/count) or uniform."""
         m = self.settings.window
         age = (self._next[:, None] - 1 - self._slots[None, :]) % m       # 0 = newest
         count = np.maximum(self._count, 1)[:, None]
-        filled = age < self._count[:, None]
+        filled = (age < self._count[:, None]) & self._valid
         if self.settings.weighting == "linear":
             return np.where(filled, (count - age) / count, 0.0)
         return filled.astype(float)
@@ -155,6 +174,7 @@ class KelvinVoigtWindows:
         """Refit the channels where ``mask`` (all when None) and return every channel's estimate."""
         mask = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
         w = self.weights()
+        self._samples = np.count_nonzero(w > 0.0, axis=1)
         force, pen, rate = self._data[:, 0], self._data[:, 1], self._data[:, 2]
         products = np.stack([np.ones_like(force), force, force * force, pen * pen, pen * rate, rate * rate,
                              pen * force, rate * force, pen, rate], axis=1)
@@ -165,7 +185,7 @@ class KelvinVoigtWindows:
 
     def _fit_channel(self, leg: int, sums: np.ndarray, pen: np.ndarray, w: np.ndarray) -> None:
         s, est = self.settings, self.estimates[leg]
-        count = int(self._count[leg])
+        count = int(self._samples[leg])
         est.samples = count
         if count < s.min_samples:
             est.stale = est.valid

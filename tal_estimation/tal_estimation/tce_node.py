@@ -183,6 +183,7 @@ class TceNode(Node):
             "answers_resent": self.answers.resent, "late_heightmaps": self.driver.late_heightmaps,
             "late_heightmap_ticks": self.driver.late_heightmap_ticks,
             "ticks_without_acceleration": self.driver.ticks_without_acceleration,
+            "lost_ticks": self.driver.lost_ticks,
             "edge_samples_per_leg": self.tce.edge_samples.tolist(),
             "final": {leg.name: {"stiffness_n_per_m": clean(e.stiffness_n_per_m),
                                  "damping_ns_per_m": clean(e.damping_ns_per_m), "confidence": e.confidence,

@@ -314,3 +314,27 @@ def test_the_offset_check_can_be_disabled() -> None:
     assert estimate.confidence > 0.5 and estimate.penetration_offset_m == 0.0
     with pytest.raises(InputError):
         TceSettings(max_penetration_offset_m=-0.01)
+
+
+def test_lost_ticks_age_the_window_as_their_samples_would_have() -> None:
+    """A window fed one tick in three, the lost ones skipped, holds the same time span as one fed every tick:
+    after a switch from T1 to T2 it forgets T1 as fast (the estimates agree), with a third of the samples."""
+    settings = TceSettings(window=150, estimate_damping=False, min_samples=20)
+    every, some = KelvinVoigtWindows(settings, 1), KelvinVoigtWindows(settings, 1)
+    stance = np.array([True])
+    for k, seed in ((3500.0, 1), (8000.0, 2)):
+        for i, (f, p, r) in enumerate(zip(*stance_samples(k, 0.0, 150, seed=seed, noise_n=0.0))):
+            every.add(stance, [f], [p], [r])
+            if i % 3 == 0:
+                some.add(stance, [f], [p], [r])
+            else:
+                some.skip(stance, 1)
+    full, sparse = every.fit()[0], some.fit()[0]
+    assert full.stiffness_n_per_m == pytest.approx(8000.0, rel=1e-6)          # T1 has left the full window
+    assert sparse.stiffness_n_per_m == pytest.approx(8000.0, rel=1e-6) and sparse.samples == 50
+    assert some.samples().tolist() == [50]
+    never = KelvinVoigtWindows(settings, 1)                                     # without the skips: T1 stays
+    for k, seed in ((3500.0, 1), (8000.0, 2)):
+        for f, p, r in list(zip(*stance_samples(k, 0.0, 150, seed=seed, noise_n=0.0)))[::3]:
+            never.add(stance, [f], [p], [r])
+    assert never.fit()[0].stiffness_n_per_m < 7000.0
