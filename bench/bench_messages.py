@@ -140,7 +140,6 @@ def decode_times(repeats: int = 2000) -> list[dict]:
     odometry = Odometry(child_frame_id="base")
     odometry.header.frame_id = "world"
     odometry.pose.pose.orientation.w = 1.0
-    joints = JointStateReader({name: i for i, name in enumerate(NAMES)}, efforts=True)
     index = {name: i for i, name in enumerate(NAMES)}
     joints = JointStateReader(index, efforts=True)
     cases = [  # (type, message, what a node reads from a Python message, what it reads from a view)

@@ -9,7 +9,7 @@ from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
 from tal_core.ros.cdr import CdrTemplate
-from tal_core.ros.conversions import canonical_joint_state
+from tal_core.ros.conversions import canonical_joint_arrays, joint_layout
 from tal_core.rotations import quat_xyzw_from_rotation
 from tal_msgs.msg import ContactState, TerrainImpedance
 
@@ -25,17 +25,10 @@ def joint_state_arrays(msg: JointState, index: dict[str, int], *, velocities_opt
     finite. A message without velocities (or efforts), an empty list, gives None for them when
     ``velocities_optional`` (``efforts_optional``): the estimator derives the velocities and, with a sensor
     contact source, needs no torques. Otherwise it is rejected."""
-    q, qd = canonical_joint_state(msg, index, velocities_optional)
-    if efforts_optional and len(msg.effort) == 0:
-        return q, qd, None
-    if len(msg.effort) != len(msg.name):
-        raise InputError(f"joint_states has {len(msg.name)} names and {len(msg.effort)} efforts")
-    tau = np.full(len(index), np.nan)
-    for name, effort in zip(msg.name, msg.effort):
-        tau[index[name]] = effort
-    if not np.all(np.isfinite(tau)):
-        raise InputError("joint_states efforts have NaN/inf")
-    return q, qd, tau
+    targets, velocities, efforts = joint_layout(msg, index, velocities_optional=velocities_optional, efforts=True,
+                                                efforts_optional=efforts_optional)
+    return canonical_joint_arrays(len(index), targets, msg.position, msg.velocity if velocities else None,
+                                  msg.effort if efforts else None)
 
 
 def foot_contact_values(msg: ContactState, contact_source: str) -> np.ndarray:

@@ -153,11 +153,9 @@ class KelvinVoigtWindows:
             self._next[rows] = (self._next[rows] + 1) % self.settings.window
             self._count[rows] = np.minimum(self._count[rows] + 1, self.settings.window)
 
-    def samples(self) -> np.ndarray:
-        """(n,) samples in each channel's window (slots of lost ticks left out)."""
-        m = self.settings.window
-        age = (self._next[:, None] - 1 - self._slots[None, :]) % m
-        return np.count_nonzero((age < self._count[:, None]) & self._valid, axis=1)
+    def samples(self, weights: np.ndarray | None = None) -> np.ndarray:
+        """(n,) samples in each channel's window (slots of lost ticks left out); ``weights`` if already had."""
+        return np.count_nonzero((self.weights() if weights is None else weights) > 0.0, axis=1)
 
     def weights(self) -> np.ndarray:
         """(n, window) weight of every ring slot: zero for empty slots and lost ticks, otherwise linear in
@@ -174,18 +172,17 @@ class KelvinVoigtWindows:
         """Refit the channels where ``mask`` (all when None) and return every channel's estimate."""
         mask = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
         w = self.weights()
-        self._samples = np.count_nonzero(w > 0.0, axis=1)
+        counts = self.samples(w)
         force, pen, rate = self._data[:, 0], self._data[:, 1], self._data[:, 2]
         products = np.stack([np.ones_like(force), force, force * force, pen * pen, pen * rate, rate * rate,
                              pen * force, rate * force, pen, rate], axis=1)
         sums = np.einsum("lm,lkm->lk", w, products)
         for leg in np.flatnonzero(mask):
-            self._fit_channel(int(leg), sums[leg], pen[leg], w[leg])
+            self._fit_channel(int(leg), int(counts[leg]), sums[leg], pen[leg], w[leg])
         return self.estimates
 
-    def _fit_channel(self, leg: int, sums: np.ndarray, pen: np.ndarray, w: np.ndarray) -> None:
+    def _fit_channel(self, leg: int, count: int, sums: np.ndarray, pen: np.ndarray, w: np.ndarray) -> None:
         s, est = self.settings, self.estimates[leg]
-        count = int(self._samples[leg])
         est.samples = count
         if count < s.min_samples:
             est.stale = est.valid

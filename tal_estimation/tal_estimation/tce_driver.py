@@ -128,7 +128,6 @@ class TceDriver:
         self.ticks_without_acceleration = 0
         self.lost_ticks = 0
         self._last_step_s: float | None = None
-        self.period_s = float(period_s)
         self.late_heightmap_ticks = 0
         self._terrain = StampedInbox(0, period_ns=round(heightmap_period_s * 1e9))
         self.rejected = 0
@@ -261,7 +260,7 @@ class TceDriver:
         v = m.make_v(base.linear_velocity, base.angular_velocity, joint_velocity, base.quat_xyzw)
         vdot = self._accelerations.update(t_s, v)
         samples = self.tce.contact_states(q, v, joint_torque, self.height, self.normal, vdot=vdot)
-        lost = 0 if self._last_step_s is None else round((t_s - self._last_step_s) / self.period_s) - 1
+        lost = 0 if self._last_step_s is None else round((t_s - self._last_step_s) * 1e9 / self.period_ns) - 1
         self._last_step_s = t_s
         if 0 < lost <= LOST_TICKS_AGE_LIMIT:
             # Lost ticks age the stance legs' windows as their samples would have, so that a window still spans

@@ -423,15 +423,14 @@ class Simulation:
             feet.append((force, depth, normal_sum, np.array(state[4]), np.array(state[6])))
         # A foot in the air gets the terrain's normal under it: one course look-up for all of them.
         airborne = [i for i, foot in enumerate(feet) if not np.linalg.norm(foot[2]) > 0.0]
-        under = (np.asarray(self.course.normal(np.array([feet[i][3][0] for i in airborne]),
-                                               np.array([feet[i][3][1] for i in airborne])), dtype=float)
-                 if airborne else None)
+        under = {}
+        if airborne:
+            xy = np.array([feet[i][3][:2] for i in airborne])
+            under = dict(zip(airborne, np.asarray(self.course.normal(xy[:, 0], xy[:, 1]), dtype=float).reshape(-1, 3)))
         contacts = []
         for i, (force, depth, normal_sum, position, velocity) in enumerate(feet):
-            in_contact = i not in airborne
-            normal = (normal_sum / np.linalg.norm(normal_sum) if in_contact
-                      else under[airborne.index(i)].reshape(3))
-            contacts.append(FootContact(in_contact, force, depth, normal, position, velocity))
+            normal = under[i] if i in under else normal_sum / np.linalg.norm(normal_sum)
+            contacts.append(FootContact(i not in under, force, depth, normal, position, velocity))
         return contacts
 
     def body_ground_contact(self) -> list[str]:

@@ -206,6 +206,14 @@ class CdrView:
         message's; its numbers are not)."""
         return self._layout.message
 
+    def per_layout(self, key: Any, compute: Callable[[Any], Any]) -> Any:
+        """``compute(message)`` once per layout and ``key`` (what a reader derives from the strings and lengths
+        alone, e.g. where each named joint goes), then the stored value for every message of that layout."""
+        memo = self._layout.memo
+        if key not in memo:
+            memo[key] = compute(self._layout.message)
+        return memo[key]
+
     def array(self, path: str) -> np.ndarray:
         offset, dtype, count = self._layout.slot(path)
         return np.frombuffer(self.data, dtype=dtype, count=count, offset=offset)
@@ -232,6 +240,7 @@ class _ReadLayout:
         self.shape: list[tuple[int, bytes]] = []
         _walk(msg, "", 0, self.offsets, self.shape)
         self._xyz: dict[str, Any] = {}
+        self.memo: dict[Any, Any] = {}
 
     def matches(self, data: bytes) -> bool:
         if len(data) != self.length:

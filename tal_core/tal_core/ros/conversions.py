@@ -44,87 +44,85 @@ def _base_state(values: np.ndarray) -> BaseState:
 
 class JointStateReader:
     """Canonical joint arrays of serialised sensor_msgs/JointState messages read in place (``CdrReader``): the
-    checks and errors of ``canonical_joint_state`` (and, with ``efforts``, of the efforts as
-    ``tal_estimation.messages.joint_state_arrays``), the name lookup done once per message layout.
+    same ``joint_layout`` and ``canonical_joint_arrays`` as the message path, the layout worked out once per
+    message layout (its names and lengths) instead of per message.
 
     ``__call__(view)`` gives (positions, velocities or None, efforts or None) in canonical order."""
 
     def __init__(self, index: dict[str, int], *, velocities_optional: bool = False, efforts: bool = False,
                  efforts_optional: bool = False) -> None:
         self.index = index
-        self.velocities_optional = velocities_optional
-        self.efforts = efforts
-        self.efforts_optional = efforts_optional
-        self._plans: dict[int, tuple[object, np.ndarray | InputError, bool, bool]] = {}
+        self.options = {"velocities_optional": velocities_optional, "efforts": efforts,
+                        "efforts_optional": efforts_optional}
 
-    def _plan(self, msg: JointState) -> tuple[np.ndarray | InputError, bool, bool]:
-        """Where each named joint goes (or the error every message of this layout gets), whether velocities
-        and efforts are read."""
-        n = len(msg.name)
-        no_velocities = self.velocities_optional and len(msg.velocity) == 0
-        no_efforts = not self.efforts or (self.efforts_optional and len(msg.effort) == 0)
-        if len(msg.position) != n or (len(msg.velocity) != n and not no_velocities):
-            return InputError(f"joint_states has {n} names, {len(msg.position)} positions and "
-                              f"{len(msg.velocity)} velocities"), False, False
-        targets = []
-        for name in msg.name:
-            k = self.index.get(name)
-            if k is None:
-                return InputError(f"joint_states names unknown joint '{name}'"), False, False
-            targets.append(k)
-        if not no_efforts and len(msg.effort) != n:
-            return InputError(f"joint_states has {n} names and {len(msg.effort)} efforts"), False, False
-        return np.array(targets, dtype=np.intp), not no_velocities, not no_efforts
+    def _layout(self, msg: JointState) -> tuple[np.ndarray, bool, bool] | InputError:
+        try:
+            return joint_layout(msg, self.index, **self.options)
+        except InputError as exc:  # every message of this layout gets the same error
+            return exc
 
     def __call__(self, view: CdrView) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        msg = view.message
-        entry = self._plans.get(id(msg))
-        if entry is None or entry[0] is not msg:
-            entry = (msg, *self._plan(msg))
-            self._plans[id(msg)] = entry
-            if len(self._plans) > 8:
-                self._plans.pop(next(iter(self._plans)))
-        _, targets, velocities, efforts = entry
-        if isinstance(targets, InputError):
-            raise targets
-        n = len(self.index)
-        q = np.full(n, np.nan)
-        qd = np.full(n, np.nan)
+        layout = view.per_layout(self, self._layout)
+        if isinstance(layout, InputError):
+            raise layout
+        targets, velocities, efforts = layout
+        return canonical_joint_arrays(len(self.index), targets, view.array("position"),
+                                      view.array("velocity") if velocities else None,
+                                      view.array("effort") if efforts else None)
+
+
+def joint_layout(msg: JointState, index: dict[str, int], *, velocities_optional: bool = False,
+                 efforts: bool = False, efforts_optional: bool = False) -> tuple[np.ndarray, bool, bool]:
+    """Where each named joint of a joint state goes in canonical order, and whether its velocities and (with
+    ``efforts``) its efforts are read: what its names and lengths alone decide. InputError when a length
+    differs from the names' or a joint is unknown. An empty velocity (effort) list is accepted when
+    ``velocities_optional`` (``efforts_optional``) and gives None for them."""
+    n = len(msg.name)
+    no_velocities = velocities_optional and len(msg.velocity) == 0
+    if len(msg.position) != n or (len(msg.velocity) != n and not no_velocities):
+        raise InputError(f"joint_states has {n} names, {len(msg.position)} positions and "
+                         f"{len(msg.velocity)} velocities")
+    targets = []
+    for name in msg.name:
+        k = index.get(name)
+        if k is None:
+            raise InputError(f"joint_states names unknown joint '{name}'")
+        targets.append(k)
+    no_efforts = not efforts or (efforts_optional and len(msg.effort) == 0)
+    if not no_efforts and len(msg.effort) != n:
+        raise InputError(f"joint_states has {n} names and {len(msg.effort)} efforts")
+    return np.array(targets, dtype=np.intp), not no_velocities, not no_efforts
+
+
+def canonical_joint_arrays(size: int, targets: np.ndarray, positions, velocities=None, efforts=None
+                           ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Positions, velocities (None: not given) and efforts (None: not read) in canonical order (``size``
+    joints) from a joint state's arrays and its ``joint_layout`` targets; InputError when a joint is missing
+    or a value is not finite."""
+    q = np.full(size, np.nan)
+    qd = np.full(size, np.nan)
+    if len(targets):
+        q[targets] = positions
+        qd[targets] = 0.0 if velocities is None else velocities
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
+        raise InputError("joint_states lacks joints or has NaN/inf values")
+    tau = None
+    if efforts is not None:
+        tau = np.full(size, np.nan)
         if len(targets):
-            q[targets] = view.array("position")
-            qd[targets] = view.array("velocity") if velocities else 0.0
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
-            raise InputError("joint_states lacks joints or has NaN/inf values")
-        tau = None
-        if efforts:
-            tau = np.full(n, np.nan)
-            if len(targets):
-                tau[targets] = view.array("effort")
-            if not np.all(np.isfinite(tau)):
-                raise InputError("joint_states efforts have NaN/inf")
-        return q, qd if velocities else None, tau
+            tau[targets] = efforts
+        if not np.all(np.isfinite(tau)):
+            raise InputError("joint_states efforts have NaN/inf")
+    return q, None if velocities is None else qd, tau
 
 
 def canonical_joint_state(msg: JointState, index: dict[str, int],
                           velocities_optional: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
     """Joint positions [rad] and velocities [rad/s] in canonical order; InputError on bad content. With
     ``velocities_optional`` a message without velocities (an empty list) gives None for them."""
-    n = len(index)
-    no_velocities = velocities_optional and len(msg.velocity) == 0
-    if len(msg.position) != len(msg.name) or (len(msg.velocity) != len(msg.name) and not no_velocities):
-        raise InputError(f"joint_states has {len(msg.name)} names, {len(msg.position)} positions and "
-                         f"{len(msg.velocity)} velocities")
-    q = np.full(n, np.nan)
-    qd = np.full(n, np.nan)
-    velocities = [0.0] * len(msg.name) if no_velocities else msg.velocity
-    for name, position, velocity in zip(msg.name, msg.position, velocities):
-        k = index.get(name)
-        if k is None:
-            raise InputError(f"joint_states names unknown joint '{name}'")
-        q[k], qd[k] = position, velocity
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
-        raise InputError("joint_states lacks joints or has NaN/inf values")
-    return q, None if no_velocities else qd
+    targets, velocities, _ = joint_layout(msg, index, velocities_optional=velocities_optional)
+    q, qd, _ = canonical_joint_arrays(len(index), targets, msg.position, msg.velocity if velocities else None)
+    return q, qd
 
 
 def heightmap_grid(msg: HeightMap) -> HeightMapGrid:
