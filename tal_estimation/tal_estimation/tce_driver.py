@@ -5,8 +5,10 @@ loop, the bag replay, the estimation experiments) drive ``TerrainComplianceEstim
 
 A tick (``step``) takes the base state (world frame: ground truth as the thesis' motion capture, or the
 state estimate) and the joint state, finite-differences the generalised velocities of consecutive ticks
-for the leg dynamics (across at most one lost tick: ``MAX_ACCELERATION_GAP_PERIODS``), estimates the contact
-states against the undeformed terrain (``height``, optional ``normal``) and refits the stance legs. After a
+for the leg dynamics (across at most one lost tick: ``MAX_ACCELERATION_GAP_PERIODS``) with the mean joint
+torque over the same interval (``average_torque``: the samples between two ticks are read for their torque),
+estimates the contact states against the undeformed terrain (``height``, optional ``normal``) and refits the
+stance legs. After a
 longer gap the accelerations are unknown, the force is its static part only and a swing leg can read as
 loaded (its airborne penetration in the window turned rigid-ground fits soft when a starved real-time tce lost
 ticks): such a tick does not feed the fit (counted in ``ticks_without_acceleration``), its estimates are the
@@ -62,6 +64,9 @@ from .tce import (
 LOST_TICKS_AGE_LIMIT = 250
 """Longer gaps (a pause, a restart) do not age the windows."""
 
+MAX_AVERAGED_TORQUES = 16
+"""Joint samples between two ticks whose torques a tick averages (the newest)."""
+
 MAX_ACCELERATION_GAP_PERIODS = 2.5
 """Ticks between two joint samples over which the legs' accelerations are still finite-differenced."""
 
@@ -105,7 +110,7 @@ class TceDriver:
     def __init__(self, model: RobotModel, settings: TceSettings | None = None, *, period_s: float = 0.004,
                  stale_state_periods: int = 3, on_reject: Callable[[Exception], None] | None = None,
                  base_period_s: float | None = None, max_defer_s: float = 0.0,
-                 heightmap_period_s: float = 0.0) -> None:
+                 heightmap_period_s: float = 0.0, average_torque: bool = True) -> None:
         if base_period_s is not None and base_period_s <= 0.0:
             raise InputError(f"TceDriver: base_period_s must be > 0 or None, got {base_period_s!r}")
         if max_defer_s < 0.0:
@@ -137,6 +142,11 @@ class TceDriver:
         self._next_tick_ns = 0
         self._base: tuple[int, BaseState] | None = None
         self._pending: tuple[int, float, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+        # The joint torques of the samples between two ticks (``average_torque``): their mean is the torque of
+        # the interval whose finite-differenced acceleration the tick uses.
+        self.average_torque = bool(average_torque)
+        self._torques: list[np.ndarray] = []
+        self._torque_last_ns = -1
 
     @property
     def settings(self) -> TceSettings:
@@ -180,9 +190,11 @@ class TceDriver:
             self.height, self.normal = due[-1][1]
 
     def wants_joints(self, stamp_ns: int) -> bool:
-        """Whether ``add_joints`` would do anything with a sample stamped ``stamp_ns`` (a tick, or the end of
-        a waiting tick's wait): a node may skip the others."""
-        return reaches_tick(stamp_ns, self._next_tick_ns) or self._overdue(stamp_ns)
+        """Whether ``add_joints`` would do anything with a sample stamped ``stamp_ns`` (a tick, the end of a
+        waiting tick's wait, or a torque sample of the interval before the next tick): a node may skip the
+        others."""
+        return (reaches_tick(stamp_ns, self._next_tick_ns) or self._overdue(stamp_ns)
+                or (self.average_torque and stamp_ns > self._torque_last_ns))
 
     def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays], t_s: float | None = None) -> TceTick | None:
         """One joint-state sample; the tick computed on it, if any (see the module docstring): its own, or a
@@ -191,12 +203,15 @@ class TceDriver:
         late = self._run_pending(late=True) if self._overdue(stamp_ns) else None
         waits = self.base_period_ns is not None
         if not reaches_tick(stamp_ns, self._next_tick_ns):
+            if self.average_torque and stamp_ns > self._torque_last_ns:
+                self._add_torque(stamp_ns, read)
             return late
         map_awaited = self._terrain.awaited(stamp_ns) is not None
         no_terrain = self.height is None and not map_awaited and not self._terrain.has_due(stamp_ns)
         if no_terrain or (self._base is None and not waits):
             return late
         self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
+        self._torque_last_ns = max(self._torque_last_ns, stamp_ns)
         t = stamp_ns * 1e-9 if t_s is None else t_s
         if not self._ready(stamp_ns) and (waits or map_awaited):
             arrays = self._read(read)
@@ -227,11 +242,38 @@ class TceDriver:
         return self._tick(stamp_ns, t_s, arrays)
 
     def _read(self, read: Callable[[], JointArrays]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """A tick's joint arrays; with ``average_torque`` its torque is the mean over the samples since the
+        previous tick (this one included)."""
         try:
-            return read()
+            q, qd, tau = read()
         except (InputError, ValueError) as exc:
             self._rejected(exc)
             return None
+        if self._torques and tau is not None:
+            # The last torque plus the mean deviation of the interval's: exactly the last when the command
+            # held over the interval (lockstep stays bit for bit what it was).
+            tau = tau + sum(earlier - tau for earlier in self._torques) / (len(self._torques) + 1)
+        self._torques.clear()
+        return q, qd, tau
+
+    def _add_torque(self, stamp_ns: int, read: Callable[[], JointArrays]) -> None:
+        """A joint sample between two ticks: its torque enters the next tick's mean. The torque a sample
+        carries is what the actuators delivered over the period before it; the tick's finite-differenced
+        acceleration is the mean over the interval since the previous tick, so the dynamics that give the
+        feet's forces must take the mean torque over the same interval. On a robot (or a bridge following the
+        wall clock) the command changes within the interval, wherever it arrives: with the last sample's
+        torque alone a starved or jittered tce read rigid ground as 2e5-7e5 N/m (1.6e6-2e6 in lockstep, where
+        a command holds over the whole interval)."""
+        try:
+            tau = read()[2]
+        except (InputError, ValueError) as exc:
+            self._rejected(exc)
+            return
+        self._torque_last_ns = stamp_ns
+        if tau is not None and np.all(np.isfinite(tau)):
+            if len(self._torques) >= MAX_AVERAGED_TORQUES:
+                del self._torques[0]   # a long gap: its tick has no acceleration anyway
+            self._torques.append(np.array(tau, dtype=float))
 
     def _rejected(self, exc: Exception) -> None:
         self.rejected += 1

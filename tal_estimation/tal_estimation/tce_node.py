@@ -7,7 +7,8 @@ feet). When it ticks and what a tick does is ``tal_estimation.tce_driver.TceDriv
 offline runners): ticks lie on the sim-time grid k * control_period_s and wait for the base state of their
 own stamp (ground truth comes at the control rate, the estimate every estimate_period_s; wait_for_base false:
 the latest as it arrives), up to max_defer_s past the tick on the wall clock, and with heightmap_period_s
-for the heightmap of their grid point; a base state older than
+for the heightmap of their grid point; a tick's joint torques are the mean over the samples since the
+previous tick (average_torque); a base state older than
 ``stale_state_periods`` skips the tick; feet outside the heightmap give no sample (counted). This node
 converts messages and publishes. Thresholds, stale_state_periods and summary_path are live parameters.
 """
@@ -58,6 +59,9 @@ class TceNode(Node):
                                    "[s] the heightmap's publishing period on the sim-time grid: a tick waits for "
                                    "the map of its grid point (lockstep); 0: maps are used as they arrive",
                                    low=0.0, high=10.0)
+        average_torque = declare(self, "average_torque", True,
+                                 "a tick's joint torques are the mean of the samples since the previous tick (the "
+                                 "interval of its finite-differenced accelerations); false: its own sample's")
         settings = TceSettings(
             window=declare(self, "window", 250, "[-] samples per leg (thesis: 250 at 250 Hz)", low=2, high=100000),
             min_samples=declare(self, "min_samples", 50, "[-] stance samples before a first estimate", low=1,
@@ -87,7 +91,7 @@ class TceNode(Node):
         self.driver = TceDriver(self.model, settings, period_s=period, stale_state_periods=stale_periods,
                                 on_reject=lambda exc: self._reject("joint_states", exc),
                                 base_period_s=base_period, max_defer_s=max_defer,
-                                heightmap_period_s=heightmap_period)
+                                heightmap_period_s=heightmap_period, average_torque=average_torque)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
         self.rejected_inputs = 0
         self.summary_path = declare(self, "summary_path", "", "JSON file for the end-of-run summary (final "

@@ -52,8 +52,9 @@ def flat(x: float, y: float) -> float:
     return 0.0
 
 
-def test_ticks_fall_on_the_grid_once_base_and_terrain_are_in() -> None:
-    driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004)
+@pytest.mark.parametrize("average_torque", [False, True])
+def test_ticks_fall_on_the_grid_once_base_and_terrain_are_in(average_torque: bool) -> None:
+    driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, average_torque=average_torque)
     base = standing()[0]
     assert driver.add_joints(0, read()) is None                  # no base, no terrain: not a tick
     driver.set_base(0, base)
@@ -62,7 +63,8 @@ def test_ticks_fall_on_the_grid_once_base_and_terrain_are_in() -> None:
     calls: list[int] = []
     ticks = [driver.add_joints(k * MS, read(calls, k)) for k in range(2, 11)]
     assert [k for k, tick in zip(range(2, 11), ticks) if tick is not None] == [2, 4, 8]   # grid k * 4 ms
-    assert calls == [2, 4, 8] and driver.ticks == 3              # only tick samples are read
+    # Only tick samples are read, or every sample for its torque (averaged over the interval).
+    assert calls == (list(range(2, 11)) if average_torque else [2, 4, 8]) and driver.ticks == 3
     assert all(ticks[0].in_contact) and ticks[0].t_s == 2 * MS * 1e-9
     np.testing.assert_array_equal([e.samples for e in ticks[6].estimates], [3, 3, 3, 3])   # the tick at 8 ms
 
@@ -190,7 +192,8 @@ def test_a_waiting_tick_runs_late_when_the_robot_moves_on() -> None:
     driver.set_terrain(flat)
     driver.set_base(0, base)
     assert driver.add_joints(0, read()) is not None
-    assert driver.add_joints(4 * MS, read()) is None and not driver.wants_joints(5 * MS)
+    assert driver.add_joints(4 * MS, read()) is None
+    assert driver.wants_joints(5 * MS) and driver.add_joints(5 * MS, read()) is None   # a torque sample
     assert driver.add_joints(6 * MS, read()) is None  # 2 ms: still waiting
     assert driver.wants_joints(7 * MS)
     late = driver.add_joints(7 * MS, read())
@@ -257,3 +260,33 @@ def test_a_tick_after_a_long_gap_does_not_feed_the_fit() -> None:
     assert before == [3, 3, 3, 3] and driver.ticks_without_acceleration == 1
     tick = driver.step(0.034, base, q, np.zeros(12), tau)                                   # consecutive again
     assert [e.samples for e in tick.estimates] == [4, 4, 4, 4] and driver.ticks == 5
+
+
+def test_a_tick_takes_the_mean_torque_of_its_interval() -> None:
+    """The command changes within the 4 ms before the tick at 8 ms (on the wall clock it arrives whenever the
+    controller is done): the torques of 5 and 6 ms are 20 N m below the holding torque, those of 7 and 8 ms
+    20 N m above. The legs' accelerations are finite-differenced over the interval, so the tick takes the
+    interval's mean torque: the feet's forces are those of the holding torque, not of the last sample's."""
+    base, q, tau = standing()
+    step = np.full(12, 20.0)
+
+    def forces(torques: dict[int, np.ndarray], average_torque: bool) -> np.ndarray:
+        driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, average_torque=average_torque)
+        driver.set_terrain(flat)
+        driver.set_base(0, base)
+        tick = None
+        for k in range(9):
+            sample = torques.get(k, tau)
+            tick = driver.add_joints(k * MS, lambda sample=sample: (q, np.zeros(12), sample)) or tick
+        assert tick is not None and tick.stamp_ns == 8 * MS
+        return np.array([s.force_n for s in tick.samples])
+
+    switching = {5: tau - step, 6: tau - step, 7: tau + step, 8: tau + step}
+    held = forces({}, True)
+    np.testing.assert_allclose(forces(switching, True), held, rtol=1e-12, atol=1e-9)
+    last_only = forces(switching, False)
+    np.testing.assert_allclose(last_only, forces({8: tau + step}, False), rtol=1e-12, atol=1e-9)
+    assert np.max(np.abs(last_only - held)) > 10.0   # the last sample alone: tens of newtons off
+    # A command held over the interval: exactly the last sample's torque (lockstep runs stay bit for bit).
+    same = {k: tau + step for k in range(5, 9)}
+    assert np.array_equal(forces(same, True), forces(same, False))
