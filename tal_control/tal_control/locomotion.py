@@ -43,7 +43,11 @@ class ImpedanceGate:
     foot crossing onto a new patch) or the penetration is wrong (a foot against a stair riser), the fit
     has R^2 ~ 0: in a trot over graph_tour such an estimate (100 N/m, the clamp, on rigid ground) made the
     c3WBC drop HyQ within 0.3 s, while every estimate within 30 % of the truth had confidence >= 0.1 in
-    95 % of the samples (measured)."""
+    95 % of the samples (measured). A leg whose window the TCE flags rigid (``rigid``: the ground is at least
+    as stiff as the TCE can tell; the value is a lower bound, not an estimate) takes the rigid model, the
+    fallback stiffness and damping: adopting the lower bound (1.3e5-2e6 N/m from tick to tick on the stairs
+    of the real-time tour) with the damping held from the last soft patch made the c3WBC expect millimetres of
+    sinking on rigid steps, and HyQ fell there in 3 of 3 real-time tours (measured)."""
 
     def __init__(self, fallback_stiffness_n_per_m: float, fallback_damping_ns_per_m: float,
                  min_confidence: float = 0.1) -> None:
@@ -54,24 +58,31 @@ class ImpedanceGate:
             if not (np.isfinite(value) and value >= 0.0):
                 raise InputError(f"{name} must be finite and >= 0, got {value!r}")
         self.min_confidence = float(min_confidence)
+        self.fallback_stiffness = float(fallback_stiffness_n_per_m)
+        self.fallback_damping = float(fallback_damping_ns_per_m)
         self.stiffness = np.full(NUM_LEGS, float(fallback_stiffness_n_per_m))
         self.damping = np.full(NUM_LEGS, float(fallback_damping_ns_per_m))
         self.adopted = np.zeros(NUM_LEGS, dtype=np.int64)    # estimates taken, per leg
         self.held = np.zeros(NUM_LEGS, dtype=np.int64)       # estimates refused (value held), per leg
+        self.rigid = np.zeros(NUM_LEGS, dtype=np.int64)      # rigid windows (the rigid model taken), per leg
 
     def update(self, stiffness: np.ndarray, damping: np.ndarray, valid: np.ndarray,
-               confidence: np.ndarray) -> TerrainImpedance:
+               confidence: np.ndarray, rigid: np.ndarray | None = None) -> TerrainImpedance:
         """Fold one TCE update (NUM_LEGS,) each into the per-leg values and return the impedance to use."""
         k, d = np.asarray(stiffness, dtype=float), np.asarray(damping, dtype=float)
         c = np.asarray(confidence, dtype=float)
         legs = (NUM_LEGS,)
-        if k.shape != legs or d.shape != legs or np.shape(valid) != legs or c.shape != legs:
+        r = np.zeros(NUM_LEGS, dtype=bool) if rigid is None else np.asarray(rigid, dtype=bool)
+        if k.shape != legs or d.shape != legs or np.shape(valid) != legs or c.shape != legs or r.shape != legs:
             raise InputError(f"impedance arrays must have {NUM_LEGS} entries, got {k.shape}, {d.shape}, "
-                             f"{np.shape(valid)}, {c.shape}")
+                             f"{np.shape(valid)}, {c.shape}, {r.shape}")
         take = np.asarray(valid, dtype=bool) & np.isfinite(k) & (k > 0.0) & np.isfinite(c) & (c >= self.min_confidence)
-        self.stiffness = np.where(take, k, self.stiffness)
-        self.damping = np.where(take & np.isfinite(d) & (d >= 0.0), d, self.damping)
+        rigid_model = take & r
+        self.stiffness = np.where(rigid_model, self.fallback_stiffness, np.where(take, k, self.stiffness))
+        self.damping = np.where(rigid_model, self.fallback_damping,
+                                np.where(take & np.isfinite(d) & (d >= 0.0), d, self.damping))
         self.adopted += take
+        self.rigid += rigid_model
         self.held += ~take & np.asarray(valid, dtype=bool)
         return TerrainImpedance(stiffness_normal=self.stiffness.copy(), damping_normal=self.damping.copy())
 

@@ -490,12 +490,14 @@ class WbcNode(Node):
 
     def _on_impedance(self, view: CdrView) -> None:
         arrays = (view.array("stiffness_normal").astype(float), view.array("damping_normal").astype(float),
-                  view.array("valid").astype(bool), view.array("confidence").astype(float))
+                  view.array("valid").astype(bool), view.array("confidence").astype(float),
+                  view.array("rigid").astype(bool))
         self._act(self.policy.lagged("impedance", view.stamp_ns, arrays))
 
     def _apply_inputs(self, inputs: tuple[tuple[str, Any], ...]) -> None:
         """The lagged inputs released to a tick, in stamp order. Impedance: per leg, the estimate when valid and
-        confident enough, else the last adopted (``ImpedanceGate``)."""
+        confident enough (the rigid model where the TCE flags rigid ground), else the last adopted
+        (``ImpedanceGate``)."""
         for name, value in inputs:
             if name == "impedance":
                 self._impedance = self.impedance_gate.update(*value)
@@ -666,7 +668,8 @@ class WbcNode(Node):
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name,
                 "impedance_adopted_per_leg": self.impedance_gate.adopted.tolist(),
-                "impedance_held_per_leg": self.impedance_gate.held.tolist()}
+                "impedance_held_per_leg": self.impedance_gate.held.tolist(),
+                "impedance_rigid_per_leg": self.impedance_gate.rigid.tolist()}
 
     def destroy_node(self) -> None:
         write_summary(self.p["summary_path"], self.summary())

@@ -367,7 +367,8 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                                         state.joint_torque_nm)
                     tce_k, tce_d = tce_tick.stiffness_n_per_m, tce_tick.damping_ns_per_m
                     tce_conf, tce_contact = tce_tick.confidence, tce_tick.in_contact
-                    impedance = impedance_gate.update(tce_k, tce_d, tce_tick.valid, tce_conf)
+                    impedance = impedance_gate.update(tce_k, tce_d, tce_tick.valid, tce_conf,
+                                                      np.array([e.rigid for e in tce_tick.estimates]))
                     if estimated is not None:
                         estimated.stream.impedance = legs_from_impedance_arrays(
                             tce_k, tce_d, tce_tick.valid, np.array([normal_fn(*c.position_m[:2]) for c in contacts]),

@@ -64,6 +64,23 @@ def test_impedance_gate_adopts_confident_estimates_and_holds_the_rest() -> None:
         gate.update(np.ones(3), np.ones(4), np.ones(4, bool), np.ones(4))
 
 
+def test_impedance_gate_takes_the_rigid_model_where_the_tce_flags_rigid_ground() -> None:
+    """A rigid window's stiffness is a lower bound (std F / std p), not an estimate: the leg takes the rigid
+    model (fallback stiffness and damping), not the bound with the damping held from the last soft patch."""
+    gate = ImpedanceGate(2e6, 400.0, min_confidence=0.1)
+    soft = gate.update(np.full(4, 8000.0), np.full(4, 1000.0), np.ones(4, bool), np.full(4, 0.9))
+    np.testing.assert_array_equal(soft.damping_normal, [1000.0] * 4)
+    rigid = np.array([True, True, False, True])
+    confidence = np.array([0.4, 0.05, 0.4, 0.4])
+    out = gate.update(np.array([1.3e5, 1.9e6, 7000.0, 6e5]), np.full(4, np.nan), np.ones(4, bool), confidence, rigid)
+    # LF, RH: rigid; RF: rigid but not confident enough (held); LH: a soft estimate (its damping NaN: held).
+    np.testing.assert_array_equal(out.stiffness_normal, [2e6, 8000.0, 7000.0, 2e6])
+    np.testing.assert_array_equal(out.damping_normal, [400.0, 1000.0, 1000.0, 400.0])
+    np.testing.assert_array_equal(gate.rigid, [1, 0, 0, 1])
+    with pytest.raises(InputError, match="4 entries"):
+        gate.update(np.ones(4), np.ones(4), np.ones(4, bool), np.ones(4), np.ones(3, bool))
+
+
 @pytest.mark.slow
 def test_stance_trots_on_t1() -> None:
     """STANCE in a trot on T1 (3500 N/m): with the thesis' load ramps (0.51 s, longer than the 0.4 s
