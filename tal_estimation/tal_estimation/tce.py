@@ -79,6 +79,14 @@ class TceSettings:
     # stairs they drove the fit to the 100 N/m clamp on rigid steps (measured).
     relief_radius_m: float = 0.04
     max_surface_relief_m: float = 0.01
+    # Terrain changes at a touchdown: the foot lands on a new patch while the window still holds the old one's
+    # samples, a mix no spring fits (confidence 0 for ~1 s, a window, on graph_tour's T1 entry; the
+    # terrain-aware odometry meanwhile missed the feet's sinking, +0.15 m of z). With window_restart, once
+    # the current stance holds min_samples samples, its own fit is compared with the window's (and again every
+    # RESTART_CHECK_EVERY samples up to RESTART_CHECK_UNTIL x min_samples): when the stance's fit is good (R^2
+    # x offset consistency >= RESTART_MIN_QUALITY, or rigid) and the window's is not, or the two disagree
+    # (rigid vs soft, or stiffness by more than RESTART_STIFFNESS_RATIO), the window restarts from the stance.
+    window_restart: bool = True
 
     def __post_init__(self) -> None:
         if self.window < 2 or not 1 <= self.min_samples <= self.window:
@@ -115,6 +123,18 @@ class LegEstimate:
     penetration_offset_m: float = 0.0       # how much the window's penetrations read too deep [m] (offset fit)
 
 
+RESTART_MIN_QUALITY = 0.8
+"""R^2 x offset consistency of a stance's own fit from which it may restart the window."""
+
+RESTART_STIFFNESS_RATIO = 1.3
+"""A stance's stiffness this factor away from the window's (either way) restarts the window."""
+
+RESTART_CHECK_EVERY = 10
+RESTART_CHECK_UNTIL = 3
+"""The stance's fit is compared with the window's at min_samples samples, then every RESTART_CHECK_EVERY up to
+RESTART_CHECK_UNTIL x min_samples (a terrain change shows early in the stance that lands on it)."""
+
+
 class KelvinVoigtWindows:
     """Sliding windows and weighted least squares of F = k p (+ d dp/dt) for ``n`` independent channels
     (legs), fitted together. Degenerate windows keep the previous estimate and lower its confidence."""
@@ -128,12 +148,15 @@ class KelvinVoigtWindows:
         self._valid = np.zeros((self.n, m), dtype=bool)  # slots holding a sample (not a lost tick)
         self._slots = np.arange(m)
         self._rows = np.arange(self.n)
+        self._segment = np.zeros(self.n, dtype=int)     # slots of the current stance (since the last gap)
+        self.restarts = np.zeros(self.n, dtype=np.int64)  # windows restarted at a terrain change
         self.estimates = [LegEstimate() for _ in range(self.n)]
 
     def add(self, mask: np.ndarray, force: np.ndarray, penetration: np.ndarray, rate: np.ndarray) -> None:
         """Append one sample to each channel where ``mask``; non-finite samples are ignored."""
         sample = np.stack([np.asarray(force, float), np.asarray(penetration, float), np.asarray(rate, float)], 1)
         take = np.asarray(mask, dtype=bool) & np.all(np.isfinite(sample), axis=1)
+        self._segment = np.where(take, self._segment + 1, 0)
         if not take.any():
             return
         rows = self._rows[take]
@@ -146,6 +169,7 @@ class KelvinVoigtWindows:
         """Lost ticks: ``slots`` empty slots in each channel where ``mask``, so that the window still spans the
         time it would have (old samples leave it on time when a consumer loses ticks)."""
         rows = self._rows[np.asarray(mask, dtype=bool)]
+        self._segment[rows] += int(slots)
         for _ in range(min(int(slots), self.settings.window)):
             if not len(rows):
                 return
@@ -178,11 +202,51 @@ class KelvinVoigtWindows:
                              pen * force, rate * force, pen, rate], axis=1)
         sums = np.einsum("lm,lkm->lk", w, products)
         for leg in np.flatnonzero(mask):
-            self._fit_channel(int(leg), int(counts[leg]), sums[leg], pen[leg], w[leg])
+            self._fit_channel(self.estimates[leg], int(counts[leg]), sums[leg], pen[leg], w[leg])
+            if self.settings.window_restart and self._restart_due(int(leg), int(counts[leg])):
+                self._check_restart(int(leg), products[leg], pen[leg], w[leg])
         return self.estimates
 
-    def _fit_channel(self, leg: int, count: int, sums: np.ndarray, pen: np.ndarray, w: np.ndarray) -> None:
-        s, est = self.settings, self.estimates[leg]
+    def _restart_due(self, leg: int, count: int) -> bool:
+        """Whether the current stance is at a point where its fit is compared with the window's."""
+        first = self.settings.min_samples
+        segment = int(self._segment[leg])
+        return (count > segment >= first and segment <= RESTART_CHECK_UNTIL * first
+                and (segment - first) % RESTART_CHECK_EVERY == 0)
+
+    def _check_restart(self, leg: int, products: np.ndarray, pen: np.ndarray, w: np.ndarray) -> None:
+        """Fit the current stance alone; restart the window from it at a terrain change (``window_restart``)."""
+        m = self.settings.window
+        age = (self._next[leg] - 1 - self._slots) % m
+        segment = int(self._segment[leg])
+        w_stance = np.where(age < segment, w, 0.0)
+        count = int(np.count_nonzero(w_stance))
+        stance = LegEstimate()
+        self._fit_channel(stance, count, products @ w_stance, pen, w_stance)
+        window = self.estimates[leg]
+        low, high = self.settings.stiffness_range_n_per_m
+        if not (stance.valid and not stance.stale and low < stance.stiffness_n_per_m < high):
+            return
+        quality_stance = 1.0 if stance.rigid else stance.confidence * m / max(count, 1)
+        if quality_stance < RESTART_MIN_QUALITY:
+            return
+        if window.valid and not window.stale:
+            quality_window = 1.0 if window.rigid else window.confidence * m / max(window.samples, 1)
+            ratio = stance.stiffness_n_per_m / window.stiffness_n_per_m
+            changed = (stance.rigid != window.rigid or quality_window < 0.5 * RESTART_MIN_QUALITY
+                       or (not stance.rigid and not 1.0 / RESTART_STIFFNESS_RATIO <= ratio <= RESTART_STIFFNESS_RATIO))
+        else:
+            changed = True
+        if not changed:
+            return
+        self._valid[leg, age >= segment] = False
+        self._count[leg] = min(segment, m)
+        self.restarts[leg] += 1
+        w_new = self.weights()[leg]
+        self._fit_channel(window, int(np.count_nonzero(w_new)), products @ w_new, pen, w_new)
+
+    def _fit_channel(self, est: LegEstimate, count: int, sums: np.ndarray, pen: np.ndarray, w: np.ndarray) -> None:
+        s = self.settings
         est.samples = count
         if count < s.min_samples:
             est.stale = est.valid

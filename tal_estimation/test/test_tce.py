@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -338,3 +340,53 @@ def test_lost_ticks_age_the_window_as_their_samples_would_have() -> None:
         for f, p, r in list(zip(*stance_samples(k, 0.0, 150, seed=seed, noise_n=0.0)))[::3]:
             never.add(stance, [f], [p], [r])
     assert never.fit()[0].stiffness_n_per_m < 7000.0
+
+
+def feed_stances(windows: KelvinVoigtWindows, stances: list[tuple[float, int]], seed: int = 0,
+                 noise_n: float = 2.0, rigid_noise_m: float = 2e-4) -> list:
+    """Stances (stiffness [N/m], samples) from touchdown to lift-off on a Kelvin-Voigt ground (damping 300 N s/m),
+    each followed by a swing tick, the window refitted every tick as the TCE does; the estimate after every
+    stance sample. Rigid ground (>= 1e6 N/m): sub-millimetre sinkage under kinematic noise."""
+    rng = np.random.default_rng(seed)
+    stance, swing = np.array([True]), np.array([False])
+    estimates = []
+    for k, n in stances:
+        s = np.sin(np.pi * np.arange(n) / (n - 1))
+        pen = 450.0 * s / k
+        rate = np.gradient(pen, 0.004)
+        force = k * pen + (300.0 * rate if k < 1e6 else 0.0) + rng.normal(0.0, noise_n, n)
+        pen = pen + (rng.normal(0.0, rigid_noise_m, n) if k >= 1e6 else 0.0)
+        for f, p, r in zip(force, pen, rate):
+            windows.add(stance, [f], [p], [r])
+            estimates.append(replace(windows.fit(stance)[0]))
+        windows.add(swing, [0.0], [0.0], [0.0])
+        windows.fit(stance)
+    return estimates
+
+
+@pytest.mark.parametrize("before", [2e6, 8000.0])
+def test_a_stance_on_new_terrain_restarts_the_window(before: float) -> None:
+    """Three stances on rigid ground (or T2), then one on T1 (3500 N/m): the window mixes the two, a fit no
+    spring explains (confidence ~0, or the stiffness between the two) until the old samples leave it, a
+    second on graph_tour. With window_restart the stance's own fit takes over once it holds min_samples."""
+    settings = TceSettings(window=250, min_samples=50)
+    plan = [(before, 100)] * 3 + [(3500.0, 100)]
+    restarting, mixed = KelvinVoigtWindows(settings, 1), KelvinVoigtWindows(replace(settings, window_restart=False), 1)
+    new = feed_stances(restarting, plan)[300:]
+    old = feed_stances(mixed, plan)[300:]
+    assert restarting.restarts.tolist() == [1]
+    at = settings.min_samples - 1      # the stance's 50th sample
+    assert new[at].confidence >= 0.1 and new[at].stiffness_n_per_m == pytest.approx(3500.0, rel=0.03)
+    assert new[-1].confidence >= 0.3 and new[-1].stiffness_n_per_m == pytest.approx(3500.0, rel=0.02)
+    assert all(e.confidence < 0.1 or not e.stiffness_n_per_m == pytest.approx(3500.0, rel=0.1) for e in old[:at + 1])
+
+
+def test_steady_terrain_never_restarts_the_window() -> None:
+    """Twelve stances on T1 (noise, sinusoidal loading), then twelve on rigid ground: one restart, at the
+    change; none within either terrain."""
+    windows = KelvinVoigtWindows(TceSettings(window=250, min_samples=50), 1)
+    estimates = feed_stances(windows, [(3500.0, 100)] * 12, seed=4, noise_n=5.0)
+    assert windows.restarts.tolist() == [0]
+    assert estimates[-1].confidence > 0.9 and estimates[-1].stiffness_n_per_m == pytest.approx(3500.0, rel=0.01)
+    estimates = feed_stances(windows, [(2e6, 100)] * 12, seed=5, noise_n=5.0)
+    assert windows.restarts.tolist() == [1] and estimates[-1].rigid
