@@ -54,7 +54,8 @@ class LegOdometrySettings:
     """mode: rigid | terrain_aware. contact_threshold_weight_fraction [-]: contact force threshold as a
     fraction of the robot's weight (robot agnostic; 0.1 -> 85 N for HyQ). probability_width_fraction [-]:
     half-width of the contact probability ramp (smoothstep), as a fraction of the threshold.
-    swing_probability [-]: below it a leg is in swing (its penetration state resets). use_leg_inertia:
+    swing_probability [-]: below it a leg is in swing; min_swing_s [s]: a swing this long resets its
+    penetration state (a force that drops out for a sample mid-stance does not). use_leg_inertia:
     include M_leg vdot in the force (vdot from the IMU and finite differences; terrain_aware only, the
     thesis uses the static form). min_damping_ns_per_m: floor of the ground damping used in the sinking
     model (a TCE fit clamped near zero must not make dp/dt explode); max_penetration_rate_m_s: bound on
@@ -73,6 +74,7 @@ class LegOdometrySettings:
     contact_threshold_weight_fraction: float = 0.1
     probability_width_fraction: float = 0.5
     swing_probability: float = 1e-6
+    min_swing_s: float = 0.02
     use_leg_inertia: bool = True
     min_damping_ns_per_m: float = 50.0
     max_penetration_rate_m_s: float = 2.0
@@ -104,6 +106,8 @@ class LegOdometrySettings:
                 raise InputError(f"LegOdometrySettings.{name} must be in (0, 1), got {value!r}")
         if not (math.isfinite(self.min_confidence) and 0.0 <= self.min_confidence <= 1.0):
             raise InputError(f"LegOdometrySettings.min_confidence must be in [0, 1], got {self.min_confidence!r}")
+        if not (math.isfinite(self.min_swing_s) and self.min_swing_s >= 0.0):
+            raise InputError(f"LegOdometrySettings.min_swing_s must be finite and >= 0, got {self.min_swing_s!r}")
 
 
 @dataclass(frozen=True)
@@ -165,6 +169,7 @@ class LegOdometry:
         self.penetration = np.zeros(NUM_LEGS)
         self._previous_v: np.ndarray | None = None
         self._penetration_rate = np.zeros(NUM_LEGS)
+        self._swing_s = np.zeros(NUM_LEGS)   # [s] time each leg has been in swing
         self._sensed_contact = np.zeros(NUM_LEGS, dtype=bool)  # force_sensor: the hysteresis state
 
     def _set_thresholds(self) -> None:
@@ -205,6 +210,7 @@ class LegOdometry:
     def reset(self) -> None:
         self.penetration[:] = 0.0
         self._penetration_rate[:] = 0.0
+        self._swing_s[:] = 0.0
         self._previous_v = None
         self._sensed_contact[:] = False
 
@@ -293,18 +299,24 @@ class LegOdometry:
 
     def _integrate_penetration(self, dt: float, normal_force: np.ndarray, probability: np.ndarray,
                                impedance: LegImpedance | None) -> None:
-        """p(t + dt) of D dp/dt + K p = F_n with F_n held over dt (exact); dp/dt at the end of the step."""
+        """p(t + dt) of D dp/dt + K p = F_n with F_n held over dt (exact); dp/dt at the end of the step.
+
+        The penetration is the foot's sinking since its touchdown: it resets only after a swing of at least
+        min_swing_s. A stance leg without a usable impedance (the TCE not confident for a while, or the
+        force dropping out for a sample) holds it, and the integration goes on from there: on graph_tour's
+        T1 such an interruption reset it mid-stance, the recount from zero counted the sinking so far twice
+        (up to 0.1 m a step) and the estimate sank 0.2 m per metre walked (replay, measured)."""
         rate = np.zeros(NUM_LEGS)
         swing = probability < self.settings.swing_probability
-        self.penetration[swing] = 0.0
+        self._swing_s = np.where(swing, self._swing_s + dt, 0.0)
+        self.penetration[self._swing_s >= self.settings.min_swing_s] = 0.0
         if impedance is not None and dt > 0.0:
             usable = impedance.usable(self.settings.min_confidence)
             for leg in range(NUM_LEGS):
                 k, d = float(impedance.stiffness_n_per_m[leg]), float(impedance.damping_ns_per_m[leg])
                 if (swing[leg] or not usable[leg] or not (math.isfinite(d) and d >= 0.0)
                         or not k >= self.settings.min_stiffness_n_per_m):
-                    self.penetration[leg] = 0.0
-                    continue
+                    continue   # the modelled foot holds its sinking (rate 0)
                 # An estimated damping near zero (clamped fits) would make dp/dt = (F - K p) / D explode.
                 d = max(d, self.settings.min_damping_ns_per_m)
                 static = normal_force[leg] / k

@@ -300,6 +300,41 @@ def standing_on_four_feet():
     return model, qj, sample
 
 
+def test_a_stance_interruption_holds_the_sinking_and_a_swing_resets_it() -> None:
+    """The modelled penetration is the foot's sinking since touchdown. A tick whose impedance is unusable (the
+    TCE's confidence dips) or whose force drops out for a sample holds it and the integration goes on from
+    there; resetting it mid-stance made the recount from zero count the sinking so far twice (on graph_tour's
+    T1, up to 0.1 m a step and 0.2 m of z per metre walked). Only a swing of min_swing_s resets it."""
+    model, qj, loaded = standing_on_four_feet()
+    unloaded = make_sample(model, BASE_ROTATION, np.zeros(3), BASE_VELOCITY, ANGULAR_VELOCITY, qj, {},
+                           np.zeros((4, 3)), free_joint_velocities=np.zeros(12))
+    normals = np.tile([0.0, 0.0, 1.0], (4, 1))
+    usable = LegImpedance(np.full(4, 1e4), np.full(4, 3e3), normals, np.ones(4, bool), confidence=np.ones(4))
+    doubtful = LegImpedance(np.full(4, 1e4), np.full(4, 3e3), normals, np.ones(4, bool), confidence=np.zeros(4))
+    settings = LegOdometrySettings(mode="terrain_aware", use_leg_inertia=False, min_swing_s=0.02)
+    odometry = LegOdometry(model, settings)
+
+    def tick(sample, impedance):
+        return odometry.update(DT_S, BASE_ROTATION, ANGULAR_VELOCITY, qj, sample.qd, sample.tau, impedance=impedance)
+
+    for _ in range(20):
+        sunk = tick(loaded, usable).penetration.copy()
+    assert np.all(sunk > 1e-3)
+    held = tick(loaded, doubtful)                                   # confidence dips for a tick: held
+    np.testing.assert_array_equal(held.penetration, sunk)
+    np.testing.assert_allclose(held.foot_velocity, loaded.centre_velocity, atol=1e-9)   # rolling only
+    resumed = tick(loaded, usable).penetration
+    assert np.all(resumed > sunk)                                   # from the held value, not from zero
+    dropped = tick(unloaded, usable)                                 # one sample without force: held
+    assert np.all(dropped.probability == 0.0)
+    np.testing.assert_array_equal(dropped.penetration, resumed)
+    for _ in range(round(settings.min_swing_s / DT_S) + 1):           # a swing: reset
+        out = tick(unloaded, usable)
+    np.testing.assert_array_equal(out.penetration, 0.0)
+    with pytest.raises(InputError, match="min_swing_s"):
+        LegOdometrySettings(min_swing_s=-1.0)
+
+
 def test_invalid_impedance_is_treated_as_rigid() -> None:
     """Legs whose impedance is flagged invalid or has K <= 0 or D < 0 get no sinking (rolling only);
     a valid soft leg loaded by a static force starts sinking."""
