@@ -6,6 +6,8 @@ tal_sim2real generate --out DIR [--count 30] [--seed 0]
     hidden-effect test bags (labels sealed in DIR/sealed/)
 tal_sim2real benchmark --out results/sim2real [--count 30] [--jobs 2]
     generate, identify every bag, score against the sealed labels, write the summary
+tal_sim2real mujoco --out results/sim2real/mujoco [--data data/sim2real/mujoco]
+    record a HyQ trot in MuJoCo (a second physics engine) as the measured data and identify it
 """
 
 from __future__ import annotations
@@ -14,15 +16,26 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import Sim2RealError
 from .model import SimModel
+
+if TYPE_CHECKING:
+    from .outcomes import Identification
 
 LOG = logging.getLogger("tal.sim2real")
 
 
 def run_identify(bag: Path, model: SimModel, out: Path, closed_loop: bool = True, gait: str | None = None) -> Path:
     """The whole workflow on one bag; returns the report path."""
+    return identify_and_report(bag, model, out, closed_loop, gait)[1]
+
+
+def identify_and_report(
+    bag: Path, model: SimModel, out: Path, closed_loop: bool = True, gait: str | None = None
+) -> tuple[Identification, Path]:
+    """The whole workflow on one bag; returns the identification and the report path."""
     from tal_core.robot_description import load_robot_description
 
     from .identify import identify
@@ -41,7 +54,7 @@ def run_identify(bag: Path, model: SimModel, out: Path, closed_loop: bool = True
     if not result.named:
         LOG.info("no missing effect named")
     LOG.info("verdict: %s", result.verdict)
-    return path
+    return result, path
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,6 +86,12 @@ def main(argv: list[str] | None = None) -> int:
     p_b.add_argument("--seed", type=int, default=0)
     p_b.add_argument("--jobs", type=int, default=2)
     p_b.add_argument("--out-of-library", type=int, default=3, help="datasets with an effect the library lacks")
+    p_mj = sub.add_parser("mujoco", help="a HyQ trot recorded in MuJoCo as the measured side (issue 34)")
+    p_mj.add_argument("--out", type=Path, default=Path("results/sim2real/mujoco"), help="results page and plots")
+    p_mj.add_argument("--data", type=Path, default=Path("data/sim2real/mujoco"), help="where the bags go")
+    p_mj.add_argument("--duration-s", type=float, default=8.0)
+    p_mj.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    p_mj.add_argument("--no-control", action="store_true", help="skip identifying the PyBullet twin (control)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -83,6 +102,11 @@ def main(argv: list[str] | None = None) -> int:
             from .hidden_effects import generate_set
 
             generate_set(args.out, args.count, args.seed)
+        elif args.command == "mujoco":
+            from .mujoco_experiment import run_mujoco_experiment
+
+            readme = run_mujoco_experiment(args.out, args.data, args.duration_s, args.seed, not args.no_control)
+            print(f"results: {readme}")
         else:
             from .benchmark import run_benchmark
 
