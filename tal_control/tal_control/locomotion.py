@@ -8,6 +8,7 @@ the gait_state message report.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -47,12 +48,18 @@ class ImpedanceGate:
     as stiff as the TCE can tell; the value is a lower bound, not an estimate) takes the rigid model, the
     fallback stiffness and damping: adopting the lower bound (1.3e5-2e6 N/m from tick to tick on the stairs
     of the real-time tour) with the damping held from the last soft patch made the c3WBC expect millimetres of
-    sinking on rigid steps, and HyQ fell there in 3 of 3 real-time tours (measured)."""
+    sinking on rigid steps, and HyQ fell there in 3 of 3 real-time tours (measured). A held value expires
+    after ``hold_limit_s`` without a new one (given the update's time): the leg takes the rigid model again.
+    A tce that lags behind (a busy machine) was not confident for 2-3 s after a patch change and the c3WBC
+    modelled a rigid-ground foot with T2's 8000 N/m over that time; in lockstep no gap exceeds 0.92 s."""
 
     def __init__(self, fallback_stiffness_n_per_m: float, fallback_damping_ns_per_m: float,
-                 min_confidence: float = 0.1) -> None:
+                 min_confidence: float = 0.1, hold_limit_s: float = math.inf) -> None:
         if not 0.0 <= min_confidence <= 1.0:
             raise InputError(f"min_confidence must be in [0, 1], got {min_confidence!r}")
+        if not hold_limit_s > 0.0:
+            raise InputError(f"hold_limit_s must be > 0, got {hold_limit_s!r}")
+        self.hold_limit_s = float(hold_limit_s)
         for name, value in (("fallback stiffness", fallback_stiffness_n_per_m),
                             ("fallback damping", fallback_damping_ns_per_m)):
             if not (np.isfinite(value) and value >= 0.0):
@@ -65,10 +72,13 @@ class ImpedanceGate:
         self.adopted = np.zeros(NUM_LEGS, dtype=np.int64)    # estimates taken, per leg
         self.held = np.zeros(NUM_LEGS, dtype=np.int64)       # estimates refused (value held), per leg
         self.rigid = np.zeros(NUM_LEGS, dtype=np.int64)      # rigid windows (the rigid model taken), per leg
+        self.expired = np.zeros(NUM_LEGS, dtype=np.int64)    # held values expired (hold_limit_s), per leg
+        self._adopted_s = np.full(NUM_LEGS, -math.inf)       # [s] time of each leg's last adoption
 
     def update(self, stiffness: np.ndarray, damping: np.ndarray, valid: np.ndarray,
-               confidence: np.ndarray, rigid: np.ndarray | None = None) -> TerrainImpedance:
-        """Fold one TCE update (NUM_LEGS,) each into the per-leg values and return the impedance to use."""
+               confidence: np.ndarray, rigid: np.ndarray | None = None, t_s: float | None = None) -> TerrainImpedance:
+        """Fold one TCE update (NUM_LEGS,) each into the per-leg values and return the impedance to use;
+        ``t_s`` [s]: the update's time (the hold limit counts from the last adoption)."""
         k, d = np.asarray(stiffness, dtype=float), np.asarray(damping, dtype=float)
         c = np.asarray(confidence, dtype=float)
         legs = (NUM_LEGS,)
@@ -83,6 +93,14 @@ class ImpedanceGate:
                                 np.where(take & np.isfinite(d) & (d >= 0.0), d, self.damping))
         self.adopted += take
         self.rigid += rigid_model
+        if t_s is not None:
+            self._adopted_s = np.where(take, float(t_s), self._adopted_s)
+            soft = (self.stiffness != self.fallback_stiffness) | (self.damping != self.fallback_damping)
+            expire = ~take & soft & (float(t_s) - self._adopted_s > self.hold_limit_s)
+            if expire.any():
+                self.stiffness = np.where(expire, self.fallback_stiffness, self.stiffness)
+                self.damping = np.where(expire, self.fallback_damping, self.damping)
+                self.expired += expire
         self.held += ~take & np.asarray(valid, dtype=bool)
         return TerrainImpedance(stiffness_normal=self.stiffness.copy(), damping_normal=self.damping.copy())
 

@@ -193,7 +193,7 @@ class WbcNode(Node):
                            on_error=lambda exc: self._reject("contacts", exc))
         self._impedance: LegImpedance | None = None
         self.impedance_gate = ImpedanceGate(p["terrain_stiffness_n_per_m"], p["terrain_damping_ns_per_m"],
-                                            p["impedance_min_confidence"])
+                                            p["impedance_min_confidence"], p["impedance_hold_limit_s"])
         if p["contact_model"] == "compliant" and p["impedance_source"] == "tce":
             subscribe_view(self, TerrainImpedance, "terrain_impedance", self._on_impedance, 10,
                            on_error=lambda exc: self._reject("terrain_impedance", exc))
@@ -324,6 +324,10 @@ class WbcNode(Node):
                                                 "below it the leg keeps its last adopted value",
                                                 low=0.0, high=1.0, on_change=self._live(
                                                     "impedance_min_confidence", self._set_min_confidence)),
+            "impedance_hold_limit_s": declare(self, "impedance_hold_limit_s", 1.5,
+                                              "[s] a leg's adopted TCE estimate expires this long after the last "
+                                              "adoption without a new one (the rigid model again)", low=0.01,
+                                              high=1e6),
             "friction_coefficient": declare(self, "friction_coefficient", s.friction_coefficient,
                                             "[-] mu of the friction pyramids", low=0.01, high=5.0,
                                             on_change=self._live("friction_coefficient",
@@ -491,7 +495,7 @@ class WbcNode(Node):
     def _on_impedance(self, view: CdrView) -> None:
         arrays = (view.array("stiffness_normal").astype(float), view.array("damping_normal").astype(float),
                   view.array("valid").astype(bool), view.array("confidence").astype(float),
-                  view.array("rigid").astype(bool))
+                  view.array("rigid").astype(bool), view.stamp_ns * 1e-9)
         self._act(self.policy.lagged("impedance", view.stamp_ns, arrays))
 
     def _apply_inputs(self, inputs: tuple[tuple[str, Any], ...]) -> None:
@@ -669,7 +673,8 @@ class WbcNode(Node):
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name,
                 "impedance_adopted_per_leg": self.impedance_gate.adopted.tolist(),
                 "impedance_held_per_leg": self.impedance_gate.held.tolist(),
-                "impedance_rigid_per_leg": self.impedance_gate.rigid.tolist()}
+                "impedance_rigid_per_leg": self.impedance_gate.rigid.tolist(),
+                "impedance_expired_per_leg": self.impedance_gate.expired.tolist()}
 
     def destroy_node(self) -> None:
         write_summary(self.p["summary_path"], self.summary())

@@ -107,6 +107,7 @@ class ClosedLoopConfig:
     state_estimator: StateEstimatorSettings | None = None
     imu_noise: tuple[float, float] = (0.0, 0.0)
     impedance_min_confidence: float = 0.1
+    impedance_hold_limit_s: float = 1.5
     contact_feedback: bool = False
     motion: MotionParameters | None = None
 
@@ -332,7 +333,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
         tce = TceDriver(RobotModel(description), config.tce, period_s=config.physics_dt_s * config.control_decimation)
         tce.set_terrain(height_fn, normal_fn)
     impedance_gate = ImpedanceGate(config.terrain_stiffness_n_per_m, config.terrain_damping_ns_per_m,
-                                   config.impedance_min_confidence)
+                                   config.impedance_min_confidence, config.impedance_hold_limit_s)
     fixed = TerrainImpedance(np.full(NUM_LEGS, config.terrain_stiffness_n_per_m),
                              np.full(NUM_LEGS, config.terrain_damping_ns_per_m))
     radius = description.foot_radius_m
@@ -368,7 +369,7 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
                     tce_k, tce_d = tce_tick.stiffness_n_per_m, tce_tick.damping_ns_per_m
                     tce_conf, tce_contact = tce_tick.confidence, tce_tick.in_contact
                     impedance = impedance_gate.update(tce_k, tce_d, tce_tick.valid, tce_conf,
-                                                      np.array([e.rigid for e in tce_tick.estimates]))
+                                                      np.array([e.rigid for e in tce_tick.estimates]), t)
                     if estimated is not None:
                         estimated.stream.impedance = legs_from_impedance_arrays(
                             tce_k, tce_d, tce_tick.valid, np.array([normal_fn(*c.position_m[:2]) for c in contacts]),

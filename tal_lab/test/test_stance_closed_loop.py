@@ -81,6 +81,24 @@ def test_impedance_gate_takes_the_rigid_model_where_the_tce_flags_rigid_ground()
         gate.update(np.ones(4), np.ones(4), np.ones(4, bool), np.ones(4), np.ones(3, bool))
 
 
+def test_impedance_gate_lets_a_held_estimate_expire() -> None:
+    """A leg holds its last adopted estimate while the TCE is not confident, for at most hold_limit_s: a tce
+    that lags behind a patch change must not leave a foot on rigid ground modelled as T2 for seconds."""
+    gate = ImpedanceGate(2e6, 400.0, min_confidence=0.1, hold_limit_s=1.5)
+    confident, doubtful = np.full(4, 0.9), np.array([0.0, 0.0, 0.9, 0.0])
+    gate.update(np.full(4, 8000.0), np.full(4, 300.0), np.ones(4, bool), confident, t_s=10.0)
+    held = gate.update(np.full(4, 2500.0), np.full(4, 250.0), np.ones(4, bool), doubtful, t_s=11.5)
+    np.testing.assert_array_equal(held.stiffness_normal, [8000.0, 8000.0, 2500.0, 8000.0])
+    expired = gate.update(np.full(4, 2500.0), np.full(4, 250.0), np.ones(4, bool), doubtful, t_s=11.504)
+    np.testing.assert_array_equal(expired.stiffness_normal, [2e6, 2e6, 2500.0, 2e6])
+    np.testing.assert_array_equal(expired.damping_normal, [400.0, 400.0, 250.0, 400.0])
+    np.testing.assert_array_equal(gate.expired, [1, 1, 0, 1])
+    gate.update(np.full(4, 2500.0), np.full(4, 250.0), np.ones(4, bool), doubtful, t_s=12.0)
+    np.testing.assert_array_equal(gate.expired, [1, 1, 0, 1])     # the fallback does not expire again
+    with pytest.raises(InputError, match="hold_limit_s"):
+        ImpedanceGate(2e6, 400.0, hold_limit_s=0.0)
+
+
 @pytest.mark.slow
 def test_stance_trots_on_t1() -> None:
     """STANCE in a trot on T1 (3500 N/m): with the thesis' load ramps (0.51 s, longer than the 0.4 s
