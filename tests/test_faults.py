@@ -253,11 +253,11 @@ def test_state_estimator_killed_and_restarted_safe_mode_while_gone_normal_after(
         graph.close()
     diags = [(ns_from_stamp(d.header.stamp), d.mode) for d in graph.diagnostics]
     normal_again_ns = min(s for s, m in diags if s > safe_ns and m == WbcDiagnostics.MODE_NORMAL)
-    # Normal up to the last estimate, safe from 3 periods of staleness until the new estimator's first
-    # estimate, normal from then on.
+    # Normal up to the last estimate and on a predicted base state for 10 periods (stale_state_periods), safe
+    # from then until the new estimator's first estimate, normal from then on.
     assert {m for s, m in diags if s <= last_estimate_ns} == {WbcDiagnostics.MODE_NORMAL}
-    assert last_estimate_ns < safe_ns <= last_estimate_ns + 4 * PERIOD_NS
-    assert safe_ns - last_estimate_ns > 3 * PERIOD_NS          # stale_state_periods = 3
+    assert last_estimate_ns < safe_ns <= last_estimate_ns + 11 * PERIOD_NS
+    assert safe_ns - last_estimate_ns > 10 * PERIOD_NS         # stale_state_periods = 10
     assert normal_again_ns >= first_new_ns
     assert {m for s, m in diags if safe_ns <= s < first_new_ns} == {WbcDiagnostics.MODE_SAFE}
     assert {m for s, m in diags if s >= normal_again_ns} == {WbcDiagnostics.MODE_NORMAL}

@@ -141,20 +141,27 @@ def test_stale_state_enters_safe_mode_and_fresh_state_leaves_it(context, spin_un
         robot.publish_joints(0)
         assert spin_until(executor, lambda: len(robot.commands) >= 1, 10.0)
         assert len(robot.commands[-1].kd) == 0 and wbc.mode == WbcDiagnostics.MODE_NORMAL
-        # Ticks at 20 and 24 ms while the last base state is from 0 ms: the 20 ms tick waits for its
-        # ground truth; when the 24 ms joint state arrives it is decided: 6 periods old > 3 -> safe mode.
-        robot.publish_joints(20_000_000)
-        spin_until(executor, lambda: False, 0.3)
-        assert len(robot.commands) == 1
-        robot.publish_joints(24_000_000)
+        # A tick at 8 ms whose ground truth does not come (4 ms: deferred, decided at 8 ms on the 0 ms state):
+        # 2 periods old, not stale: a normal command on the base state predicted to the tick.
+        robot.publish_joints(4_000_000)
+        robot.publish_joints(8_000_000)
         assert spin_until(executor, lambda: len(robot.commands) >= 2, 10.0)
+        assert len(robot.commands[-1].kd) == 0 and wbc.mode == WbcDiagnostics.MODE_NORMAL
+        assert wbc.predicted_base_ticks == 1
+        # Ticks at 44 and 48 ms while the last base state is from 0 ms: the 44 ms tick waits for its
+        # ground truth; when the 48 ms joint state arrives it is decided: 11 periods old > 10 -> safe mode.
+        robot.publish_joints(44_000_000)
+        spin_until(executor, lambda: False, 0.3)
+        assert len(robot.commands) == 2
+        robot.publish_joints(48_000_000)
+        assert spin_until(executor, lambda: len(robot.commands) >= 3, 10.0)
         safe = robot.commands[-1]
         assert len(safe.kd) == 12 and all(k > 0 for k in safe.kd) and all(e == 0.0 for e in safe.effort)
         assert spin_until(executor, lambda: any(d.mode == WbcDiagnostics.MODE_SAFE for d in robot.diagnostics), 5.0)
-        # Fresh state again at 28 ms (arrival order joints, then odom): back to normal.
-        robot.publish_joints(28_000_000)
-        robot.publish_odom(28_000_000)
-        assert spin_until(executor, lambda: len(robot.commands) >= 3, 10.0)
+        # Fresh state again at 52 ms (arrival order joints, then odom): back to normal.
+        robot.publish_joints(52_000_000)
+        robot.publish_odom(52_000_000)
+        assert spin_until(executor, lambda: len(robot.commands) >= 4, 10.0)
         assert len(robot.commands[-1].kd) == 0 and wbc.mode == WbcDiagnostics.MODE_NORMAL
     finally:
         executor.shutdown()
@@ -289,7 +296,7 @@ def test_contact_feedback_waits_for_the_ticks_contacts_and_searches_with_a_hover
 
 def test_live_parameters_take_effect_at_the_next_tick(context, spin_until) -> None:
     """`ros2 param set` while running: a shorter stale_state_periods makes a base state 2 periods old stale
-    (safe mode, which the default 3 periods would not enter), and the safe command holds with the new
+    (safe mode, which the default 10 periods would not enter), and the safe command holds with the new
     safe_damping_nms_per_rad; a read-only parameter is refused with a reason."""
     wbc, robot, executor = standing_wbc_with_robot(context)
     try:

@@ -13,10 +13,12 @@ Publishes: joint_command (feed-forward torques), gait_state, wbc/diagnostics.
 When to tick and with which inputs is ``tick_policy.WbcTickPolicy`` (no rclpy): ticks lie on the sim-time
 grid k * control_period_s; a tick is computed once the joint state of that tick and the base state expected
 for it have arrived (the order of arrival does not matter, so lockstep runs are deterministic). A base state
-older than ``stale_state_periods`` control periods puts the node in safe mode (joint damping hold,
-MODE_SAFE in diagnostics) until fresh state returns; so does the wall-clock watchdog. This node is the
-adapter: parameters, topics, message conversion, the controller call and publishing. Input with NaN, wrong
-sizes or unknown joints is rejected and counted; a QP that fails falls back to the decayed previous
+older than ``stale_state_periods`` control periods (40 ms) puts the node in safe mode (joint damping hold,
+MODE_SAFE in diagnostics) until fresh state returns; a younger one more than a period old (late on a busy
+machine) is predicted to the tick at its linear and angular velocity (counted: predicted_base_ticks); the
+wall-clock watchdog also enters safe mode. This node is the adapter: parameters, topics, message
+conversion, the controller call and publishing. Input with NaN, wrong sizes or unknown joints is rejected
+and counted; a QP that fails falls back to the decayed previous
 solution and is counted (MODE_FALLBACK); nothing raises out of the loop.
 
 Lockstep determinism: inputs without a fixed arrival order relative to the tick's joint state are tied to
@@ -139,6 +141,7 @@ class WbcNode(Node):
                             if p["state_source"] == "estimate" and p["map_alignment_time_constant_s"] > 0.0
                             else None)
         self.rejected_inputs = 0
+        self.predicted_base_ticks = 0   # ticks whose late base state was predicted to the tick
         # Lockstep runs start when the wbc sends its first command; a command source discovered later (seen
         # across two network namespaces: 0.9 s of sim time) missed its first stamped commands: the policy
         # holds the first tick back up to command_source_wait_s.
@@ -239,8 +242,9 @@ class WbcNode(Node):
                 low=0.001, high=10.0, on_change=self._live("map_alignment_max_rate_m_s", self._set_map_rate)),
             "control_period_s": declare(self, "control_period_s", 0.004, "[s] control tick", low=0.0005,
                                         high=0.1),
-            "stale_state_periods": declare(self, "stale_state_periods", 3,
-                                           "[-] base state older than this many periods: safe mode", low=1,
+            "stale_state_periods": declare(self, "stale_state_periods", 10,
+                                           "[-] base state older than this many periods: safe mode (a younger "
+                                           "one more than a period old is predicted to the tick)", low=1,
                                            high=1000, on_change=self._live("stale_state_periods",
                                                                            self._set_stale_periods)),
             "max_defer_s": declare(self, "max_defer_s", 0.0,
@@ -562,6 +566,11 @@ class WbcNode(Node):
 
     def _tick(self, tick: Tick) -> None:
         stamp_ns, (q, qd), base, grid = tick.stamp_ns, tick.joints, tick.base, tick.heightmap
+        if tick.base_age_ns > self.policy.config.period_ns:
+            # A base state that came late (a busy machine, a lost sample), younger than stale_state_periods:
+            # moved to the tick at its velocities rather than used as it was.
+            base = base.predicted(tick.base_age_ns * 1e-9)
+            self.predicted_base_ticks += 1
         height = (lambda x, y: float(grid.height_at(x, y))) if grid is not None else None
         world_height = height
         if height is not None and self.map_aligner is not None:
@@ -671,6 +680,7 @@ class WbcNode(Node):
                 "late_cmd_vel": self.command_input.late, "cmd_vel_ignored": self.command_input.unstamped_ignored,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name,
+                "predicted_base_ticks": self.predicted_base_ticks,
                 "impedance_adopted_per_leg": self.impedance_gate.adopted.tolist(),
                 "impedance_held_per_leg": self.impedance_gate.held.tolist(),
                 "impedance_rigid_per_leg": self.impedance_gate.rigid.tolist(),
