@@ -86,7 +86,7 @@ def test_wbc_invalid_live_values_are_refused_with_the_reason_and_change_nothing(
         negative = set_one(wbc, "K_x", -1.0)                            # outside the declared range
         assert not negative.successful and wbc.controller.wbc.gains.K_x == 2000.0
         periods = set_one(wbc, "stale_state_periods", 0)
-        assert not periods.successful and wbc.policy.stale_ns == 3 * 4_000_000
+        assert not periods.successful and wbc.policy.stale_ns == 10 * 4_000_000
     finally:
         wbc.destroy_node()
 
@@ -122,7 +122,7 @@ def test_wbc_step_height_map_alignment_stale_periods_and_summary_path_are_live(c
         assert set_one(wbc, "map_alignment_time_constant_s", 0.0).successful and wbc.map_aligner is None
         assert set_one(wbc, "map_alignment_time_constant_s", 2.0).successful
         assert wbc.map_aligner is not None and wbc.map_aligner.time_constant_s == 2.0
-        assert set_one(wbc, "stale_state_periods", 10).successful and wbc.policy.stale_ns == 40_000_000
+        assert set_one(wbc, "stale_state_periods", 12).successful and wbc.policy.stale_ns == 48_000_000
         assert set_one(wbc, "impedance_min_confidence", 0.3).successful
         assert wbc.impedance_gate.min_confidence == 0.3
         assert set_one(wbc, "summary_path", str(tmp_path / "wbc.json")).successful
