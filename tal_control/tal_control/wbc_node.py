@@ -104,6 +104,9 @@ def _policy_counter(name: str, doc: str) -> property:
     return property(lambda node: getattr(node.policy.counters, name), doc=doc)
 
 
+MAX_FALLBACK_TIMES = 200
+"""QP fallbacks whose sim time the summary lists (where a run struggled)."""
+
 RESEND_AFTER_S = 0.25
 """[s] of wall time a tick waits for the answers to the last gait state before the wbc sends it again."""
 
@@ -142,6 +145,7 @@ class WbcNode(Node):
                             else None)
         self.rejected_inputs = 0
         self.predicted_base_ticks = 0   # ticks whose late base state was predicted to the tick
+        self.fallback_times_s: list[float] = []   # [s] sim time of the first MAX_FALLBACK_TIMES QP fallbacks
         # Lockstep runs start when the wbc sends its first command; a command source discovered later (seen
         # across two network namespaces: 0.9 s of sim time) missed its first stamped commands: the policy
         # holds the first tick back up to command_source_wait_s.
@@ -588,6 +592,8 @@ class WbcNode(Node):
             self._reject("state", exc)
             self._safe_mode(stamp_ns, str(exc))
             return
+        if out.solution.fallback and len(self.fallback_times_s) < MAX_FALLBACK_TIMES:
+            self.fallback_times_s.append(round(stamp_ns * 1e-9, 3))
         if self.policy.tick_done(fallback=out.solution.fallback):
             self.get_logger().info("fresh state: leaving safe mode")
         if world_height is not None and self.map_aligner is not None:
@@ -680,7 +686,7 @@ class WbcNode(Node):
                 "late_cmd_vel": self.command_input.late, "cmd_vel_ignored": self.command_input.unstamped_ignored,
                 "heightmap_z_offset_m": None if aligner is None else aligner.offset_m,
                 "failed_qps": self.controller.wbc.failed_solves, "gait": self.controller.motion.gait.name,
-                "predicted_base_ticks": self.predicted_base_ticks,
+                "predicted_base_ticks": self.predicted_base_ticks, "qp_fallback_times_s": self.fallback_times_s,
                 "impedance_adopted_per_leg": self.impedance_gate.adopted.tolist(),
                 "impedance_held_per_leg": self.impedance_gate.held.tolist(),
                 "impedance_rigid_per_leg": self.impedance_gate.rigid.tolist(),
