@@ -367,6 +367,20 @@ def node_rates(run_dir: Path, bridge: dict) -> list[dict]:
     return out
 
 
+def fallbacks_by_section(times_s: list[float], series: BagSeries, course_name: str) -> str:
+    """'default 3 (x 5.21-5.48 m), stairs_up 12 (x ...)' from the wbc's QP fallback times and the base track:
+    where a run struggled (empty without fallbacks or a track)."""
+    if not times_s or not series.t_s.size:
+        return ""
+    course = load_course(course_name)
+    index = np.clip(np.searchsorted(series.t_s, np.asarray(times_s, dtype=float)), 0, series.t_s.size - 1)
+    where: dict[str, list[float]] = {}
+    for i in index:
+        x, y = series.position[i, 0], series.position[i, 1]
+        where.setdefault(str(course.patch_at(x, y)), []).append(float(x))
+    return ", ".join(f"{name} {len(xs)} (x {min(xs):.2f}-{max(xs):.2f} m)" for name, xs in where.items())
+
+
 def build_report(run_dir: Path, title: str) -> str:
     bridge = load_json(run_dir / "bridge_summary.json")
     wbc = load_json(run_dir / "wbc_summary.json")
@@ -383,6 +397,9 @@ def build_report(run_dir: Path, title: str) -> str:
     if series.position.size and (cut or fall is None):  # after a fall of unknown time: meaningless
         report += (f"| {'base position at the fall' if cut else 'final base position'} (ground truth) | "
                    f"x {series.position[-1, 0]:.2f} m, z {series.position[-1, 2]:.2f} m |\n")
+    fallbacks = fallbacks_by_section(wbc.get("qp_fallback_times_s") or [], series, bridge["course"])
+    if fallbacks:
+        report += f"| QP fallbacks by course section (base position) | {fallbacks} |\n"
     estimator = load_json(run_dir / "estimator_summary.json")
     if estimator is not None:
         report += format_estimator(estimator, fell=fall is not None, drift_at_fall_m=series.final_drift_m() if cut

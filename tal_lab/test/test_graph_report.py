@@ -9,7 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
-from tal_lab.graph_report import bench_rates, build_report, read_bag, stiffness_table, topic_rates
+from tal_lab.graph_report import (
+    BagSeries,
+    bench_rates,
+    build_report,
+    fallbacks_by_section,
+    read_bag,
+    stiffness_table,
+    topic_rates,
+)
 
 from tal_core.ros.bag_io import BagWriter
 from tal_core.ros.node_utils import stamp_from_ns
@@ -186,3 +194,14 @@ def test_node_rates_come_from_each_nodes_own_counter(tmp_path: Path) -> None:
                          "mode": "realtime", "real_time_factor": 0.5, "peak_total_rss_mb": 1.0})["nodes"]
     assert nodes["wbc"]["achieved_hz"] == pytest.approx(105.0) and "node counter" in nodes["wbc"]["topic"]
     assert node_rates(tmp_path, {"sim_time_s": None}) == []
+
+
+def test_qp_fallbacks_are_placed_on_the_course_by_the_base_track() -> None:
+    """The wbc lists its QP fallbacks' sim times; the report says on which section of graph_tour the base was
+    (T1 from x 1.5 m, stairs from 5.5 m) and over which x, so a user sees where a run struggled."""
+    t = np.arange(0.0, 40.0, 0.004)
+    position = np.stack([0.2 * t, np.zeros_like(t), np.full_like(t, 0.6)], axis=1)   # 0.2 m/s along x
+    series = BagSeries(t, position, np.zeros(0), np.zeros((0, 3)), {}, {})
+    text = fallbacks_by_section([8.0, 9.0, 27.0, 28.5, 29.0], series, "graph_tour")
+    assert text == "soft_t1 2 (x 1.60-1.80 m), default 1 (x 5.40-5.40 m), stairs_up 2 (x 5.70-5.80 m)"
+    assert fallbacks_by_section([], series, "graph_tour") == ""
