@@ -189,6 +189,7 @@ class TceNode(Node):
             "ticks_without_acceleration": self.driver.ticks_without_acceleration,
             "lost_ticks": self.driver.lost_ticks,
             "edge_samples_per_leg": self.tce.edge_samples.tolist(),
+            "window_restarts_per_leg": self.tce.normal.restarts.tolist(),
             "final": {leg.name: {"stiffness_n_per_m": clean(e.stiffness_n_per_m),
                                  "damping_ns_per_m": clean(e.damping_ns_per_m), "confidence": e.confidence,
                                  "valid": e.valid, "samples": e.samples} for leg, e in zip(LEGS, estimates)},
