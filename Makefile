@@ -28,7 +28,7 @@ experiments: bootstrap
 	@$(ENV) && python -m tal_lab.swbc_experiments --out results/swbc \
 		&& python -m tal_lab.stance_experiments --out results/stance \
 		&& python -m tal_lab.estimation_experiments --out results/estimation \
-		&& python -m tal_sim2real benchmark --out results/sim2real --data data/sim2real --count 30 --jobs 2 \
+		&& python -m tal_sim2real benchmark --out results/sim2real --data data/sim2real --count 30 --jobs 2 --out-of-library 3 \
 		&& python -m tal_sim2real mujoco --out results/sim2real/mujoco --data data/sim2real/mujoco \
 		&& python -m tal_lab.vital.eval_vfa --out results/vital && python -m tal_lab.vital.eval_vpa --out results/vital \
 		&& python -m tal_lab.vital.vpa_open_loop --out results/vital \
