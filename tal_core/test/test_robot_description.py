@@ -97,6 +97,19 @@ def test_solo12_uses_its_own_names_and_yaml_torque_limits() -> None:
     np.testing.assert_allclose(solo.torque_limits(np.zeros(12))[1], 2.7)
 
 
+def test_go1_is_configuration_only_with_its_urdf_names_limits_and_imu() -> None:
+    """Unitree Go1 from example-robot-data: Unitree's joint names (rear legs RL/RR mapped to LH/RH), the URDF's
+    own torque limits (hip and thigh 23.7, calf 35.55 N m), every knee pointing backwards, and the IMU pose
+    read from the URDF's imu_link (issue 32: no Go1 number in any algorithm)."""
+    go1 = load_robot_description("go1")
+    assert "go1" in shipped_robot_names()
+    assert go1.joint_names[RobotDescription.joint_index(Leg.LH, "KFE")] == "RL_calf_joint"
+    assert tuple(go1.foot_frames) == ("FL_foot", "FR_foot", "RL_foot", "RR_foot")
+    np.testing.assert_allclose(go1.torque_limits(np.zeros(12))[1], [23.7, 23.7, 35.55] * 4)
+    np.testing.assert_allclose(go1.imu_position_base_m, [-0.01592, -0.06659, -0.00617], atol=1e-12)
+    np.testing.assert_allclose(go1.base_quat_imu_xyzw, [0.0, 0.0, 0.0, 1.0], atol=1e-12)
+
+
 # ----------------------------------------------------------------------------------------------------
 # Locating files
 # ----------------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from tal_estimation.leg_odometry import LegImpedance, LegOdometry, LegOdometrySe
 
 G = 9.81
 DT_S = 0.003
-ROBOTS = ("hyq", "solo12")
+ROBOTS = ("hyq", "solo12", "go1")
 
 
 @cache

@@ -101,7 +101,7 @@ def standing_with_noisy_imu(name: str, settings: StateEstimatorSettings | None =
     return estimator, estimate, worst
 
 
-@pytest.mark.parametrize("name", ["solo12", "hyq"])
+@pytest.mark.parametrize("name", ["solo12", "hyq", "go1"])
 def test_standing_still_holds_position(name: str) -> None:
     """5 s standing on four legs, IMU at rest with white noise (which alone, without the legs' velocity
     updates, moves the estimate by about 5 mm): the leg odometry keeps the position within 1 mm."""
@@ -121,7 +121,7 @@ def test_standing_drifts_without_the_legs() -> None:
     assert estimate.legs.weight_sum == 4.0  # the legs were there, only unused
 
 
-@pytest.mark.parametrize("name", ["solo12", "hyq"])
+@pytest.mark.parametrize("name", ["solo12", "hyq", "go1"])
 def test_standing_without_noise_is_exact(name: str) -> None:
     """Consistent noiseless standing data leave the state exactly where it started."""
     model = robot(name)
@@ -278,7 +278,7 @@ def test_gap_forgets_the_velocity_but_not_the_position() -> None:
 # --------------------------------------------------------------------------------------------------------
 # (d) Standing initialisation
 # --------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["hyq", "solo12"])
+@pytest.mark.parametrize("name", ["hyq", "solo12", "go1"])
 def test_initialise_standing_puts_feet_on_the_ground(name: str) -> None:
     model = robot(name)
     estimator = StateEstimator(model)
