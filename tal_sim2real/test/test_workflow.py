@@ -93,6 +93,22 @@ def test_two_effects_in_different_subsystems_are_both_named(bags: Path, tmp_path
 
 
 @pytest.mark.slow
+def test_two_effects_in_one_subsystem_are_fitted_jointly(tmp_path: Path) -> None:
+    """Viscous 1.2 N m s/rad + Coulomb 2.5 N m in an 8 s trot (the benchmark's length and settings): each
+    fitted alone absorbs all the friction (viscous 2.48), and a joint fit started from both single values
+    counted it twice and stayed there (named viscous alone, +107 %); started again from halves when stuck,
+    both are named."""
+    effects = [HiddenEffect("joint_viscous_friction", {"joint_viscous_friction_nms_per_rad": 1.2}),
+               HiddenEffect("joint_coulomb_friction", {"joint_coulomb_friction_nm": 2.5})]
+    bag, _ = generate_hidden(tmp_path, "friction_pair", effects, seed=100)
+    result = identify(bag, SimModel.nominal(), Settings())
+    named = {f.candidate: f.values for f in result.named}
+    assert set(named) == {"joint_viscous_friction", "joint_coulomb_friction"}
+    assert named["joint_viscous_friction"]["joint_viscous_friction_nms_per_rad"] == pytest.approx(1.2, rel=0.1)
+    assert named["joint_coulomb_friction"]["joint_coulomb_friction_nm"] == pytest.approx(2.5, rel=0.1)
+
+
+@pytest.mark.slow
 def test_missing_torque_sensor_skips_only_the_effects_that_need_it(bags: Path, tmp_path: Path) -> None:
     """A bag without joint_states.effort and joint_command: torque-path effects are skipped with the
     signal named; the IMU check still runs."""
