@@ -102,8 +102,11 @@ SCENARIOS: dict[str, DatasetScenario] = {s.name: s for s in (
 )}
 
 
-class _DatasetRecorder:
-    """Writes the bridge's and the controller's messages of a closed-loop run into a bag."""
+class DatasetRecorder:
+    """Writes the bridge's and the controller's messages of a closed-loop run into a bag: ``on_step`` after
+    every physics step (sensors, ground truth; it reads ``core.sim.foot_contacts()``), ``on_tick`` after
+    every control tick (commands, gait). The closed-loop datasets and the MuJoCo recording
+    (``tal_lab.mujoco_hyq``) share it, so their bags have the same topics, rates and sensor noise."""
 
     def __init__(self, writer: BagWriter, scenario: DatasetScenario, config: ClosedLoopConfig,
                  joint_names: Sequence[str], seed: int, course: Course) -> None:
@@ -187,7 +190,7 @@ def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: 
     with BagWriter(out_dir) as writer:
         for topic, type_name in TOPIC_TYPES.items():
             writer.add_topic(topic, type_name)
-        recorder = _DatasetRecorder(writer, scenario, config, joint_names, seed, course)
+        recorder = DatasetRecorder(writer, scenario, config, joint_names, seed, course)
 
         def tick_hook(context: TickContext) -> None:
             if context.tick == 0:  # the state at t = 0, as the bridge publishes it before the first step

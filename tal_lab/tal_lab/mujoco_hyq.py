@@ -60,7 +60,7 @@ from tal_sim_bridge.effects import ActuatorModel, ModelEffects
 from tal_sim_bridge.physics import GRAVITY_M_S2, FootContact, RobotState
 
 from .closed_loop import FALL_HEIGHT_FRACTION, ClosedLoopConfig
-from .datasets import TOPIC_TYPES, DatasetError, DatasetScenario, _DatasetRecorder
+from .datasets import TOPIC_TYPES, DatasetError, DatasetRecorder, DatasetScenario
 
 LOG = logging.getLogger("tal.lab.mujoco")
 
@@ -370,7 +370,7 @@ def record_trot(
     with BagWriter(bag) as writer:
         for topic, type_name in TOPIC_TYPES.items():
             writer.add_topic(topic, type_name)
-        recorder = _DatasetRecorder(writer, scenario, config, description.joint_names, seed, course)
+        recorder = DatasetRecorder(writer, scenario, config, description.joint_names, seed, course)
         start = sim.robot_state()
         recorder.on_step(0.0, start, core)
         for k in tqdm(range(n_steps), desc="MuJoCo trot", unit="step", disable=not progress, mininterval=2.0):
