@@ -187,8 +187,8 @@ def rows_wbc(doc: dict) -> list[Row]:
         rows.append(
             Row(
                 g,
-                f"OSQP solve alone, {legs} stance legs, median",
-                ours["osqp_solve"]["median"],
+                f"QP solve alone (DAQP), {legs} stance legs, median",
+                ours["qp_solve"]["median"],
                 "ms",
                 reference=THESIS_QP,
             )

@@ -40,8 +40,8 @@ WBC = {
     "goals_ms": {"median": 0.4, "p99": 1.5},
     "summary": {
         "ours": {
-            "4": {"cycle": _stats(0.6, 1.2), "osqp_solve": _stats(0.09), "not_solved": 0},
-            "2": {"cycle": _stats(0.8, 1.8), "osqp_solve": _stats(0.2), "not_solved": 1},
+            "4": {"cycle": _stats(0.6, 1.2), "qp_solve": _stats(0.09), "not_solved": 0},
+            "2": {"cycle": _stats(0.8, 1.8), "qp_solve": _stats(0.2), "not_solved": 1},
         },
         "tsid": {"4": {"cycle": _stats(0.12)}, "2": {"cycle": _stats(0.05)}},
     },

@@ -143,14 +143,41 @@ def test_invalid_references_are_rejected(model) -> None:
 
 
 def test_infeasible_problem_falls_back_without_raising(model) -> None:
+    """Every joint limited to 0.1 N m: the stance cannot be held. OSQP (200 iterations) finds neither the QP nor
+    its relaxed retry and the fallback decays the last torques; DAQP finds the relaxed retry's exact optimum
+    (stance given up, torques within their limits). Both count it as a fallback; neither raises."""
     q, v = standing_state(model)
     names = model.description.joint_names
-    wbc = StandardWbc(model, settings=WbcSettings(torque_limit_overrides_nm=tuple((n, 0.1) for n in names),
-                                                  max_iterations=200))
-    solution = wbc.solve(q, v, references(model))
+    limits = tuple((n, 0.1) for n in names)
+    osqp_wbc = StandardWbc(model, settings=WbcSettings(qp_solver="osqp", torque_limit_overrides_nm=limits,
+                                                       max_iterations=200))
+    solution = osqp_wbc.solve(q, v, references(model))
     assert solution.fallback and solution.status == "fallback"
-    assert wbc.failed_solves == 1
+    assert osqp_wbc.failed_solves == 1
     assert np.all(np.isfinite(solution.tau))
+    daqp_wbc = StandardWbc(model, settings=WbcSettings(torque_limit_overrides_nm=limits))
+    solution = daqp_wbc.solve(q, v, references(model))
+    assert solution.fallback and solution.status.startswith("relaxed stance")
+    assert daqp_wbc.failed_solves == 1
+    assert np.all(np.abs(solution.tau) <= 0.1 + 1e-6)
+
+
+def test_daqp_reaches_the_optimum_osqp_approaches(model) -> None:
+    """The default solver (DAQP) returns the QP's optimum: OSQP at a tight tolerance lands on the same joint
+    torques, and DAQP's objective is no worse than OSQP's at its default tolerance."""
+    q, v = standing_state(model)
+    refs = references(model, stance=(True, False, False, True))
+    exact = StandardWbc(model).solve(q, v, refs)
+    tight = StandardWbc(model, settings=WbcSettings(qp_solver="osqp", eps_abs=1e-9, eps_rel=1e-9,
+                                                    max_iterations=100000)).solve(q, v, refs)
+    assert not exact.fallback and exact.status == "solved"
+    assert np.allclose(exact.tau, tight.tau, atol=0.5)
+    assert np.allclose(exact.forces, tight.forces, atol=0.5)
+
+
+def test_unknown_qp_solver_is_rejected() -> None:
+    with pytest.raises(InputError, match="qp_solver"):
+        WbcSettings(qp_solver="quadprog")
 
 
 def test_fixed_pattern_matrix_keeps_explicit_zeros() -> None:

@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from tal_core.legs import NUM_LEGS
 
-INF = 1e30  # OSQP treats bounds beyond 1e30 as infinite
+INF = 1e30  # OSQP and DAQP treat bounds at or beyond 1e30 as infinite
 FRICTION_ROWS_PER_LEG = 5
 
 
