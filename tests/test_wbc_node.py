@@ -357,3 +357,15 @@ def test_a_tick_waiting_for_a_lost_answer_sends_its_gait_state_again(context, sp
         executor.shutdown()
         for node in (wbc, robot.node, producer):
             node.destroy_node()
+
+
+def test_an_unknown_startup_input_is_refused_with_the_known_ones(context) -> None:
+    from tal_core.errors import InputError
+
+    with pytest.raises(InputError, match=r"startup_inputs: unknown input\(s\) \['maps'\]; known: impedance"):
+        WbcNode(context=context, parameter_overrides=[Parameter("startup_inputs", value="impedance, maps")])
+    swbc = WbcNode(context=context, parameter_overrides=[Parameter("startup_inputs", value="impedance,footholds")])
+    try:  # the sWBC reads no impedance: only the footholds' producer is waited for at the start
+        assert swbc.policy.config.startup_inputs == ("footholds",)
+    finally:
+        swbc.destroy_node()

@@ -78,6 +78,10 @@ class TickPolicyConfig:
     waited_inputs: lagged inputs (``WbcTickPolicy.lagged``) a tick waits for, the previous tick's answer.
     waited_periods_ns: (name, P) of waited inputs answered every P [ns] of sim time (default: every tick).
     gait_driven: waited inputs computed from the wbc's gait_state (no first answer before the first tick).
+    startup_inputs: inputs only the first tick waits for (up to command_source_wait_s: a first answer, or for
+    gait-driven ones their producers' discovery), where later ticks do not wait (on the wall clock: the robot
+    starts once the nodes it listens to run; eight processes starting on two cores took 10-15 s, and a wbc
+    that started walking before them fell at 2-3 s, starved while they loaded).
     heightmap_period_ns: the heightmap's publishing period [ns] on the sim-time grid: a tick waits for the map
     due at it (0: maps are used as they arrive)."""
 
@@ -91,6 +95,7 @@ class TickPolicyConfig:
     waited_inputs: tuple[str, ...] = ()
     waited_periods_ns: tuple[tuple[str, int], ...] = ()
     gait_driven: tuple[str, ...] = ()
+    startup_inputs: tuple[str, ...] = ()
     heightmap_period_ns: int = 0
 
     def __post_init__(self) -> None:
@@ -213,7 +218,9 @@ class WbcTickPolicy:
         self._fed_s: float | None = None
         self._source_deadline_s = (None if config.command_source_wait_s <= 0.0
                                    else clock() + config.command_source_wait_s)
-        self._inputs_deadline_s = (None if config.command_source_wait_s <= 0.0 or not config.waited_inputs
+        # What the first tick waits for: the waited inputs and the startup-only ones.
+        self._first_waited = tuple(dict.fromkeys((*config.waited_inputs, *config.startup_inputs)))
+        self._inputs_deadline_s = (None if config.command_source_wait_s <= 0.0 or not self._first_waited
                                    else clock() + config.command_source_wait_s)
         self._waited = tuple(config.waited_inputs)
         self.unanswered_inputs: tuple[str, ...] = ()  # waited inputs that gave no first answer in time
@@ -258,9 +265,9 @@ class WbcTickPolicy:
             out.append("a cmd_vel_stamped publisher")
         if self._inputs_deadline_s is not None:
             gait_driven = self.config.gait_driven
-            out += [f"the first {name} answer" for name in self._waited
+            out += [f"the first {name} answer" for name in self._first_waited
                     if name not in gait_driven and name not in self._newest_lagged]
-            if any(name in gait_driven for name in self._waited) and not self.producers_ready():
+            if any(name in gait_driven for name in self._first_waited) and not self.producers_ready():
                 out.append("the footholds / body pose producers' gait_state subscriptions")
         out += [f"its {what}" for what in self.deferred_for if what != "waited inputs"]
         return tuple(out)
@@ -454,13 +461,14 @@ class WbcTickPolicy:
         newest = self._newest_lagged
         gait_driven = self.config.gait_driven
         if self._inputs_deadline_s is not None:  # the first tick: first answers and producers, or the deadline
-            answered = all(name in newest for name in self._waited if name not in gait_driven)
-            ready = not any(name in gait_driven for name in self._waited) or self.producers_ready()
+            first = self._first_waited
+            answered = all(name in newest for name in first if name not in gait_driven)
+            ready = not any(name in gait_driven for name in first) or self.producers_ready()
             if answered and ready:
                 self._inputs_deadline_s = None
             elif self.clock() > self._inputs_deadline_s:
                 self._inputs_deadline_s = None
-                lost = tuple(name for name in self._waited
+                lost = tuple(name for name in first
                              if (name in gait_driven and not ready) or (name not in gait_driven and name not in newest))
                 self.unanswered_inputs = lost
                 self._waited = tuple(name for name in self._waited if name not in lost)

@@ -83,6 +83,7 @@ from .tick_policy import Arrival, Mode, Tick, TickPolicyConfig, WbcTickPolicy
 from .tracking_stats import TrackingStats
 from .velocity_command import VelocityCommandInput
 from .wbc import WbcGains, WbcSettings
+from .wbc.swbc import QP_SOLVERS
 
 MODES = {Mode.NORMAL: WbcDiagnostics.MODE_NORMAL, Mode.FALLBACK: WbcDiagnostics.MODE_FALLBACK,
          Mode.SAFE: WbcDiagnostics.MODE_SAFE}
@@ -104,6 +105,8 @@ def _policy_counter(name: str, doc: str) -> property:
     return property(lambda node: getattr(node.policy.counters, name), doc=doc)
 
 
+STARTUP_INPUTS = ("impedance", "footholds", "body_pose")
+"""Inputs the first tick can wait for (``startup_inputs``): the TCE's first answer, the vfa's and vpa's discovery."""
 MAX_FALLBACK_TIMES = 200
 """QP fallbacks whose sim time the summary lists (where a run struggled)."""
 
@@ -121,7 +124,7 @@ class WbcNode(Node):
         self.gait = dataclasses.replace(GAITS[p["gait"]], **overrides)
         gains = WbcGains(K_x=p["K_x"], D_x=p["D_x"], K_theta=p["K_theta"], D_theta=p["D_theta"],
                          K_sw=p["K_sw"], D_sw=p["D_sw"], K_st=p["K_st"], D_st=p["D_st"])
-        settings = WbcSettings(contact_model=p["contact_model"],
+        settings = WbcSettings(contact_model=p["contact_model"], qp_solver=p["qp_solver"],
                                default_stiffness_n_per_m=p["terrain_stiffness_n_per_m"],
                                default_damping_ns_per_m=p["terrain_damping_ns_per_m"],
                                friction_coefficient=p["friction_coefficient"],
@@ -161,6 +164,7 @@ class WbcNode(Node):
                              waited_periods_ns=((("body_pose", round(p["body_pose_period_s"] * 1e9)),)
                                                 if p["body_pose_period_s"] > 0.0 else ()),
                              gait_driven=("footholds", "body_pose"),
+                             startup_inputs=self._startup_inputs(p),
                              heightmap_period_ns=round(p["heightmap_period_s"] * 1e9)),
             self.command_input, command_source_found=lambda: self.count_publishers("cmd_vel_stamped") > 0,
             producers_ready=self._gait_consumers_ready)
@@ -305,6 +309,9 @@ class WbcNode(Node):
             "pose_max_attitude_rate_rad_s": declare(self, "pose_max_attitude_rate_rad_s", 0.0,
                                                     "[rad/s] rate limit of the roll and pitch references "
                                                     "(0 = 0.3 rad/s)", low=0.0, high=10.0),
+            "qp_solver": declare(self, "qp_solver", "daqp",
+                                 "the QP solver: daqp (dense active set, the exact optimum) or osqp (ADMM, to "
+                                 "its tolerance 1e-4)", choices=QP_SOLVERS),
             "contact_model": declare(self, "contact_model", "rigid",
                                      "rigid (sWBC) or compliant (c3WBC; with impedance_source tce: STANCE)",
                                      choices=("rigid", "compliant")),
@@ -320,6 +327,10 @@ class WbcNode(Node):
             "wait_for_footholds": declare(self, "wait_for_footholds", False,
                                           "a tick waits for the vfa's answer to the previous tick's gait state "
                                           "(needs vfa answer_every_gait_state; lockstep: deterministic)"),
+            "startup_inputs": declare(self, "startup_inputs", "",
+                                      "comma-separated inputs (impedance, footholds, body_pose) whose producers "
+                                      "the first tick waits for (up to command_source_wait_s) even where later "
+                                      "ticks do not wait: on the wall clock the robot starts once they run"),
             "body_pose_period_s": declare(self, "body_pose_period_s", 0.0,
                                           "[s] > 0: a tick waits for the vpa's answers, one every this much gait "
                                           "time (its update_period_s; lockstep: deterministic); 0: no wait",
@@ -471,12 +482,22 @@ class WbcNode(Node):
             waited.append("body_pose")
         return tuple(waited)
 
+    @staticmethod
+    def _startup_inputs(p: dict) -> tuple[str, ...]:
+        names = tuple(name.strip() for name in p["startup_inputs"].split(",") if name.strip())
+        unknown = sorted(set(names) - set(STARTUP_INPUTS))
+        if unknown:
+            raise InputError(f"startup_inputs: unknown input(s) {unknown}; known: {', '.join(STARTUP_INPUTS)}")
+        uses_tce = p["contact_model"] == "compliant" and p["impedance_source"] == "tce"
+        return tuple(name for name in names if name != "impedance" or uses_tce)  # the sWBC reads no impedance
+
     def _gait_consumers_ready(self) -> bool:
         """Every node publishing a waited footholds / body_pose_reference topic has its gait_state subscription
         discovered (it will get the first tick's gait state), and there is one for each."""
         listeners = {info.node_name for info in self.get_subscriptions_info_by_topic("gait_state")}
+        config = self.policy.config
         for name, topic in (("footholds", "footholds"), ("body_pose", "body_pose_reference")):
-            if name in self.policy.config.waited_inputs:
+            if name in config.waited_inputs or name in config.startup_inputs:
                 producers = {info.node_name for info in self.get_publishers_info_by_topic(topic)}
                 if not producers or not producers <= listeners:
                     return False

@@ -411,6 +411,33 @@ def test_the_first_tick_waits_for_gait_driven_producers_to_be_discovered() -> No
     assert step(never, 4 * MS).tick is not None
 
 
+def test_startup_inputs_hold_only_the_first_tick() -> None:
+    """On the wall clock nothing is waited for after the start, but the robot starts once its producers run:
+    the first tick waits for the TCE's first answer and the vfa's discovery; the next ticks run without
+    the TCE's answers; a producer that never comes is given up at the deadline and said."""
+    clock, ready = FakeClock(), [False]
+    p = WbcTickPolicy(TickPolicyConfig(period_ns=PERIOD, command_source_wait_s=5.0, gait_driven=("footholds",),
+                                       startup_inputs=("impedance", "footholds")),
+                      VelocityCommandInput(1.0, 1.0), clock=clock, producers_ready=lambda: ready[0])
+    assert step(p, 0).tick is None
+    assert p.first_tick_waits_for() == ("the first impedance answer",
+                                        "the footholds / body pose producers' gait_state subscriptions")
+    assert p.lagged("impedance", 0, "k@0").tick is None  # the vfa is not there yet
+    ready[0] = True
+    assert step(p, 0).tick is not None
+    for k in range(1, 5):  # no answers to later ticks: nobody waits for them
+        assert step(p, 4 * k * MS).tick is not None, k
+    late = WbcTickPolicy(TickPolicyConfig(period_ns=PERIOD, command_source_wait_s=5.0,
+                                          startup_inputs=("impedance",)),
+                         VelocityCommandInput(1.0, 1.0), clock=clock)
+    assert step(late, 0).tick is None
+    clock.now_s += 6.0
+    assert step(late, 0).tick is not None and late.unanswered_inputs == ("impedance",)
+    assert step(late, 4 * MS).tick is not None
+    without_wait = policy(startup_inputs=("impedance",))  # command_source_wait_s 0: no wait at all
+    assert step(without_wait, 0).tick is not None
+
+
 def test_with_the_heightmap_period_a_tick_waits_for_the_map_due_at_it() -> None:
     """Maps every 50 ms: the tick at 4 ms waits for the map of 0 ms, the one at 56 ms for the map of 50 ms (it
     arrives after the joint state: DDS gives no order between topics); a map that comes after the tick that
