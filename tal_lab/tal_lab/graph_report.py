@@ -37,6 +37,7 @@ from tal_core.course_io import load_course
 from tal_core.legs import LEG_NAMES
 from tal_core.ros.bag_io import BagReader
 from tal_lab.run_report import FallInfo, fall_of, format_estimator, format_report
+from tal_lab.section_drift import SectionDrift, format_section_table
 
 SOFT_N_PER_M = 1e5  # [N/m] patches softer than this are shaded in the trajectory plot
 LOOKBACK_S = 2.5  # [s] the TCE window is 250 stance samples at 250 Hz: ~1.7 s of trot at duty factor 0.6
@@ -381,6 +382,27 @@ def fallbacks_by_section(times_s: list[float], series: BagSeries, course_name: s
     return ", ".join(f"{name} {len(xs)} (x {min(xs):.2f}-{max(xs):.2f} m)" for name, xs in where.items())
 
 
+SECTION_SAMPLE_S = 0.02  # [s] estimate samples fed to the per-section drift (50 Hz: sections last seconds)
+
+
+def estimator_sections(series: BagSeries, course_name: str) -> list[dict[str, object]]:
+    """The estimator's drift per course section (``SectionDrift``: rigid, T1, T2, stairs, landing, in the order
+    crossed) from the bag's estimate and ground truth (interpolated at the estimate's stamps); empty without
+    both tracks."""
+    if not series.estimate_position.size or series.t_s.size < 2:
+        return []
+    t = series.estimate_t_s
+    keep = (t >= series.t_s[0]) & (t <= series.t_s[-1])
+    step = max(1, int(round(SECTION_SAMPLE_S / max(float(np.median(np.diff(t))), 1e-6)))) if t.size > 1 else 1
+    t, estimate = t[keep][::step], series.estimate_position[keep][::step]
+    truth = np.column_stack([np.interp(t, series.t_s, series.position[:, j]) for j in range(3)])
+    course = load_course(course_name)
+    drift = SectionDrift(course.patch_at)
+    for t_s, p, e in zip(t, truth, estimate - truth):
+        drift.add(float(t_s), p, e)
+    return drift.summary()
+
+
 def build_report(run_dir: Path, title: str) -> str:
     bridge = load_json(run_dir / "bridge_summary.json")
     wbc = load_json(run_dir / "wbc_summary.json")
@@ -404,6 +426,10 @@ def build_report(run_dir: Path, title: str) -> str:
     if estimator is not None:
         report += format_estimator(estimator, fell=fall is not None, drift_at_fall_m=series.final_drift_m() if cut
                                    else None)
+    sections = estimator_sections(series, bridge["course"])
+    if sections:
+        report += ("\nDrift per course section (the estimate - ground truth accumulated over each stretch; the "
+                   "sections add up to the final drift):\n\n" + "\n".join(format_section_table(sections)) + "\n")
     rates = topic_rates(series.stamps, bridge.get("real_time_factor"))
     stiffness = stiffness_table(series, bridge["course"])
     resources = load_json(run_dir / "resources.json")
@@ -429,7 +455,7 @@ def build_report(run_dir: Path, title: str) -> str:
                "fall_links": [] if fall is None else list(fall.links),
                "links_touching_terrain": bridge["body_ground_contact"],
                "distance_m": distance if cut else (wbc.get("distance_m") if fall is None else None),
-               "command_latency_ms": bridge.get("command_latency_ms")}
+               "command_latency_ms": bridge.get("command_latency_ms"), "estimator_sections": sections}
     (run_dir / "graph_summary.json").write_text(json.dumps(summary, indent=1))
     return report
 

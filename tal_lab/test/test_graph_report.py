@@ -13,6 +13,7 @@ from tal_lab.graph_report import (
     BagSeries,
     bench_rates,
     build_report,
+    estimator_sections,
     fallbacks_by_section,
     read_bag,
     stiffness_table,
@@ -205,3 +206,24 @@ def test_qp_fallbacks_are_placed_on_the_course_by_the_base_track() -> None:
     text = fallbacks_by_section([8.0, 9.0, 27.0, 28.5, 29.0], series, "graph_tour")
     assert text == "soft_t1 2 (x 1.60-1.80 m), default 1 (x 5.40-5.40 m), stairs_up 2 (x 5.70-5.80 m)"
     assert fallbacks_by_section([], series, "graph_tour") == ""
+
+
+def test_the_estimator_drift_is_split_by_course_section() -> None:
+    """An estimate that gains 2 cm of z per metre on T1 (x 1.5-3 m) and nothing elsewhere: the T1 section holds
+    its +3 cm at +0.02 m/m, the rigid sections before and after none, and the sections add up to the final
+    drift (issue 32: the rate of drift per section in the report)."""
+    t = np.arange(0.0, 25.0, 0.004)
+    truth = np.stack([0.2 * t, np.zeros_like(t), np.full_like(t, 0.6)], axis=1)
+    t_est = np.arange(0.0, 25.0, 0.003)
+    x = 0.2 * t_est
+    z_error = 0.02 * np.clip(x - 1.5, 0.0, 1.5)
+    estimate = np.stack([x, np.zeros_like(x), 0.6 + z_error], axis=1)
+    sections = estimator_sections(BagSeries(t, truth, t_est, estimate, {}, {}), "graph_tour")
+    names = [s["name"] for s in sections]
+    assert names == ["default", "soft_t1", "moderate_t2", "default"]
+    by_name = {s["name"]: s for s in sections[:3]}
+    assert by_name["soft_t1"]["drift_m"][2] == pytest.approx(0.03, abs=1e-3)
+    assert by_name["soft_t1"]["z_drift_per_m"] == pytest.approx(0.02, abs=1e-3)
+    assert abs(by_name["default"]["drift_m"][2]) < 1e-9 and abs(by_name["moderate_t2"]["drift_m"][2]) < 1e-3
+    assert sum(s["drift_m"][2] for s in sections) == pytest.approx(z_error[-1], abs=1e-3)
+    assert estimator_sections(BagSeries(t, truth, np.zeros(0), np.zeros((0, 3)), {}, {}), "graph_tour") == []
