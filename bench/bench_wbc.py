@@ -377,7 +377,7 @@ def report(summary: dict) -> str:
         "",
         f"Goals: median <= {GOAL_MEDIAN_MS} ms, p99 <= {GOAL_P99_MS} ms (tal sWBC cycle).",
         "",
-        "| tal sWBC, stance legs | model.update median [ms] | wbc.solve median [ms] | QP solve (DAQP) median / "
+        "| tal sWBC, stance legs | model.update median [ms] | wbc.solve median [ms] | QP solve (OSQP) median / "
         "p99 [ms] | QP iterations median / p99 / max | not solved | first solve [ms] | median sum Fz [N] | "
         "median norm(tau) [N m] |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",

@@ -155,7 +155,7 @@ def test_infeasible_problem_falls_back_without_raising(model) -> None:
     assert solution.fallback and solution.status == "fallback"
     assert osqp_wbc.failed_solves == 1
     assert np.all(np.isfinite(solution.tau))
-    daqp_wbc = StandardWbc(model, settings=WbcSettings(torque_limit_overrides_nm=limits))
+    daqp_wbc = StandardWbc(model, settings=WbcSettings(qp_solver="daqp", torque_limit_overrides_nm=limits))
     solution = daqp_wbc.solve(q, v, references(model))
     assert solution.fallback and solution.status.startswith("relaxed stance")
     assert daqp_wbc.failed_solves == 1
@@ -163,16 +163,30 @@ def test_infeasible_problem_falls_back_without_raising(model) -> None:
 
 
 def test_daqp_reaches_the_optimum_osqp_approaches(model) -> None:
-    """The default solver (DAQP) returns the QP's optimum: OSQP at a tight tolerance lands on the same joint
-    torques, and DAQP's objective is no worse than OSQP's at its default tolerance."""
+    """DAQP returns the QP's optimum: OSQP at a tight tolerance lands on the same joint torques and forces."""
     q, v = standing_state(model)
     refs = references(model, stance=(True, False, False, True))
-    exact = StandardWbc(model).solve(q, v, refs)
+    exact = StandardWbc(model, settings=WbcSettings(qp_solver="daqp")).solve(q, v, refs)
     tight = StandardWbc(model, settings=WbcSettings(qp_solver="osqp", eps_abs=1e-9, eps_rel=1e-9,
                                                     max_iterations=100000)).solve(q, v, refs)
     assert not exact.fallback and exact.status == "solved"
     assert np.allclose(exact.tau, tight.tau, atol=0.5)
     assert np.allclose(exact.forces, tight.forces, atol=0.5)
+
+
+def test_force_rate_regularisation_keeps_the_forces_near_the_last_ones(model) -> None:
+    """w ||F - F_prev||^2: after a solve on four feet, the same state with the wrench reference moved sideways
+    gives forces closer to the previous ones with the term than without it."""
+    q, v = standing_state(model)
+    refs = references(model)
+    moved = WbcReferences(**{**refs.__dict__, "com_position": refs.com_position + np.array([0.0, 0.05, 0.0])})
+    changes = []
+    for w in (0.0, 1.0):
+        wbc = StandardWbc(model, settings=WbcSettings(qp_solver="daqp", force_rate_regularisation=w))
+        first = wbc.solve(q, v, refs)
+        second = wbc.solve(q, v, moved)
+        changes.append(float(np.abs(second.forces - first.forces).max()))
+    assert changes[1] < 0.9 * changes[0]
 
 
 def test_unknown_qp_solver_is_rejected() -> None:

@@ -13,11 +13,13 @@ W_com is the centroidal wrench of the contact forces about the CoM (world frame)
 sum (p_i - c) x F_i), which equals J_st,com^T F of the thesis' CoM coordinates; the dynamics rows use
 Pinocchio's base coordinates (first 6 rows of M qdd + h = S^T tau + J^T F), an equivalent constraint.
 
-Solvers (``WbcSettings.qp_solver``): "daqp" (default), a dual active-set solver for small dense QPs, which
-returns the exact optimum; "osqp" (ADMM, sparse) stops at its tolerance. The QP's cost barely penalises
-forces that cancel between stance legs (regularisation 1e-5), so OSQP's stopping point at eps 1e-4 left the
-joint torques 26-35 N m (median, bench states) from the optimum that DAQP reaches, with a worse objective
-and constraint violations of ~1e-3; DAQP also takes 4x less time than OSQP's update and solve.
+Solvers (``WbcSettings.qp_solver``): "osqp" (default; ADMM, sparse, warm-started) stops at its tolerance;
+"daqp", a dual active-set solver for small dense QPs, returns the exact optimum in 4x less time than OSQP's
+update and solve. The QP's cost barely penalises forces that cancel between stance legs (regularisation
+1e-5), so OSQP's stopping point at eps 1e-4 leaves the joint torques 25-35 N m (median, bench states) from
+the optimum. OSQP stays the default because HyQ walks the stairs better with it: ViTAL's stairs at 0.2-0.5
+m/s from 3 starts each, 9 of 12 with OSQP (3 leg collisions), 6 of 12 with DAQP, 9 of 12 with DAQP and
+force_rate_regularisation 0.1 (12 leg collisions).
 """
 
 from __future__ import annotations
@@ -80,6 +82,10 @@ class WbcSettings:
     wrench_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0)   # Q: Fx Fy Fz Tx Ty Tz
     qdd_regularisation: float = 1e-6
     force_regularisation: float = 1e-5
+    # w ||F - F_prev||^2: contact forces kept near the previous cycle's (0: off). With DAQP's exact optimum the
+    # joint torques jumped more from tick to tick than with OSQP's warm-started stopping point (trot 0.5 m/s,
+    # p99 of the largest step 59.7 against 28.7 N m); w = 0.1 brought it to 25.1 N m.
+    force_rate_regularisation: float = 0.0
     torque_regularisation: tuple[float, ...] | None = None   # R_tau per joint: R_FF = J_j R_tau J_j^T
     slack_weight: float = 1e4          # alpha, high: slacks only where the swing task must give way
     friction_coefficient: float = 0.8
@@ -90,7 +96,7 @@ class WbcSettings:
     joint_limit_horizon_periods: int = 10
     control_period_s: float = 0.004
     max_iterations: int = 4000
-    qp_solver: str = "daqp"            # "daqp" (dense active set, exact optimum) or "osqp" (ADMM, to eps_abs/rel)
+    qp_solver: str = "osqp"            # "osqp" (ADMM, to eps_abs/rel) or "daqp" (dense active set, exact optimum)
     # 1e-4 is ample for forces of hundreds of newtons and cuts OSQP's iterations on two-leg stances
     # from ~300 to ~25 (measured on HyQ trot states).
     eps_abs: float = 1e-4
@@ -399,6 +405,10 @@ class StandardWbc:
             P[sl["force"], sl["force"]] += J_joints @ np.diag(r_tau) @ J_joints.T
         q_cost = np.zeros(lay.n_vars)
         q_cost[sl["force"]] = -A_F.T @ self._Q @ wrench_d
+        w_rate = s.force_rate_regularisation
+        if w_rate > 0.0 and self._last is not None:
+            P[sl["force"], sl["force"]] += w_rate * np.eye(lay.n_force)
+            q_cost[sl["force"]] -= w_rate * self._last.forces.ravel()
         if self.compliant:
             # w ||eps||^2 with eps = dt^2 u + offset: the linear term w dt^2 offset on u.
             dt = self.settings.control_period_s
