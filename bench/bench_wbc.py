@@ -51,6 +51,7 @@ with requires_env("bench_wbc"):
     import pinocchio as pin
 
     from tal_control.wbc import StandardWbc, WbcReferences, WbcSettings
+    from tal_control.wbc.swbc import QP_SOLVERS
     from tal_control.wbc.tasks import WbcGains
     from tal_core.legs import NUM_LEGS
     from tal_core.robot_description import find_example_robot_data_dir
@@ -362,7 +363,8 @@ def report(summary: dict) -> str:
         "| controller | stance legs | median [ms] | p99 [ms] | ratio to TSID (median) |",
         "| --- | --- | --- | --- | --- |",
     ]
-    for side, label in (("ours", "tal sWBC (OSQP)"), ("tsid", "TSID 1.7.1 (HQuadProgFast)")):
+    solver = str(summary.get("qp_solver", "osqp")).upper()
+    for side, label in (("ours", f"tal sWBC ({solver})"), ("tsid", "TSID 1.7.1 (HQuadProgFast)")):
         for group in map(str, GROUPS):
             s = summary[side].get(group) if summary.get(side) else None
             t = summary["tsid"].get(group) if summary.get("tsid") else None
@@ -377,7 +379,7 @@ def report(summary: dict) -> str:
         "",
         f"Goals: median <= {GOAL_MEDIAN_MS} ms, p99 <= {GOAL_P99_MS} ms (tal sWBC cycle).",
         "",
-        "| tal sWBC, stance legs | model.update median [ms] | wbc.solve median [ms] | QP solve (OSQP) median / "
+        "| tal sWBC, stance legs | model.update median [ms] | wbc.solve median [ms] | QP solve median / "
         "p99 [ms] | QP iterations median / p99 / max | not solved | first solve [ms] | median sum Fz [N] | "
         "median norm(tau) [N m] |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
@@ -444,6 +446,8 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=2, help="alternating rounds per side (default 2)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--no-tsid", action="store_true", help="our side only (no TSID venv needed)")
+    parser.add_argument("--qp-solver", choices=QP_SOLVERS, default=WbcSettings().qp_solver,
+                        help="our QP solver (default: WbcSettings'; another one writes bench_wbc_<solver>.json)")
     add_wait_quiet_option(parser)
     parser.add_argument(
         "--profile",
@@ -459,7 +463,7 @@ def main() -> int:
     load_at_start = settle_machine(args.wait_quiet, progress)
     cpu_at_start = cpu_snapshot()
     model = RobotModel.from_name("hyq")
-    settings, gains = WbcSettings(), WbcGains()
+    settings, gains = WbcSettings(qp_solver=args.qp_solver), WbcGains()
     progress(f"generating 2 x {n} states (seed {args.seed}) -> {STATES_PATH.relative_to(ROOT)}")
     states = generate_states(model, n, args.seed)
     np.savez(STATES_PATH, seed=np.array(args.seed), **states, **problem_metadata(model, settings, gains))
@@ -487,7 +491,7 @@ def main() -> int:
                 progress(f"TSID side stopped: {tsid_error}")
                 tsid_rounds = []
 
-    summary: dict = {"ours": {}, "tsid": {}}
+    summary: dict = {"ours": {}, "tsid": {}, "qp_solver": args.qp_solver}
     for group in map(str, GROUPS):
         summary["ours"][group] = {
             "cycle": latency_stats(pool(ours_rounds, group, "cycle_ms")),
@@ -551,6 +555,7 @@ def main() -> int:
             "pinocchio": pin.__version__,
             "tsid": tsid_rounds[0]["versions"] if tsid_rounds else None,
         },
+        "qp_solver": args.qp_solver,
         "states_per_sequence": n,
         "rounds": args.rounds,
         "seed": args.seed,
@@ -563,7 +568,8 @@ def main() -> int:
         "table_markdown": table,
         "raw": {"ours": ours_rounds, "tsid": [t["groups"] for t in tsid_rounds]},
     }
-    write_json("bench_wbc", document, log=progress)
+    default_solver = args.qp_solver == WbcSettings().qp_solver
+    write_json("bench_wbc" if default_solver else f"bench_wbc_{args.qp_solver}", document, log=progress)
     return 0
 
 
