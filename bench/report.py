@@ -187,7 +187,7 @@ def rows_wbc(doc: dict) -> list[Row]:
         rows.append(
             Row(
                 g,
-                f"QP solve alone (OSQP), {legs} stance legs, median",
+                f"QP solve alone ({str(doc.get('qp_solver', 'osqp')).upper()}), {legs} stance legs, median",
                 ours["qp_solve"]["median"],
                 "ms",
                 reference=THESIS_QP,

@@ -1,4 +1,4 @@
-"""The passive whole-body controller (sWBC) of the thesis, solved with DAQP (dense active set) or OSQP.
+"""The passive whole-body controller (sWBC) of the thesis, solved with OSQP or DAQP (dense active set).
 
     min  || W_com(F) - W_com,d ||_Q^2 + ||u||_R^2 + alpha ||eta||^2        u = [qdd, F, eta]
     s.t. M_u qdd + h_u = J_st,u^T F                     (floating-base dynamics, 6 rows)
@@ -304,14 +304,14 @@ class StandardWbc:
     def _run_qp(self, P, q_cost, A, lower, upper, relaxed: bool = False) -> tuple[np.ndarray, QpInfo] | None:
         """(x, info) of the QP, or None (non-finite data, infeasible, or not solved within the limits).
         relaxed: the retry after a failed solve (DAQP: the joint-limit rows may then give way too)."""
+        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(A)) and np.all(np.isfinite(q_cost))
+                and not np.any(np.isnan(lower)) and not np.any(np.isnan(upper))):
+            return None
         if self.settings.qp_solver == "daqp":
             return self._run_daqp(P, q_cost, A, lower, upper, relaxed)
         return self._run_osqp(P, q_cost, A, lower, upper)
 
     def _run_daqp(self, P, q_cost, A, lower, upper, relaxed: bool) -> tuple[np.ndarray, QpInfo] | None:
-        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(A)) and np.all(np.isfinite(q_cost))
-                and not np.any(np.isnan(lower)) and not np.any(np.isnan(upper))):
-            return None
         # Rows with equal bounds are equalities (the dynamics, the stance tasks, pinned forces and slacks);
         # bounds at +-INF (1e30, DAQP's infinity too) are absent.
         sense = np.where(lower == upper, DAQP_EQUALITY, 0).astype(np.int32)
@@ -331,9 +331,6 @@ class StandardWbc:
         P_values = self.P_pattern.values_from(P)
         A_values = self.A_pattern.values_from(A)
         s = self.settings
-        if not (np.all(np.isfinite(P_values)) and np.all(np.isfinite(A_values)) and np.all(np.isfinite(q_cost))
-                and not np.any(np.isnan(lower)) and not np.any(np.isnan(upper))):
-            return None
         if self._solver is None:
             self._solver = osqp.OSQP()
             self._solver.setup(self.P_pattern.with_values(P_values), q_cost,
