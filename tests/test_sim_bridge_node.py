@@ -199,3 +199,33 @@ def test_realtime_physics_waits_for_the_first_command(context, spin_until) -> No
     finally:
         executor.shutdown()
         bridge.destroy_node()
+
+
+def test_a_waiting_lockstep_tick_sends_the_last_heightmap_again_for_a_late_subscriber(context, spin_until) -> None:
+    """DDS drops what a writer publishes before it has matched a late reader; a map consumer (vfa, vpa, tce)
+    holds its answer for the map due at its tick, so a lockstep bridge whose tick waits re-sends its last map
+    (the tour once stalled 2 s on a vpa whose heightmap subscription matched after the 0.05 s map)."""
+    bridge = SimBridgeNode(context=context, parameter_overrides=[
+        Parameter("course", value="flat_rigid"), Parameter("lockstep_timeout_s", value=60.0)])
+    controller = StandControllerNode(context=context)
+    executor = SingleThreadedExecutor(context=context)
+    for node in (bridge, controller):
+        executor.add_node(node)
+    late = rclpy.create_node("late_map_consumer", context=context)
+    stamps: list[int] = []
+    try:
+        assert spin_until(executor, lambda: bridge.core.sim.time_ns >= 60_000_000, 60.0)
+        executor.remove_node(controller)  # the controller stops answering: the bridge waits at its tick
+        waiting_at = bridge.core.sim.time_ns
+        assert bridge.heightmap_resends == 0
+        late.create_subscription(HeightMap, "terrain/heightmap",
+                                 lambda msg: stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec), 10)
+        executor.add_node(late)
+        assert spin_until(executor, lambda: 50_000_000 in stamps, 20.0), (stamps, bridge.heightmap_resends)
+    finally:
+        executor.shutdown()
+        for node in (bridge, controller, late):
+            node.destroy_node()
+    assert bridge.core.sim.time_ns == waiting_at and bridge.gate.timeouts == 0  # it waited, and sent the map
+    assert set(stamps) == {50_000_000} and bridge.heightmap_resends >= 1
+    assert bridge.summary()["heightmap_resends"] == bridge.heightmap_resends

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections import deque
+
 NS_PER_S = 1_000_000_000
 TICK_TOLERANCE_NS = 100_000  # [ns] stamps are exact multiples of the physics step; absorb rounding
 CLOCK_RESET_NS = 500_000_000  # [ns] a stamp this far behind the last one is a restarted clock, not reordering
@@ -31,7 +33,9 @@ class StampedInbox:
     producer publishes on the sim-time grid k * period_ns, as the bridge its heightmap) the consumer can ask
     ``awaited(tick)`` for the input due at a tick that has not arrived yet, and hold the tick until it does.
     An input newer than all before it that arrives after a tick that should have used it is counted in ``late``
-    (its tick used an older one: the run then depends on delivery order); repeats are not.
+    (its tick used an older one: the run then depends on delivery order). An input with a stamp already
+    received (a producer re-sending what a late-matched consumer may have missed) is dropped, counted in
+    ``repeats``.
 
     At most ``keep`` inputs are held (the oldest are dropped, counted); inputs from before a restarted clock
     (stamped more than ``CLOCK_RESET_NS`` after the tick asking) are forgotten."""
@@ -45,6 +49,8 @@ class StampedInbox:
         self.period_ns = int(period_ns)
         self.dropped = 0
         self.late = 0
+        self.repeats = 0
+        self._recent: deque[int] = deque(maxlen=keep)  # stamps received, newest last (repeats)
         self._items: list[tuple[int, int, object]] = []  # (stamp, arrival, item)
         self._arrivals = 0
         self._newest_ns: int | None = None   # the newest stamp received (awaited)
@@ -57,6 +63,10 @@ class StampedInbox:
         stamp_ns = int(stamp_ns)
         if self._newest_ns is not None and stamp_ns + CLOCK_RESET_NS < self._newest_ns:
             self.clear()  # the producer's clock restarted
+        if stamp_ns in self._recent:
+            self.repeats += 1
+            return
+        self._recent.append(stamp_ns)
         if self._cutoff_ns is not None and stamp_ns <= self._cutoff_ns and (self._newest_ns is None
                                                                           or stamp_ns > self._newest_ns):
             self.late += 1  # newer than anything before, yet a tick has passed that should have used it
@@ -71,6 +81,7 @@ class StampedInbox:
     def clear(self) -> None:
         """Forget the held inputs and what arrived (a restarted clock)."""
         self._items.clear()
+        self._recent.clear()
         self._newest_ns = self._cutoff_ns = None
 
     def due_stamp(self, tick_ns: int) -> int | None:

@@ -56,8 +56,10 @@ def test_an_inbox_with_the_producers_period_says_which_input_a_tick_awaits_and_c
     assert inbox.has_due(4 * MS) and not inbox.has_due(0) and inbox.due(4 * MS) == [(0, "map@0")]
     assert inbox.due(58 * MS) == [] and inbox.late == 0
     inbox.add(50 * MS, "map@50")                    # after the 58 ms tick, which should have used it
-    inbox.add(50 * MS, "map@50")                    # a repeat is not late again
-    assert inbox.late == 1
+    inbox.add(50 * MS, "map@50")                    # a repeat is not late again, and is dropped
+    assert inbox.late == 1 and inbox.repeats == 1 and inbox.due(104 * MS) == [(50 * MS, "map@50")]
+    inbox.add(50 * MS, "map@50 re-sent")            # already handed over: dropped too
+    assert inbox.repeats == 2 and inbox.due(108 * MS) == []
     inbox.add(100 * MS, "map@100")                  # a newer map will do
     assert inbox.awaited(54 * MS) is None and inbox.awaited(104 * MS) is None and inbox.awaited(154 * MS) == 150 * MS
     assert StampedInbox(lag_ns=4 * MS).awaited(54 * MS) is None  # without a period nothing is awaited

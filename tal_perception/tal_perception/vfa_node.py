@@ -245,7 +245,7 @@ class VfaNode(Node):
         timing = np.array(self.selection_ms)
         return {
             "selector": self.selector_name, "gait_states": self.gait_states, "heightmaps": self.maps,
-            "duplicate_heightmaps": self.duplicate_maps, "late_maps": self.maps_inbox.late,
+            "duplicate_heightmaps": self.duplicate_maps + self.maps_inbox.repeats, "late_maps": self.maps_inbox.late,
             "gait_states_held_for_maps": self.held.held_ticks,
             "gait_states_released_without_map": self.held.released_late, "answers_resent": self.answers.resent,
             "published_messages": self.published_messages, "published_footholds": self.published_footholds,

@@ -8,6 +8,9 @@ Modes:
     at (or after) the current control tick arrives, so results do not depend on machine speed. If no
     command arrives within lockstep_timeout_s of wall time the bridge advances anyway with the held
     command and counts a lockstep timeout (a controller that never starts cannot freeze the graph).
+    While a tick waits longer than MAP_RESEND_AFTER_S the last heightmap is sent again (counted): DDS drops
+    what a writer publishes before it has matched a late reader, and a map consumer (vfa, vpa, tce, wbc)
+    holds its tick for the map due at it. Consumers drop a map stamp they already have.
   * realtime: physics follows the wall clock (steady time) from the first command (the initial state is
     re-sent until a controller answers, at most startup_timeout_s), catching up at most max_catch_up_steps
     per timer call; falling behind is counted as overruns.
@@ -49,6 +52,9 @@ from .latency import CommandLatency
 from .physics import Simulation
 from .sensor_messages import SensorWriters
 from .stepping import LockstepGate, OutputSchedule, RealtimePacer
+
+MAP_RESEND_AFTER_S = 0.5
+"""[s] of wall time a lockstep tick waits before the last heightmap is sent again (then once per this period)."""
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
     "actuator_delay_s": (0.0, "[s] transport delay of the joint torques"),
@@ -105,6 +111,9 @@ class SimBridgeNode(Node):
         self._run_start_s = self.pacer.start_s
         self._started_without_command = False
         self._last_resend_s = self._run_start_s
+        self._last_heightmap: bytes | None = None  # the last map published, raw CDR (re-sent while a tick waits)
+        self._last_map_resend_s = 0.0
+        self.heightmap_resends = 0
         self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
 
         qos_sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -243,6 +252,8 @@ class SimBridgeNode(Node):
             # first command arrives. Consumers drop the repeated stamp as not newer.
             self._publish_step_outputs(force_all=True, record=False)
             self.initial_state_repeats += 1
+        else:
+            self._resend_heightmap_while_waiting(time.monotonic())
         # Before the first command, give DDS discovery time (seconds with LOCALHOST discovery).
         timeout = self.gate.timed_out(time.monotonic(), self.core.commands.accepted)
         if timeout is not None:
@@ -251,6 +262,16 @@ class SimBridgeNode(Node):
                 f"{timeout} s; advancing with the held command "
                 f"({self.gate.timeouts} timeouts)", throttle_duration_sec=1.0)
             self._advance_control_period()
+
+    def _resend_heightmap_while_waiting(self, now: float) -> None:
+        """A tick waiting MAP_RESEND_AFTER_S (wall time): send the last heightmap again, once per that period (a
+        consumer whose subscription matched after it was published holds its answer for it)."""
+        if (self._last_heightmap is None or now - self.gate.waiting_since_s < MAP_RESEND_AFTER_S
+                or now - self._last_map_resend_s < MAP_RESEND_AFTER_S):
+            return
+        self.pub_heightmap.publish(self._last_heightmap)
+        self.heightmap_resends += 1
+        self._last_map_resend_s = now
 
     # -- stepping ---------------------------------------------------------------------------------------
     def _advance_control_period(self) -> None:
@@ -324,7 +345,8 @@ class SimBridgeNode(Node):
         grid = extract_heightmap(self.core.sim.course, (state.base_position_m[0], state.base_position_m[1]), yaw,
                                  rows=p["heightmap_rows"], cols=p["heightmap_cols"],
                                  resolution_m=p["heightmap_resolution_m"])
-        self.pub_heightmap.publish(self.writers.heightmap(stamp_ns, grid))
+        self._last_heightmap = self.writers.heightmap(stamp_ns, grid)
+        self.pub_heightmap.publish(self._last_heightmap)
 
     # -- end of run -------------------------------------------------------------------------------------
     def _fall_ends_run(self) -> bool:
@@ -357,7 +379,7 @@ class SimBridgeNode(Node):
     def summary(self) -> dict[str, object]:
         summary = self.core.summary(time.monotonic() - self._run_start_s)
         summary.update(mode=self.mode, lockstep_timeouts=self.gate.timeouts,
-                       initial_state_repeats=self.initial_state_repeats,
+                       initial_state_repeats=self.initial_state_repeats, heightmap_resends=self.heightmap_resends,
                        realtime_overruns=self.pacer.overruns, stop_on_fall=bool(self.params["stop_on_fall"]),
                        stopped_on_fall=self.stopped_on_fall, command_latency_ms=self.latency.summary())
         return summary
