@@ -26,7 +26,7 @@ import dataclasses
 import logging
 import shutil
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,7 +42,7 @@ from tal_core.terrain import Course, load_course
 from tal_lab.closed_loop import ClosedLoopConfig, Command, TickContext, run_closed_loop
 from tal_sim_bridge.bridge_core import BridgeCore, ImuModel
 from tal_sim_bridge.effects import ModelEffects
-from tal_sim_bridge.physics import RobotState
+from tal_sim_bridge.physics import RobotState, Simulation
 from tal_sim_bridge.sensor_messages import (
     contact_state_message,
     heightmap_message,
@@ -175,9 +175,13 @@ TOPIC_TYPES = {
 
 
 def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: int = 0,
-             progress: bool = True) -> dict[str, object]:
+             progress: bool = True, sim_setup: Callable[[Simulation], None] | None = None) -> dict[str, object]:
     """Run ``scenario`` for ``duration_s`` [s] of sim time and write the bag ``out_dir`` (replaced if it
-    exists). Returns its manifest entry. Raises DatasetError when the robot falls."""
+    exists). Returns its manifest entry. Raises DatasetError when the robot falls.
+
+    ``sim_setup`` is called once with the simulated robot before its first physics step: physics the bridge's
+    global ``ModelEffects`` cannot express (tal_sim2real's sealed per-link and per-joint effects). The
+    controller never sees it; the manifest does not describe it."""
     out_dir = Path(out_dir)
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -194,6 +198,8 @@ def generate(scenario: DatasetScenario, out_dir: Path, duration_s: float, seed: 
 
         def tick_hook(context: TickContext) -> None:
             if context.tick == 0:  # the state at t = 0, as the bridge publishes it before the first step
+                if sim_setup is not None:
+                    sim_setup(context.core.sim)
                 recorder.on_step(0.0, context.state, context.core)
             recorder.on_tick(context)
 

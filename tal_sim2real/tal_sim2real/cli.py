@@ -85,7 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     p_b.add_argument("--count", type=int, default=30)
     p_b.add_argument("--seed", type=int, default=0)
     p_b.add_argument("--jobs", type=int, default=2)
-    p_b.add_argument("--out-of-library", type=int, default=3, help="datasets with an effect the library lacks")
+    p_b.add_argument(
+        "--out-of-library", type=int, default=3, help="datasets with a per-joint effect the library lacks (default 3)"
+    )
+    p_b.add_argument(
+        "--variants", type=int, default=3, help="datasets with a per-leg / per-joint effect of a library variant"
+    )
     p_mj = sub.add_parser("mujoco", help="a HyQ trot recorded in MuJoCo as the measured side (issue 34)")
     p_mj.add_argument("--out", type=Path, default=Path("results/sim2real/mujoco"), help="results page and plots")
     p_mj.add_argument("--data", type=Path, default=Path("data/sim2real/mujoco"), help="where the bags go")
@@ -110,9 +115,10 @@ def main(argv: list[str] | None = None) -> int:
         else:
             from .benchmark import run_benchmark
 
-            print(
-                f"summary: {run_benchmark(args.out, args.data, args.count, args.seed, args.jobs, args.out_of_library)}"
+            summary = run_benchmark(
+                args.out, args.data, args.count, args.seed, args.jobs, args.out_of_library, args.variants
             )
+            print(f"summary: {summary}")
     except Sim2RealError as exc:
         LOG.error("%s", exc)
         return 2

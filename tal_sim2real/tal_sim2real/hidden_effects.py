@@ -55,15 +55,34 @@ EFFECT_TYPES = (
     "payload",
     "imu_bias",
 )
-OUT_OF_LIBRARY_TYPES = ("encoder_offset", "leg_torque_sensor_gain")
-"""Sensor effects applied to the recorded joint states after the run (the robot and its controller never see
-them): a constant offset of one joint's encoder [rad] (``joint``: its index), and a gain of one leg's three
-torque sensors [-] (``leg``: 0-3 as LF, RF, LH, RH). They were outside the workflow's library; since issue 34
-item 3 the library has their per-joint / per-leg variants (``library.VARIANTS``), so the benchmark scores them
-as in-library cases: named, for the right joint or leg, with the parameter error (the label carries the
-joint and the leg). The name is kept for the ``outlib_NN`` datasets and the ``--out-of-library`` option."""
-VARIANT_TYPES = OUT_OF_LIBRARY_TYPES
-"""Generated effects that the library names as per-leg / per-joint variants."""
+VARIANT_TYPES = ("encoder_offset", "leg_torque_sensor_gain", "leg_link_mass")
+"""Per-joint / per-leg effects the library names as variants (``library.VARIANTS``, issue 34 item 3); the label
+carries the joint and the leg, the scorer checks the variant is named there (``benchmark.VARIANT_SCORING``):
+
+* ``encoder_offset``: a constant offset of one knee's encoder [rad] (``joint``: its index), applied to the
+  recorded joint states (the robot and its controller never see it);
+* ``leg_torque_sensor_gain``: a gain of one leg's three torque sensors [-] (``leg``: 0-3 as LF, RF, LH, RH),
+  applied to the recording;
+* ``leg_link_mass``: extra mass [kg] at the centre of mass of one leg's lower link (a sensor box or a repair
+  clamp on the shin), applied to the simulated robot (``links.LowerLinkMasses``); the controller keeps the
+  nominal masses."""
+OUT_OF_LIBRARY_TYPES = ("joint_spring", "valve_dead_band", "torque_sensor_offset")
+"""Per-joint effects the library lacks (issue 34 item 6), each on one joint (``joint``: its index), so the
+benchmark can check that the report says the library does not explain them and where:
+
+* ``joint_spring``: a hose or cable bundle across one joint acting as a torsional spring,
+  tau = -k (q - q_rest) [N m/rad, rad], applied by the simulated robot every physics step between the links
+  (after the torque sensor, like friction: the measured torque does not contain it);
+* ``valve_dead_band``: the overlap of one joint's servo valve: a torque command within +-b [N m] delivers
+  nothing and a larger one b less (the delivered torque, and so the torque sensor, show it);
+* ``torque_sensor_offset``: a zero drift of one joint's torque sensor [N m], added to the recorded efforts
+  (the robot and its controller never see it)."""
+SENSOR_TYPES = ("encoder_offset", "leg_torque_sensor_gain", "torque_sensor_offset")
+"""Effects applied to the recording after the run (``apply_sensor_effects``)."""
+PHYSICS_TYPES = ("leg_link_mass", "joint_spring", "valve_dead_band")
+"""Effects applied to the simulated robot beyond the bridge's global ``ModelEffects`` (``physics_setup``)."""
+LOCAL_TYPES = VARIANT_TYPES + OUT_OF_LIBRARY_TYPES
+"""Effects of one joint or one leg (not sim_bridge parameters)."""
 
 
 @dataclass(frozen=True)
@@ -130,6 +149,26 @@ def draw_effect(kind: str, rng: np.random.Generator) -> HiddenEffect:
                 **{f"imu_accel_bias_{a}_m_s2": float(v) for a, v in zip("xyz", accel)},
             },
         )
+    if kind == "leg_link_mass":
+        return HiddenEffect(kind, {"leg_link_mass_kg": float(rng.uniform(1.0, 3.0)), "leg": float(rng.integers(0, 4))})
+    if kind == "joint_spring":
+        joint = int(3 * rng.integers(0, 4) + rng.integers(1, 3))  # a hip flexion or a knee
+        nominal_q = load_robot_description("hyq").nominal_joint_positions_rad[joint]
+        return HiddenEffect(
+            kind,
+            {
+                "joint_spring_nm_per_rad": float(rng.uniform(30.0, 80.0)),
+                "joint_spring_rest_rad": float(nominal_q + rng.choice([-1.0, 1.0]) * rng.uniform(0.1, 0.25)),
+                "joint": float(joint),
+            },
+        )
+    if kind == "valve_dead_band":
+        joint = int(3 * rng.integers(0, 4) + rng.integers(1, 3))
+        return HiddenEffect(kind, {"valve_dead_band_nm": float(rng.uniform(4.0, 10.0)), "joint": float(joint)})
+    if kind == "torque_sensor_offset":
+        joint = int(rng.integers(0, 12))
+        offset = float(rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 5.0))
+        return HiddenEffect(kind, {"torque_sensor_offset_nm": offset, "joint": float(joint)})
     if kind == "encoder_offset":
         joint = int(rng.choice([2, 5, 8, 11]))  # a knee
         offset = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.03, 0.08))
@@ -138,13 +177,17 @@ def draw_effect(kind: str, rng: np.random.Generator) -> HiddenEffect:
         leg = int(rng.integers(0, 4))
         gain = float(rng.uniform(0.8, 0.9)) if rng.random() < 0.5 else float(rng.uniform(1.1, 1.2))
         return HiddenEffect(kind, {"leg_torque_sensor_gain": gain, "leg": float(leg)})
-    raise ValueError(f"unknown effect type '{kind}'; known: {EFFECT_TYPES + OUT_OF_LIBRARY_TYPES}")
+    raise ValueError(f"unknown effect type '{kind}'; known: {EFFECT_TYPES + LOCAL_TYPES}")
 
 
 def _scaled(effect: HiddenEffect, factor: float) -> HiddenEffect:
     """The same effect, ``factor`` of the way from nominal (used after a fall)."""
-    if effect.kind in OUT_OF_LIBRARY_TYPES:  # applied to the recording: cannot make HyQ fall
+    if effect.kind in SENSOR_TYPES:  # applied to the recording: cannot make HyQ fall
         return effect
+    if effect.kind in PHYSICS_TYPES:  # shrink the size, keep the place (and a spring's rest angle)
+        key = {"leg_link_mass": "leg_link_mass_kg", "joint_spring": "joint_spring_nm_per_rad",
+               "valve_dead_band": "valve_dead_band_nm"}[effect.kind]
+        return HiddenEffect(effect.kind, {**effect.values, key: factor * effect.values[key]})
     nominal = SimModel.nominal().values()
     values = {}
     for name, value in effect.values.items():
@@ -175,7 +218,7 @@ def generate_hidden(
     while True:
         model = SimModel.nominal("flat_rigid")
         for effect in effects:
-            if effect.kind not in OUT_OF_LIBRARY_TYPES:
+            if effect.kind not in LOCAL_TYPES:
                 model = model.with_values(effect.values)
         scenario = DatasetScenario(
             name,
@@ -188,7 +231,7 @@ def generate_hidden(
             joint_effort_noise_std_nm=JOINT_NOISE[2],
         )
         try:
-            generate(scenario, bag, duration_s, seed=seed, progress=progress)
+            generate(scenario, bag, duration_s, seed=seed, progress=progress, sim_setup=physics_setup(effects))
             break
         except DatasetError as exc:
             if shrinks >= 4:
@@ -196,7 +239,7 @@ def generate_hidden(
             LOG.info("%s: %s; shrinking the effect(s)", name, exc)
             effects = [_scaled(e, 0.6) for e in effects]
             shrinks += 1
-    sensor = [e for e in effects if e.kind in OUT_OF_LIBRARY_TYPES]
+    sensor = [e for e in effects if e.kind in SENSOR_TYPES]
     if sensor:
         apply_sensor_effects(bag, sensor)
     label = {
@@ -211,9 +254,78 @@ def generate_hidden(
     return bag, label_path
 
 
+class SealedJointEffects:
+    """The simulated robot's actuators with per-joint effects the bridge lacks (it replaces the
+    ``Simulation``'s ``actuators``, which ``Simulation.step`` calls every physics step): a servo valve's dead
+    band on the torque command of some joints (``dead_band_nm``, 12 values) and torsional springs across some
+    joints (``spring_nm_per_rad`` and ``spring_rest_rad``, 12 values each) acting, like friction, between the
+    links after the torque sensor."""
+
+    def __init__(self, sim, dead_band_nm: np.ndarray, spring_nm_per_rad: np.ndarray,
+                 spring_rest_rad: np.ndarray) -> None:
+        n = len(sim.joint_ids)
+        arrays = [np.asarray(a, dtype=float) for a in (dead_band_nm, spring_nm_per_rad, spring_rest_rad)]
+        if any(a.shape != (n,) or not np.all(np.isfinite(a)) for a in arrays):
+            shapes = [a.shape for a in arrays]
+            raise ValueError(f"sealed joint effects need {n} finite values each, got shapes {shapes}")
+        if np.any(arrays[0] < 0.0) or np.any(arrays[1] < 0.0):
+            raise ValueError("a dead band and a spring stiffness must be >= 0")
+        self.sim = sim
+        self.inner = sim.actuators
+        self.dead_band_nm, self.spring_nm_per_rad, self.spring_rest_rad = arrays
+        self._spring_joints = [int(j) for j in np.flatnonzero(self.spring_nm_per_rad)]
+
+    def __getattr__(self, name: str):  # delay_steps, effects, tau limits: the bridge's actuator model's
+        return getattr(self.inner, name)
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def delivered_torque(self, commanded: np.ndarray, tau_min=None, tau_max=None) -> np.ndarray:
+        u = np.asarray(commanded, dtype=float)
+        u = np.sign(u) * np.maximum(np.abs(u) - self.dead_band_nm, 0.0)
+        return self.inner.delivered_torque(u, tau_min, tau_max)
+
+    def friction_torque(self, joint_velocity: np.ndarray) -> np.ndarray:
+        tau = self.inner.friction_torque(joint_velocity)
+        for j in self._spring_joints:
+            q = self.sim.client.getJointState(self.sim.robot, self.sim.joint_ids[j])[0]
+            tau[j] -= self.spring_nm_per_rad[j] * (q - self.spring_rest_rad[j])
+        return tau
+
+
+def physics_setup(effects: list[HiddenEffect]):
+    """The ``sim_setup`` of ``tal_lab.datasets.generate`` for the effects applied to the simulated robot
+    (``PHYSICS_TYPES``), or None when there are none."""
+    physical = [e for e in effects if e.kind in PHYSICS_TYPES]
+    if not physical:
+        return None
+
+    def setup(sim) -> None:
+        from .links import LowerLinkMasses
+
+        n = len(sim.joint_ids)
+        extra, band, k, rest = np.zeros(4), np.zeros(n), np.zeros(n), np.zeros(n)
+        for e in physical:
+            if e.kind == "leg_link_mass":
+                extra[int(e.values["leg"])] += e.values["leg_link_mass_kg"]
+            elif e.kind == "valve_dead_band":
+                band[int(e.values["joint"])] = e.values["valve_dead_band_nm"]
+            else:
+                j = int(e.values["joint"])
+                k[j], rest[j] = e.values["joint_spring_nm_per_rad"], e.values["joint_spring_rest_rad"]
+        if extra.any():
+            LowerLinkMasses(sim).apply(extra)
+        if band.any() or k.any():
+            sim.actuators = SealedJointEffects(sim, band, k, rest)
+
+    return setup
+
+
 def apply_sensor_effects(bag: Path, effects: list[HiddenEffect]) -> None:
-    """Rewrite ``bag`` in place with the out-of-library sensor effects applied to /joint_states (encoder
-    offset of one joint, gain of one leg's torque sensors); every other message is copied unchanged."""
+    """Rewrite ``bag`` in place with the sensor effects applied to /joint_states (encoder offset of one joint,
+    gain of one leg's torque sensors, offset of one joint's torque sensor); every other message is copied
+    unchanged."""
     from tal_core.ros.bag_io import BagReader, BagWriter
 
     bag = Path(bag)
@@ -234,6 +346,8 @@ def apply_sensor_effects(bag: Path, effects: list[HiddenEffect]) -> None:
                 for e in effects:
                     if e.kind == "encoder_offset":
                         position[int(e.values["joint"])] += e.values["encoder_offset_rad"]
+                    elif e.kind == "torque_sensor_offset" and effort:
+                        effort[int(e.values["joint"])] += e.values["torque_sensor_offset_nm"]
                     elif e.kind == "leg_torque_sensor_gain" and effort:
                         leg = int(e.values["leg"])
                         for j in range(3 * leg, 3 * leg + 3):
@@ -252,9 +366,12 @@ def _detectability(effect: HiddenEffect, bag: Path) -> dict[str, object]:
     if effect.kind == "encoder_offset":
         joint = load_robot_description("hyq").joint_names[int(effect.values["joint"])]
         return {"detectable": True, "why": "", "out_of_library": False, "joint": joint, "leg": joint[:2].upper()}
-    if effect.kind == "leg_torque_sensor_gain":
+    if effect.kind in ("leg_torque_sensor_gain", "leg_link_mass"):
         leg = ("LF", "RF", "LH", "RH")[int(effect.values["leg"])]
         return {"detectable": True, "why": "", "out_of_library": False, "joint": "", "leg": leg}
+    if effect.kind in OUT_OF_LIBRARY_TYPES:
+        joint = load_robot_description("hyq").joint_names[int(effect.values["joint"])]
+        return {"detectable": True, "why": "", "out_of_library": True, "joint": joint, "leg": joint[:2].upper()}
     if effect.kind in ("ground", "ground_nonlinear"):
         k = effect.values["ground_stiffness_n_per_m"]
         ok = k < STIFF_GROUND_N_PER_M

@@ -225,6 +225,15 @@ VARIANTS: tuple[Variant, ...] = (
         Parameter("encoder_offset_{}_rad", -0.3, 0.3, 0.03, False, "rad"),
         "constant offset of one joint's encoder (measured - true angle)",
     ),
+    Variant(
+        "leg_link_mass",
+        "payload",
+        "leg",
+        "dynamics",
+        Parameter("link_mass_{}_kg", -0.5, 10.0, 0.5, False, "kg"),
+        "extra mass at the centre of mass of one leg's lower link (a sensor, a clamp, mud; the trunk's payload "
+        "is the global effect)",
+    ),
 )
 VARIANTS_BY_NAME = {v.name: v for v in VARIANTS}
 

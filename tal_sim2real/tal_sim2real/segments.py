@@ -21,6 +21,7 @@ from tal_core.robot_description import RobotDescription
 from tal_sim_bridge.physics import Simulation
 
 from .errors import MissingSignalsError
+from .links import LowerLinkMasses
 from .measured import MeasuredData
 from .model import SimModel
 
@@ -83,6 +84,7 @@ class SegmentSimulator:
         self.torque_source = torque_source
         self.torques = data.effort_nm if torque_source == "effort" else data.command_in_force()
         self._sim: Simulation | None = None
+        self._links: LowerLinkMasses | None = None
         self._urdf_key: tuple | None = None
         self.simulated_steps = 0
 
@@ -102,17 +104,27 @@ class SegmentSimulator:
             self.close()
             start_xy = tuple(self.data.base.position_m[0, :2])  # type: ignore[union-attr]
             self._sim = Simulation(self.description, model.course, effects=effects, initial_xy=start_xy)
+            self._links = LowerLinkMasses(self._sim)
             self._urdf_key = key
         sim = self._sim
         sim.set_contact_model(model.course, effects)
         return sim
 
-    def predict(self, model: SimModel, plan: SegmentPlan, q_offset_rad: np.ndarray | None = None) -> np.ndarray:
+    def predict(
+        self,
+        model: SimModel,
+        plan: SegmentPlan,
+        q_offset_rad: np.ndarray | None = None,
+        link_mass_kg: np.ndarray | None = None,
+    ) -> np.ndarray:
         """(segments, samples, STATE_SIZE) predicted states at the plan's sample offsets, laid out as in
         ``state_vector``. ``q_offset_rad``: (12,) encoder offsets (measured - true joint angle [rad]): the
         segments start from the measured angles minus them and the predicted angles are read through the
-        same encoders (plus them)."""
+        same encoders (plus them). ``link_mass_kg``: (4,) extra mass at each leg's lower-link centre of mass
+        [kg] (``links.LowerLinkMasses``; None: the description's masses)."""
         sim = self._configure(model)
+        assert self._links is not None
+        self._links.apply(np.zeros(len(self._links.links)) if link_mass_kg is None else link_mass_kg)
         base = self.data.base
         assert base is not None
         offsets = plan.sample_offsets

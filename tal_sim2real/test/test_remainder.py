@@ -124,7 +124,7 @@ class _StandIn:
         self.q0 = data.q_rad.copy()
         self.torques = np.zeros_like(data.q_rad)
 
-    def predict(self, model: SimModel, plan) -> np.ndarray:
+    def predict(self, model: SimModel, plan, **variants) -> np.ndarray:
         v = model.values()
         s = plan.starts[:, None, None].astype(float)
         k = plan.sample_offsets[None, :, None].astype(float)
@@ -218,12 +218,12 @@ def test_the_benchmark_counts_an_out_of_library_case_named_without_a_remainder_v
         "name": "outlib_00",
         "effects": [
             {
-                "kind": "leg_link_mass",  # a kind the library has no variant for
-                "values": {"leg_link_mass_kg": 2.0, "leg": 1.0},
+                "kind": "joint_spring",  # a kind the library has no variant for
+                "values": {"joint_spring_nm_per_rad": 50.0, "joint_spring_rest_rad": 0.9, "joint": 4.0},
                 "detectable": True,
                 "out_of_library": True,
                 "leg": "RF",
-                "joint": "",
+                "joint": "rf_hfe_joint",
             }
         ],
     }
@@ -273,7 +273,7 @@ def test_a_global_gain_on_all_legs_stays_global_even_with_one_leg_slightly_off()
 class _EncoderStandIn(_StandIn):
     """Joint velocities that depend on the true start angle (the measured one minus the encoder offset)."""
 
-    def predict(self, model: SimModel, plan, q_offset_rad: np.ndarray | None = None) -> np.ndarray:
+    def predict(self, model: SimModel, plan, q_offset_rad: np.ndarray | None = None, **variants) -> np.ndarray:
         v = model.values()
         out = np.zeros((len(plan.starts), len(plan.sample_offsets), STATE_SIZE))
         out[..., 6] = 1.0
