@@ -57,6 +57,12 @@ class StateEstimatorSettings:
     velocities the streaming estimator derives when a joint state has none. tick_tolerance_s: a joint
     sample this much before a tick's grid point is that tick's sample (raise it to the stamps' jitter,
     below half a period, for a robot whose stamps are not exact multiples of its period).
+    vertical_crossover_rad_s: 0 publishes the KF's height and vertical velocity; > 0 passes them through a
+    complementary vertical channel (``VerticalChannel``): the IMU's vertical acceleration above this
+    crossover, the KF below it. The KF follows the legs' velocity within ~70 ms, so a stance foot's modelled
+    sinking (from the TCE) moves the estimate as a real sinking would; a TCE fed with that estimate sees its
+    own model again and cannot tell soft from rigid ground. With the channel the base's motion within a
+    stance is the IMU's.
     """
 
     period_s: float = 0.003
@@ -71,6 +77,7 @@ class StateEstimatorSettings:
     gyro_range_rad_s: float = 34.9
     joint_velocity_cutoff_hz: float = 40.0
     tick_tolerance_s: float = 1e-4
+    vertical_crossover_rad_s: float = 0.0
     attitude: AttitudeSettings = field(default_factory=AttitudeSettings)
     leg_odometry: LegOdometrySettings = field(default_factory=LegOdometrySettings)
 
@@ -82,6 +89,9 @@ class StateEstimatorSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise InputError(f"StateEstimatorSettings.{name} must be finite and > 0, got {value!r}")
+        if not (math.isfinite(self.vertical_crossover_rad_s) and self.vertical_crossover_rad_s >= 0.0):
+            raise InputError(f"StateEstimatorSettings.vertical_crossover_rad_s must be finite and >= 0, got "
+                             f"{self.vertical_crossover_rad_s!r}")
         if self.tick_tolerance_s >= 0.5 * self.period_s:
             raise InputError(f"StateEstimatorSettings.tick_tolerance_s must be below half the period "
                              f"({0.5 * self.period_s} s), got {self.tick_tolerance_s!r}")
@@ -148,6 +158,7 @@ class StateEstimator:
         self.reinitialisations = 0
         self._model_dt = -1.0
         self._measurement_noise = np.eye(3) * self.settings.leg_velocity_noise_m_s**2
+        self._vertical = VerticalChannel()
 
     # -- initialisation -----------------------------------------------------------------------------------
     def initialise(self, t_s: float, position: np.ndarray, world_R_base: np.ndarray | None = None,
@@ -170,6 +181,7 @@ class StateEstimator:
         self._previous_gyro_base = None
         self._gravity = MotionCompensatedGravity(s.motion_compensation_tau_s)
         self._last_acceleration = None
+        self._vertical.reset()
         self.t_s = float(t_s)
 
     def initialise_standing(self, t_s: float, joint_positions: np.ndarray, xy: tuple[float, float] = (0.0, 0.0),
@@ -282,7 +294,10 @@ class StateEstimator:
         if supported:
             measured = world_R_base @ velocity_base  # the legs' reading with the updated attitude
             kf.update(measured.reshape(3, 1), R=self._measurement_noise / legs.weight_sum)
-        x = kf.x.ravel()
+        x = kf.x.ravel().copy()
+        if s.vertical_crossover_rad_s > 0.0:
+            x[2], x[5] = self._vertical.update(dt, float(acceleration[2]), float(x[2]), float(x[5]),
+                                               s.vertical_crossover_rad_s)
         p = kf.P
         attitude_cov = world_R_base @ self.attitude.attitude_covariance @ world_R_base.T
         return StateEstimate(self.t_s, x[:3].copy(), quat_xyzw_from_rotation(world_R_base), x[3:].copy(),
@@ -301,7 +316,29 @@ class StateEstimator:
         self._previous_gyro_base = None
         self._gravity = MotionCompensatedGravity(s.motion_compensation_tau_s)
         self._last_acceleration = None
+        self._vertical.reset()
         self.reinitialisations += 1
+
+
+class VerticalChannel:
+    """Complementary vertical channel: height and vertical velocity that follow the IMU's vertical acceleration
+    above the crossover w [rad/s] and a reference (the KF's) below it. The deviation d = (z, v) - reference
+    obeys d_v' = a - a_ref - 2 w d_v - w^2 d_z, d_z' = d_v (a critically damped second-order high-pass of
+    the acceleration the reference does not have), with a_ref the reference velocity's finite difference."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self._dz = self._dv = 0.0
+        self._previous_v: float | None = None
+
+    def update(self, dt: float, acceleration: float, z_ref: float, v_ref: float, w: float) -> tuple[float, float]:
+        a_ref = 0.0 if self._previous_v is None else (v_ref - self._previous_v) / dt
+        self._previous_v = v_ref
+        self._dv += dt * (acceleration - a_ref - 2.0 * w * self._dv - w * w * self._dz)
+        self._dz += dt * self._dv
+        return z_ref + self._dz, v_ref + self._dv
 
 
 class MotionCompensatedGravity:

@@ -93,6 +93,11 @@ class StateEstimatorNode(Node):
                                      low=1e-6, high=100.0, on_change=self._setting("accel_noise_m_s2")),
             leg_velocity_noise_m_s=declare(self, "leg_velocity_noise_m_s", 0.05, "[m/s] one leg's velocity std",
                                            low=1e-6, high=100.0, on_change=self._setting("leg_velocity_noise_m_s")),
+            vertical_crossover_rad_s=declare(
+                self, "vertical_crossover_rad_s", 0.0, "[rad/s] > 0: the published height and vertical velocity "
+                "follow the IMU above this crossover and the KF below it (a TCE on the estimate then sees the base's "
+                "own motion within a stance, not the modelled sinking); 0: the KF's", low=0.0, high=100.0,
+                on_change=self._setting("vertical_crossover_rad_s")),
             max_gap_periods=declare(self, "max_gap_periods", 10, "[-] a larger gap re-initialises the velocity",
                                     low=1, high=100000, on_change=self._setting("max_gap_periods")),
             accel_range_m_s2=declare(self, "accel_range_m_s2", 392.0, "[m/s^2] IMU accelerometer range "

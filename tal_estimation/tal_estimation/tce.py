@@ -36,6 +36,8 @@ from tal_core.rotations import cross3
 HeightFunction = Callable[[float, float], float]
 NormalFunction = Callable[[float, float], np.ndarray]
 
+PENETRATION_REFERENCES = ("surface", "touchdown")
+
 # Index of each weighted sum in KelvinVoigtWindows._sums' last axis.
 _W, _F, _FF, _PP, _PR, _RR, _PF, _RF, _P, _R = range(10)
 
@@ -87,8 +89,18 @@ class TceSettings:
     # x offset consistency >= RESTART_MIN_QUALITY, or rigid) and the window's is not, or the two disagree
     # (rigid vs soft, or stiffness by more than RESTART_STIFFNESS_RATIO), the window restarts from the stance.
     window_restart: bool = True
+    # Where p is measured from: "surface" (the thesis: the undeformed surface under the foot, from the map and
+    # the base state; right when the base state is, e.g. motion capture) or "touchdown": the foot's height at
+    # the first stance sample of each stance, which is then taken to be F / k deep (k: the leg's estimate,
+    # rigid if none). A base estimate that drifts in height shifts a surface-referenced window by its drift;
+    # only its motion within a stance reaches a touchdown-referenced one (on graph_tour with the TCE on the
+    # drifting estimate, surface-referenced windows read rigid ground as soft: 10 % quantile 100 N/m).
+    penetration_reference: str = "surface"
 
     def __post_init__(self) -> None:
+        if self.penetration_reference not in PENETRATION_REFERENCES:
+            raise InputError(f"TCE penetration_reference must be one of {PENETRATION_REFERENCES}, got "
+                             f"{self.penetration_reference!r}")
         if self.window < 2 or not 1 <= self.min_samples <= self.window:
             raise InputError(f"TCE window {self.window} and min_samples {self.min_samples} must satisfy "
                              f"1 <= min_samples <= window, window >= 2")
@@ -401,6 +413,7 @@ class TerrainComplianceEstimator:
         self._tau_slice = [RobotDescription.leg_joint_slice(leg) for leg in range(NUM_LEGS)]
         self._anchor: list[np.ndarray | None] = [None] * NUM_LEGS   # foot position at touchdown (tangential)
         self._was_in_contact = np.zeros(NUM_LEGS, dtype=bool)
+        self._touchdown_offset = np.zeros(NUM_LEGS)   # penetration_reference touchdown: p = p_surface - offset
         self._relief_offsets = self._offsets(self.settings.relief_radius_m)
         self.edge_samples = np.zeros(NUM_LEGS, dtype=np.int64)   # stance samples left out at edges, per leg
 
@@ -476,6 +489,8 @@ class TerrainComplianceEstimator:
         pen = np.array([s.penetration_m for s in samples])
         rate = np.array([s.penetration_rate_m_s for s in samples])
         relief = np.array([s.surface_relief_m for s in samples], dtype=float)
+        if self.settings.penetration_reference == "touchdown":
+            pen = self._from_touchdown(stance, force, pen, rate)
         edge = stance & ~(relief <= self.settings.max_surface_relief_m)   # NaN relief counts as an edge
         self.edge_samples += edge
         self.normal.add(stance & ~edge, force, pen, rate)
@@ -484,6 +499,20 @@ class TerrainComplianceEstimator:
             self._update_tangential(samples, stance)
         self._was_in_contact = stance
         return self.normal.estimates
+
+    def _from_touchdown(self, stance: np.ndarray, force: np.ndarray, pen: np.ndarray, rate: np.ndarray) -> np.ndarray:
+        """Penetrations measured from each stance's first sample, taken to be (F - d dp/dt) / k deep (the leg's
+        estimate; 0 without one, or on rigid ground): a foot landing at 0.3 m/s on 400 N s/m ground reads 120 N
+        of damping force with no depth yet."""
+        for leg in np.flatnonzero(stance & ~self._was_in_contact):
+            estimate = self.normal.estimates[leg]
+            k, d = estimate.stiffness_n_per_m, estimate.damping_ns_per_m
+            depth = 0.0
+            if estimate.valid and not estimate.rigid and math.isfinite(k) and k > 0.0:
+                spring = force[leg] - (d * rate[leg] if math.isfinite(d) else 0.0)
+                depth = max(0.0, spring / k)
+            self._touchdown_offset[leg] = pen[leg] - depth
+        return np.where(stance, pen - self._touchdown_offset, pen)
 
     def _update_tangential(self, samples: list[ContactSample], stance: np.ndarray) -> None:
         """Two samples per stance leg (t1, t2): force along t against the foot's displacement along t

@@ -34,7 +34,7 @@ from tal_msgs.msg import HeightMap, TerrainImpedance
 
 from .live_settings import with_field
 from .messages import ImpedanceWriter
-from .tce import TceSettings, TerrainComplianceEstimator
+from .tce import PENETRATION_REFERENCES, TceSettings, TerrainComplianceEstimator
 from .tce_driver import TceDriver, TceTick
 
 
@@ -85,7 +85,13 @@ class TceNode(Node):
                                             low=0.0, high=1e9, on_change=self._setting("rigid_stiffness_n_per_m")),
             min_force_variation_n=declare(self, "min_force_variation_n", 30.0,
                                           "[N] force std a window needs to be called rigid", low=0.0, high=1e4,
-                                          on_change=self._setting("min_force_variation_n")))
+                                          on_change=self._setting("min_force_variation_n")),
+            penetration_reference=declare(self, "penetration_reference", "surface",
+                                          "where penetration is measured from: surface (the map under the foot and "
+                                          "the base state; thesis, motion capture) or touchdown (each stance's "
+                                          "first sample; for a base estimate that drifts in height)",
+                                          choices=PENETRATION_REFERENCES,
+                                          on_change=self._setting("penetration_reference")))
         self.model = RobotModel.from_name(robot)
         base_period = (period if base_source == "ground_truth" else estimate_period) if wait_for_base else None
         self.driver = TceDriver(self.model, settings, period_s=period, stale_state_periods=stale_periods,

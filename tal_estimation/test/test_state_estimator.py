@@ -373,3 +373,24 @@ def test_run_estimator_matches_hand_fed_ticks(mode: str, initial_position: np.nd
     np.testing.assert_allclose(result.support, [e.legs.weight_sum for e in expected], rtol=0.0, atol=1e-12)
     assert np.all(result.support >= 3.0)  # the legs did support the robot: the KF was corrected
     assert np.all(np.isfinite(result.position))
+
+
+def test_the_vertical_channel_follows_the_imu_above_its_crossover_and_the_reference_below() -> None:
+    """A reference (the KF) that misses a 2 cm, 2.5 Hz bounce the IMU measures, and a reference climbing at
+    0.1 m/s that the IMU does not see (its bias-free mean is zero): the channel (crossover 1 rad/s) has the
+    bounce's amplitude within 5 % (a second-order high-pass leads it by 2 atan(1/15.7) = 0.13 rad) and the
+    climb after a few time constants."""
+    from tal_estimation.state_estimator import VerticalChannel
+    dt, w_bounce = 0.003, 2 * np.pi * 2.5
+    channel = VerticalChannel()
+    t = np.arange(0.0, 20.0, dt)
+    bounce = 0.02 * np.sin(w_bounce * t)
+    out = np.array([channel.update(dt, -0.02 * w_bounce**2 * np.sin(w_bounce * ti), 0.0, 0.0, 1.0)[0] for ti in t])
+    late = t > 10.0
+    assert np.std(out[late]) == pytest.approx(np.std(bounce[late]), rel=0.05)
+    assert np.max(np.abs(out[late] - bounce[late])) < 0.2 * 0.02
+    climb = VerticalChannel()
+    z = [climb.update(dt, 0.0, 0.1 * ti, 0.1, 1.0) for ti in t]
+    assert z[-1][0] == pytest.approx(0.1 * t[-1], abs=1e-3) and z[-1][1] == pytest.approx(0.1, abs=1e-3)
+    with pytest.raises(InputError, match="vertical_crossover_rad_s"):
+        StateEstimatorSettings(vertical_crossover_rad_s=-1.0)

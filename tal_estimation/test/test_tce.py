@@ -390,3 +390,45 @@ def test_steady_terrain_never_restarts_the_window() -> None:
     assert estimates[-1].confidence > 0.9 and estimates[-1].stiffness_n_per_m == pytest.approx(3500.0, rel=0.01)
     estimates = feed_stances(windows, [(2e6, 100)] * 12, seed=5, noise_n=5.0)
     assert windows.restarts.tolist() == [1] and estimates[-1].rigid
+
+
+def drifting_base_stances(tce: TerrainComplianceEstimator, k: float, d: float, drift_per_stance_m: float,
+                          stances: int = 8, n: int = 60) -> None:
+    """Stances on a Kelvin-Voigt ground (force a half sine to 400 N from a landing at 0.3 m/s, one swing sample
+    between stances) seen from a base estimate whose height drifts by ``drift_per_stance_m`` from one stance
+    to the next: every penetration of stance i reads i x drift too deep."""
+    up = np.array([0.0, 0.0, 1.0])
+    t = np.arange(n) * 0.004
+    force = 400.0 * np.sin(np.pi * np.arange(n) / (n - 1)) + 20.0
+    # p from k p + d dp/dt = F (explicit Euler from the landing), so the samples obey the ground's law.
+    pen = np.zeros(n)
+    for i in range(1, n):
+        pen[i] = pen[i - 1] + (t[1] - t[0]) * (force[i - 1] - k * pen[i - 1]) / d
+    rate = np.gradient(pen, t)
+    swing = ContactSample(False, np.zeros(3), up, -0.05, 0.0, np.zeros(3), np.zeros(3))
+    for stance in range(stances):
+        for i in range(n):
+            sample = ContactSample(True, force[i] * up, up, pen[i] + stance * drift_per_stance_m, rate[i],
+                                   np.zeros(3), np.zeros(3))
+            tce.update([sample] * 4)
+        tce.update([swing] * 4)
+
+
+@pytest.mark.parametrize("reference", ["surface", "touchdown"])
+def test_touchdown_referenced_penetration_ignores_a_drifting_base_height(model, reference) -> None:
+    """A base estimate whose height drifts 2 cm from one stance to the next shifts a surface-referenced window
+    stance by stance (not confident, or wrong); a touchdown-referenced one sees each stance's own sinking and
+    gives the ground's stiffness back."""
+    tce = TerrainComplianceEstimator(model, TceSettings(penetration_reference=reference))
+    drifting_base_stances(tce, k=3500.0, d=400.0, drift_per_stance_m=0.02)
+    estimate = tce.estimates[0]
+    if reference == "touchdown":
+        assert estimate.valid and estimate.confidence > 0.5, estimate
+        assert estimate.stiffness_n_per_m == pytest.approx(3500.0, rel=0.05)
+    else:
+        assert not (estimate.confidence > 0.5 and estimate.stiffness_n_per_m == pytest.approx(3500.0, rel=0.05))
+    steady = TerrainComplianceEstimator(model, TceSettings(penetration_reference=reference))
+    drifting_base_stances(steady, k=3500.0, d=400.0, drift_per_stance_m=0.0)
+    assert steady.estimates[0].stiffness_n_per_m == pytest.approx(3500.0, rel=0.05)   # either way without drift
+    with pytest.raises(InputError, match="penetration_reference"):
+        TceSettings(penetration_reference="map")

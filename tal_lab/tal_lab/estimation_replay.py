@@ -40,6 +40,7 @@ from tal_estimation.leg_odometry import LegOdometrySettings
 from tal_estimation.messages import joint_state_arrays
 from tal_estimation.state_estimator import StateEstimatorSettings, legs_from_impedance_arrays
 from tal_estimation.streaming import EstimatorOutput, StreamingEstimator
+from tal_estimation.tce import PENETRATION_REFERENCES, TceSettings
 from tal_estimation.tce_driver import TceDriver
 
 from .section_drift import SectionDrift, format_section_table
@@ -65,18 +66,21 @@ class BagReplay:
     """Streams a bag through the estimator (and TCE); see the module docstring."""
 
     def __init__(self, model: RobotModel, leg_odometry: str = "rigid", run_tce: bool = True,
-                 tce_base: str = "estimate", course: Course | None = None) -> None:
+                 tce_base: str = "estimate", course: Course | None = None, vertical_crossover_rad_s: float = 0.0,
+                 penetration_reference: str = "surface") -> None:
         if tce_base not in TCE_BASES:
             raise ValueError(f"tce_base must be one of {TCE_BASES}, got {tce_base!r}")
         self.model = model
         self.tce_base = tce_base
         self.course = course
         self.joint_index = {name: i for i, name in enumerate(model.description.joint_names)}
-        self.settings = StateEstimatorSettings(leg_odometry=LegOdometrySettings(mode=leg_odometry))
+        self.settings = StateEstimatorSettings(leg_odometry=LegOdometrySettings(mode=leg_odometry),
+                                               vertical_crossover_rad_s=vertical_crossover_rad_s)
         self.stream = StreamingEstimator(model, self.settings)
         self.tce: TceDriver | None = None
         if run_tce:
-            self.tce = TceDriver(model, period_s=self.settings.period_s)
+            self.tce = TceDriver(model, TceSettings(penetration_reference=penetration_reference),
+                                 period_s=self.settings.period_s)
             if course is None:
                 self.tce.set_terrain(lambda x, y: 0.0)
             else:
@@ -189,6 +193,8 @@ class BagReplay:
         return {
             "counts": self.counts, "leg_odometry": self.settings.leg_odometry.mode,
             "tce_base": self.tce_base if self.tce is not None else None,
+            "vertical_crossover_rad_s": self.settings.vertical_crossover_rad_s,
+            "penetration_reference": self.tce.settings.penetration_reference if self.tce is not None else None,
             "course": self.course.name if self.course is not None else None,
             "sections": self.sections.summary() if self.sections is not None else [],
             "vs_ground_truth": self.vs_truth.summary(), "vs_live_estimate": self.vs_live.summary(),
@@ -199,10 +205,12 @@ class BagReplay:
 
 def replay_bag(bag: str | Path, model: RobotModel, *, leg_odometry: str = "rigid", run_tce: bool = True,
                progress: bool = False, tce_base: str = "estimate",
-               course: Course | None = None) -> tuple[BagReplay, dict[str, object]]:
+               course: Course | None = None, vertical_crossover_rad_s: float = 0.0,
+               penetration_reference: str = "surface") -> tuple[BagReplay, dict[str, object]]:
     """Replay ``bag`` and return the replay (with its plot series) and its summary."""
     reader = BagReader(bag)
-    replay = BagReplay(model, leg_odometry, run_tce, tce_base, course)
+    replay = BagReplay(model, leg_odometry, run_tce, tce_base, course, vertical_crossover_rad_s,
+                       penetration_reference)
     topics = ("/joint_states", "/imu", "/ground_truth/odom", "/state_estimate")
     wall = time.perf_counter()
     last_report = wall
@@ -312,12 +320,18 @@ def main(argv: list[str] | None = None) -> int:
                         help="base state of the TCE: the replayed estimate or the bag's ground truth (live default)")
     parser.add_argument("--course", help="course name or YAML (terrain of the TCE, sections of the report); 'flat' for "
                                          "z = 0; default: the course in the run's bridge_summary.json, else flat")
+    parser.add_argument("--vertical-crossover", type=float, default=0.0, metavar="RAD_S",
+                        help="the estimator's vertical channel crossover (state_estimator.vertical_crossover_rad_s)")
+    parser.add_argument("--penetration-reference", choices=PENETRATION_REFERENCES, default="surface",
+                        help="the TCE's penetration reference (tce.penetration_reference)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     course_name = args.course if args.course is not None else course_of_run(args.bag)
     course = load_course(course_name) if course_name not in (None, "flat") else None
     replay, summary = replay_bag(args.bag, RobotModel.from_name(args.robot), leg_odometry=args.leg_odometry,
-                                 run_tce=not args.no_tce, progress=True, tce_base=args.tce_base, course=course)
+                                 run_tce=not args.no_tce, progress=True, tce_base=args.tce_base, course=course,
+                                 vertical_crossover_rad_s=args.vertical_crossover,
+                                 penetration_reference=args.penetration_reference)
     out = args.out or (args.bag / "replay" if args.bag.is_dir() else args.bag.with_suffix(".replay"))
     write_report(replay, summary, out)
     sys.stdout.write((out / "report.md").read_text())
