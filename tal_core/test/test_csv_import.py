@@ -222,3 +222,34 @@ def test_a_log_with_foot_force_sensors_and_no_torques_imports_to_foot_contacts(t
     with pytest.raises(CsvImportError, match="not a unit of force"):
         ColumnMap.from_dict({"time": {"column": "t", "unit": "s"},
                              "foot_contacts": {"force": {"column": "f_{leg}", "unit": "kg"}}})
+
+
+def test_columns_listed_in_the_robots_own_order_import_in_tals_order(tmp_path: Path) -> None:
+    """A log whose columns are numbered in the robot's motor and foot order (q_0.., foot_force_0..) maps them
+    with explicit ``columns`` lists; a list of the wrong length or given with ``column`` is refused."""
+    joints = ["a_joint", "b_joint", "c_joint"]
+    raw = {"time": {"column": "stamp", "unit": "s"},
+           "joint_states": {"joints": joints, "position": {"columns": ["q_2", "q_0", "q_1"], "unit": "rad"}},
+           "foot_contacts": {"force": {"columns": ["ff_1", "ff_0", "ff_3", "ff_2"], "unit": "count"}}}
+    header = ["stamp", "q_0", "q_1", "q_2", "ff_0", "ff_1", "ff_2", "ff_3", "unmapped"]
+    path = write_csv(tmp_path / "log.csv", header, [[0.0021, 0.1, 0.2, 0.3, 10, 11, 12, 13, 99],
+                                                    [0.0039, 0.1, 0.2, 0.3, 20, 21, 22, 23, 99]])
+    report = import_csv(path, ColumnMap.from_dict(raw), tmp_path / "bag")
+    assert report.rows == 2 and "/joint_states" in report.messages and "/foot_contacts" in report.messages
+    js = next(BagReader(tmp_path / "bag").messages(["/joint_states"])).message
+    assert list(js.name) == joints and list(js.position) == [0.3, 0.1, 0.2] and list(js.velocity) == []
+    feet = [m.message for m in BagReader(tmp_path / "bag").messages(["/foot_contacts"])]
+    assert [f.z for f in feet[1].force] == [21.0, 20.0, 23.0, 22.0]     # LF, RF, LH, RH
+    stamps = [m.log_time_ns for m in BagReader(tmp_path / "bag").messages(["/foot_contacts"])]
+    assert stamps == [2_100_000, 3_900_000]                              # jittered stamps kept as logged
+    short = {**raw, "joint_states": {"joints": joints, "position": {"columns": ["q_0", "q_1"], "unit": "rad"}}}
+    with pytest.raises(CsvImportError, match=r"joint_states.position.columns must list 3 distinct column names "
+                                             r"\(one per joint: a_joint, b_joint, c_joint\)"):
+        ColumnMap.from_dict(short)
+    both = {**raw, "foot_contacts": {"force": {"column": "f_{leg}", "columns": ["a", "b", "c", "d"], "unit": "N"}}}
+    with pytest.raises(CsvImportError, match="gives both 'column' and 'columns'"):
+        ColumnMap.from_dict(both)
+    cut = write_csv(tmp_path / "cut.csv", header[:-3], [[0.0, 0.1, 0.2, 0.3, 10, 11]])
+    with pytest.raises(CsvImportError, match=r"cut.csv line 1: column 'ff_3' \(foot_contacts.force of LH, map "
+                                             r"<map>\) is not in the header"):
+        import_csv(cut, ColumnMap.from_dict(raw), tmp_path / "bag2")

@@ -18,6 +18,15 @@ factors. Example (the shipped, documented one is ``tal_core/config/csv_maps/hyq_
       force: {column: "foot_force_{leg}", unit: count}   # raw counts (calibrated by the estimator) or N
       in_contact: {column: "contact_{leg}", unit: "-"}   # binary flags: non-zero is contact
 
+A per-joint or per-leg signal names its columns either with a pattern (``column`` with ``{joint}`` /
+``{leg}``) or as a list (``columns``, one name per entry of ``joints``, or per leg in tal's order LF, RF,
+LH, RH), for logs whose columns are numbered in the robot's own motor or foot order::
+
+      position: {columns: [q_3, q_4, q_5, q_0, q_1, q_2, q_9, q_10, q_11, q_6, q_7, q_8], unit: rad}
+      force: {columns: [foot_force_1, foot_force_0, foot_force_3, foot_force_2], unit: count}
+
+Columns of the CSV that the map does not name are ignored; a mapped column the CSV lacks is an error.
+
 Foot contacts go to ``/foot_contacts`` (tal_msgs/ContactState, frame "base"): each foot's scalar force
 reading in ``force[leg].z`` (what the estimator's ``contact_source:=force_sensor`` reads: raw counts with its
 ``foot_force_scale`` / ``foot_force_offset`` calibration, or newtons) and the flags in ``in_contact`` (what
@@ -150,13 +159,12 @@ class ColumnMap:
                 raise CsvImportError(f"column map {source} line {line}: {where} needs '{key}'")
             return mapping[key]
 
-        def column(spec: dict, quantity: str, what: str, joint: str | None = None) -> Column:
+        def column(spec: dict, quantity: str, what: str, name: str | None = None) -> Column:
             if not isinstance(spec, dict):
                 raise CsvImportError(f"column map {source}: {what} must be a mapping with 'column' and 'unit'")
             line = spec.get("__line__", "?")
-            name = str(need(spec, "column", what))
-            if joint is not None:
-                name = name.replace("{joint}", joint)
+            if name is None:
+                name = str(need(spec, "column", what))
             unit = str(spec.get("unit", ""))
             known = UNITS.get(unit)
             if known is None or known[0] != quantity:
@@ -168,6 +176,27 @@ class ColumnMap:
                 raise CsvImportError(f"column map {source} line {line}: column '{name}' ({what}) has scale "
                                      f"{scale!r}; it must be a finite non-zero number")
             return Column(name, known[1] * float(scale), what)
+
+        def per_item(spec: dict, quantity: str, what: str, items: list[str] | tuple[str, ...],
+                     labels: list[str] | tuple[str, ...], placeholder: str) -> list[Column]:
+            """One column per item: ``columns`` (a list in items order) or ``column`` with {placeholder}."""
+            if isinstance(spec, dict) and "columns" in spec:
+                listed = spec["columns"]
+                line = spec.get("__line__", "?")
+                if "column" in spec:
+                    raise CsvImportError(f"column map {source} line {line}: {what} gives both 'column' and "
+                                         f"'columns'; give one")
+                names = [str(n) for n in listed] if isinstance(listed, list) else []
+                if len(names) != len(items) or len(set(names)) != len(names):
+                    raise CsvImportError(f"column map {source} line {line}: {what}.columns must list {len(items)} "
+                                         f"distinct column names (one per {placeholder}: {', '.join(labels)}), "
+                                         f"got {listed!r}")
+                return [column(spec, quantity, f"{what} of {label}", name=n) for n, label in zip(names, labels)]
+            if not isinstance(spec, dict):
+                column(spec, quantity, what)  # raises: not a mapping
+            pattern = str(need(spec, "column", what))
+            return [column(spec, quantity, f"{what} of {label}", name=pattern.replace("{" + placeholder + "}", item))
+                    for item, label in zip(items, labels, strict=True)]
 
         time_spec = need(raw, "time", "the map")
         time_col = column(time_spec, "time", "time")
@@ -184,8 +213,8 @@ class ColumnMap:
             topics["joint_states"] = str(js.get("topic", topics["joint_states"]))
             for signal, quantity in JOINT_SIGNALS.items():
                 if signal in js:
-                    joint_columns[signal] = [column(js[signal], quantity, f"joint_states.{signal} of {j}", j)
-                                             for j in joints]
+                    joint_columns[signal] = per_item(js[signal], quantity, f"joint_states.{signal}", joints,
+                                                     joints, "joint")
         imu = cls._vectors(raw.get("imu"), IMU_SIGNALS, "imu", column, topics, "imu")
         odom = cls._vectors(raw.get("ground_truth"), ODOM_SIGNALS, "ground_truth", column, topics, "ground_truth")
         feet: dict[str, list[Column]] = {}
@@ -198,9 +227,7 @@ class ColumnMap:
             topics["foot_contacts"] = str(fc.get("topic", topics["foot_contacts"]))
             for signal, quantity in FOOT_SIGNALS.items():
                 if signal in fc:
-                    for leg, name in zip(LEGS, names):
-                        c = column(fc[signal], quantity, f"foot_contacts.{signal} of {leg}")
-                        feet.setdefault(signal, []).append(Column(c.name.replace("{leg}", name), c.factor, c.what))
+                    feet[signal] = per_item(fc[signal], quantity, f"foot_contacts.{signal}", names, LEGS, "leg")
             if not feet:
                 raise CsvImportError(f"column map {source}: foot_contacts maps neither force nor in_contact")
         if not joint_columns and not imu and not odom and not feet:
