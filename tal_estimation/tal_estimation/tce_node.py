@@ -86,6 +86,10 @@ class TceNode(Node):
             min_force_variation_n=declare(self, "min_force_variation_n", 30.0,
                                           "[N] force std a window needs to be called rigid", low=0.0, high=1e4,
                                           on_change=self._setting("min_force_variation_n")),
+            max_penetration_offset_m=declare(self, "max_penetration_offset_m", 0.01,
+                                             "[m] a window whose offset fit puts its penetrations further off than "
+                                             "this is not confident (a base-height or map error)", low=0.0,
+                                             high=10.0, on_change=self._setting("max_penetration_offset_m")),
             penetration_reference=declare(self, "penetration_reference", "surface",
                                           "where penetration is measured from: surface (the map under the foot and "
                                           "the base state; thesis, motion capture) or touchdown (each stance's "

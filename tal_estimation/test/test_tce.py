@@ -393,7 +393,7 @@ def test_steady_terrain_never_restarts_the_window() -> None:
 
 
 def drifting_base_stances(tce: TerrainComplianceEstimator, k: float, d: float, drift_per_stance_m: float,
-                          stances: int = 8, n: int = 60) -> None:
+                          stances: int = 8, n: int = 60, drift_within_stance_m: float = 0.0) -> None:
     """Stances on a Kelvin-Voigt ground (force a half sine to 400 N from a landing at 0.3 m/s, one swing sample
     between stances) seen from a base estimate whose height drifts by ``drift_per_stance_m`` from one stance
     to the next: every penetration of stance i reads i x drift too deep."""
@@ -408,8 +408,8 @@ def drifting_base_stances(tce: TerrainComplianceEstimator, k: float, d: float, d
     swing = ContactSample(False, np.zeros(3), up, -0.05, 0.0, np.zeros(3), np.zeros(3))
     for stance in range(stances):
         for i in range(n):
-            sample = ContactSample(True, force[i] * up, up, pen[i] + stance * drift_per_stance_m, rate[i],
-                                   np.zeros(3), np.zeros(3))
+            drift = stance * drift_per_stance_m + drift_within_stance_m * i / (n - 1)
+            sample = ContactSample(True, force[i] * up, up, pen[i] + drift, rate[i], np.zeros(3), np.zeros(3))
             tce.update([sample] * 4)
         tce.update([swing] * 4)
 
@@ -432,3 +432,17 @@ def test_touchdown_referenced_penetration_ignores_a_drifting_base_height(model, 
     assert steady.estimates[0].stiffness_n_per_m == pytest.approx(3500.0, rel=0.05)   # either way without drift
     with pytest.raises(InputError, match="penetration_reference"):
         TceSettings(penetration_reference="map")
+
+
+def test_the_offset_check_does_not_apply_to_touchdown_referenced_windows(model) -> None:
+    """A base estimate that moves 2 cm during each stance: the offset fit of a touchdown-referenced window sees
+    an offset, which there says that the estimate moved, not that the foot's depth is unknown; the window stays
+    confident (its stiffness biased: 3500 N/m reads ~2800) so that the odometry models most of the sinking."""
+    tce = TerrainComplianceEstimator(model, TceSettings(penetration_reference="touchdown"))
+    drifting_base_stances(tce, k=3500.0, d=400.0, drift_per_stance_m=0.0, drift_within_stance_m=0.02)
+    estimate = tce.estimates[0]
+    assert estimate.confidence > 0.5 and estimate.penetration_offset_m == 0.0
+    assert 0.6 * 3500.0 < estimate.stiffness_n_per_m < 3500.0
+    surface = TerrainComplianceEstimator(model, TceSettings(penetration_reference="surface"))
+    drifting_base_stances(surface, k=3500.0, d=400.0, drift_per_stance_m=0.0, drift_within_stance_m=0.02)
+    assert surface.estimates[0].penetration_offset_m != 0.0
