@@ -148,11 +148,14 @@ def test_the_whole_tour_graph_repeats_itself_bit_for_bit_under_cpu_load(tmp_path
         # what it waits for, a map used late (the summaries say which).
         run = bag.parent
         bridge, wbc = (json.loads((run / f"{name}_summary.json").read_text()) for name in ("bridge", "wbc"))
-        tce, vfa = (json.loads((run / f"{name}_summary.json").read_text()) for name in ("tce", "vfa"))
+        tce, vfa, vpa = (json.loads((run / f"{name}_summary.json").read_text()) for name in ("tce", "vfa", "vpa"))
         timing = {"lockstep_timeouts": bridge["lockstep_timeouts"], "unanswered_inputs": wbc["unanswered_inputs"],
                   **{k: wbc[k] for k in ("ticks_without_waited", "ticks_without_heightmap", "late_heightmaps")},
                   "tce late_heightmaps": tce["late_heightmaps"], "tce late_base_ticks": tce["late_base_ticks"],
-                  "vfa late_maps": vfa["late_maps"]}
+                  "vfa late_maps": vfa["late_maps"], "vpa late_maps": vpa["late_maps"],
+                  **{f"{name} missed maps": summary[key] for name, summary, key in (
+                      ("wbc", wbc, "missed_heightmaps"), ("tce", tce, "missed_heightmaps"), ("vfa", vfa, "missed_maps"),
+                      ("vpa", vpa, "missed_maps"))}}
         assert not any(timing.values()), (run.name, timing)
     a, b = trajectory(quiet), trajectory(loaded)
     common = sorted(set(a) & set(b))

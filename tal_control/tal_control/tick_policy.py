@@ -254,6 +254,11 @@ class WbcTickPolicy:
         """Maps that arrived after the tick that should have used them."""
         return self._heightmaps.late
 
+    @property
+    def missed_heightmaps(self) -> int:
+        """Maps due at a tick that never came while a newer one did (``StampedInbox.missed``)."""
+        return self._heightmaps.missed
+
     def first_tick_waits_for(self) -> tuple[str, ...]:
         """What the first tick still waits for (empty once it is computed, or when nothing is missing), for a
         node to say why a lockstep run does not start."""

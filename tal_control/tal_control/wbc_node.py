@@ -698,6 +698,7 @@ class WbcNode(Node):
                 "ticks_without_waited": self.ticks_without_waited,
                 "ticks_without_heightmap": self.ticks_without_heightmap,
                 "late_heightmaps": self.policy.late_heightmaps,
+                "missed_heightmaps": self.policy.missed_heightmaps,
                 "gait_state_resends": self.gait_state_resends,
                 "repeated_answers": self.policy.counters.repeated_answers,
                 "unanswered_inputs": list(self.policy.unanswered_inputs),

@@ -35,7 +35,9 @@ class StampedInbox:
     An input newer than all before it that arrives after a tick that should have used it is counted in ``late``
     (its tick used an older one: the run then depends on delivery order). An input with a stamp already
     received (a producer re-sending what a late-matched consumer may have missed) is dropped, counted in
-    ``repeats``.
+    ``repeats``. With ``period_ns``, a tick whose due input never came while a newer one did (DDS dropped it:
+    published before the consumer's subscription matched) uses an older input or none; each such input is
+    counted once in ``missed`` (the run then depends on when the consumer started).
 
     At most ``keep`` inputs are held (the oldest are dropped, counted); inputs from before a restarted clock
     (stamped more than ``CLOCK_RESET_NS`` after the tick asking) are forgotten."""
@@ -50,6 +52,8 @@ class StampedInbox:
         self.dropped = 0
         self.late = 0
         self.repeats = 0
+        self.missed = 0
+        self._missed_ns: int | None = None   # the last due stamp counted in missed
         self._recent: deque[int] = deque(maxlen=keep)  # stamps received, newest last (repeats)
         self._items: list[tuple[int, int, object]] = []  # (stamp, arrival, item)
         self._arrivals = 0
@@ -82,7 +86,7 @@ class StampedInbox:
         """Forget the held inputs and what arrived (a restarted clock)."""
         self._items.clear()
         self._recent.clear()
-        self._newest_ns = self._cutoff_ns = None
+        self._newest_ns = self._cutoff_ns = self._missed_ns = None
 
     def due_stamp(self, tick_ns: int) -> int | None:
         """With ``period_ns``: the grid stamp of the newest input due at ``tick_ns`` (None: none due yet, or no
@@ -107,6 +111,12 @@ class StampedInbox:
 
     def due(self, tick_ns: int) -> list[tuple[int, object]]:
         """(stamp, item) of the held inputs stamped at least ``lag_ns`` before ``tick_ns``, oldest first."""
+        expected = self.due_stamp(tick_ns)
+        if (expected is not None and self._newest_ns is not None and self._newest_ns > expected + TICK_TOLERANCE_NS
+                and expected != self._missed_ns
+                and not any(abs(stamp - expected) <= TICK_TOLERANCE_NS for stamp in self._recent)):
+            self.missed += 1
+            self._missed_ns = expected
         cutoff = tick_ns - self.lag_ns + TICK_TOLERANCE_NS
         if self._cutoff_ns is not None and tick_ns + CLOCK_RESET_NS < self._cutoff_ns:
             self._cutoff_ns = None  # the consumer's clock restarted

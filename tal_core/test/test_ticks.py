@@ -70,6 +70,23 @@ def test_an_inbox_with_the_producers_period_says_which_input_a_tick_awaits_and_c
         StampedInbox(lag_ns=0, period_ns=-1)
 
 
+def test_an_input_that_never_came_while_a_newer_one_did_is_counted_as_missed() -> None:
+    """The vpa's held update at 52 ms was due the 0 ms map, which DDS dropped (published before its
+    subscription matched); the 50 ms map released it and it ran without a map: counted once in missed."""
+    inbox = StampedInbox(lag_ns=4 * MS, period_ns=50 * MS)
+    held = HeldTicks([inbox])
+    assert held.offer(52 * MS, "gait@52") == [] and inbox.awaited(52 * MS) == 0
+    inbox.add(50 * MS, "map@50")
+    assert held.arrived() == [(52 * MS, "gait@52")]
+    assert inbox.due(52 * MS) == [] and inbox.missed == 1
+    assert inbox.due(53 * MS) == [] and inbox.missed == 1          # counted once per missing input
+    assert inbox.due(56 * MS) == [(50 * MS, "map@50")] and inbox.missed == 1
+    control = StampedInbox(lag_ns=4 * MS, period_ns=50 * MS)      # the map came (late or not): not missed
+    control.add(0, "map@0")
+    control.add(50 * MS, "map@50")
+    assert control.due(52 * MS) == [(0, "map@0")] and control.missed == 0
+
+
 def test_held_ticks_wait_for_their_inputs_and_run_in_order() -> None:
     maps = StampedInbox(lag_ns=4 * MS, period_ns=50 * MS)
     maps.add(0, "map@0")

@@ -165,6 +165,11 @@ class TceDriver:
         """Streamed maps that arrived after the tick that should have used them."""
         return self._terrain.late
 
+    @property
+    def missed_heightmaps(self) -> int:
+        """Maps due at a tick that never came while a newer one did (``StampedInbox.missed``)."""
+        return self._terrain.missed
+
     def add_heightmap(self, stamp_ns: int, height: HeightFunction, normal: NormalFunction | None = None
                       ) -> TceTick | None:
         """A streamed map (see the module docstring): in use from the first tick at or after ``stamp_ns``; the

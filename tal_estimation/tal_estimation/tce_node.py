@@ -195,6 +195,7 @@ class TceNode(Node):
             "stale_ticks": self.driver.stale_ticks, "late_base_ticks": self.driver.late_base_ticks,
             "samples_outside_map": self.samples_outside_map,
             "answers_resent": self.answers.resent, "late_heightmaps": self.driver.late_heightmaps,
+            "missed_heightmaps": self.driver.missed_heightmaps,
             "late_heightmap_ticks": self.driver.late_heightmap_ticks,
             "ticks_without_acceleration": self.driver.ticks_without_acceleration,
             "lost_ticks": self.driver.lost_ticks,

@@ -246,6 +246,7 @@ class VfaNode(Node):
         return {
             "selector": self.selector_name, "gait_states": self.gait_states, "heightmaps": self.maps,
             "duplicate_heightmaps": self.duplicate_maps + self.maps_inbox.repeats, "late_maps": self.maps_inbox.late,
+            "missed_maps": self.maps_inbox.missed,
             "gait_states_held_for_maps": self.held.held_ticks,
             "gait_states_released_without_map": self.held.released_late, "answers_resent": self.answers.resent,
             "published_messages": self.published_messages, "published_footholds": self.published_footholds,

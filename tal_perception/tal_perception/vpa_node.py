@@ -202,7 +202,8 @@ class VpaNode(Node):
         timing = np.array(self.update_ms)
         return {
             "source": self.source, "published": self.published, "restarts": self.planner.restarts,
-            "late_maps": self.maps_inbox.late, "updates_held_for_maps": self.held.held_ticks,
+            "late_maps": self.maps_inbox.late, "missed_maps": self.maps_inbox.missed,
+            "updates_held_for_maps": self.held.held_ticks,
             "updates_released_without_map": self.held.released_late,
             "answers_resent": self.answers.resent,
             **{f"status_{k}": v for k, v in sorted(self.by_status.items())},

@@ -8,9 +8,10 @@ Modes:
     at (or after) the current control tick arrives, so results do not depend on machine speed. If no
     command arrives within lockstep_timeout_s of wall time the bridge advances anyway with the held
     command and counts a lockstep timeout (a controller that never starts cannot freeze the graph).
-    While a tick waits longer than MAP_RESEND_AFTER_S the last heightmap is sent again (counted): DDS drops
-    what a writer publishes before it has matched a late reader, and a map consumer (vfa, vpa, tce, wbc)
-    holds its tick for the map due at it. Consumers drop a map stamp they already have.
+    While a tick waits longer than MAP_RESEND_AFTER_S the last RESENT_MAPS heightmaps are sent again, oldest
+    first (counted): DDS drops what a writer publishes before it has matched a late reader, and a map consumer
+    (vfa, vpa, tce, wbc) holds its tick for the map due at it, which one period after a map (the consumers'
+    one-tick lag) is still the one before the last. Consumers drop a map stamp they already have.
   * realtime: physics follows the wall clock (steady time) from the first command (the initial state is
     re-sent until a controller answers, at most startup_timeout_s), catching up at most max_catch_up_steps
     per timer call; falling behind is counted as overruns.
@@ -28,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import deque
 from pathlib import Path
 
 from nav_msgs.msg import Odometry
@@ -39,6 +41,7 @@ from sensor_msgs.msg import Imu, JointState
 
 from tal_core.heightmap import extract_heightmap
 from tal_core.robot_description import load_robot_description
+from tal_core.ros.cdr import stamp_ns_of
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node
 from tal_core.rotations import yaw_from_quat_xyzw
 from tal_core.terrain import load_course
@@ -54,6 +57,7 @@ from .sensor_messages import SensorWriters
 from .stepping import LockstepGate, OutputSchedule, RealtimePacer
 
 MAP_RESEND_AFTER_S = 0.5
+RESENT_MAPS = 2  # a waiting consumer's due map is the last or the one before it
 """[s] of wall time a lockstep tick waits before the last heightmap is sent again (then once per this period)."""
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
@@ -111,7 +115,8 @@ class SimBridgeNode(Node):
         self._run_start_s = self.pacer.start_s
         self._started_without_command = False
         self._last_resend_s = self._run_start_s
-        self._last_heightmap: bytes | None = None  # the last map published, raw CDR (re-sent while a tick waits)
+        # the last maps published, raw CDR, oldest first (re-sent while a tick waits)
+        self._recent_heightmaps: deque[bytes] = deque(maxlen=RESENT_MAPS)
         self._last_map_resend_s = 0.0
         self.heightmap_resends = 0
         self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
@@ -264,13 +269,15 @@ class SimBridgeNode(Node):
             self._advance_control_period()
 
     def _resend_heightmap_while_waiting(self, now: float) -> None:
-        """A tick waiting MAP_RESEND_AFTER_S (wall time): send the last heightmap again, once per that period (a
-        consumer whose subscription matched after it was published holds its answer for it)."""
-        if (self._last_heightmap is None or now - self.gate.waiting_since_s < MAP_RESEND_AFTER_S
+        """A tick waiting MAP_RESEND_AFTER_S (wall time): send the last maps again, oldest first, once per that
+        period (a consumer whose subscription matched after they were published holds its answer for the one
+        due at its tick; a newer map alone would release it without that one)."""
+        if (not self._recent_heightmaps or now - self.gate.waiting_since_s < MAP_RESEND_AFTER_S
                 or now - self._last_map_resend_s < MAP_RESEND_AFTER_S):
             return
-        self.pub_heightmap.publish(self._last_heightmap)
-        self.heightmap_resends += 1
+        for raw in self._recent_heightmaps:
+            self.pub_heightmap.publish(raw)
+            self.heightmap_resends += 1
         self._last_map_resend_s = now
 
     # -- stepping ---------------------------------------------------------------------------------------
@@ -345,8 +352,10 @@ class SimBridgeNode(Node):
         grid = extract_heightmap(self.core.sim.course, (state.base_position_m[0], state.base_position_m[1]), yaw,
                                  rows=p["heightmap_rows"], cols=p["heightmap_cols"],
                                  resolution_m=p["heightmap_resolution_m"])
-        self._last_heightmap = self.writers.heightmap(stamp_ns, grid)
-        self.pub_heightmap.publish(self._last_heightmap)
+        raw = self.writers.heightmap(stamp_ns, grid)
+        if not self._recent_heightmaps or stamp_ns_of(self._recent_heightmaps[-1]) != stamp_ns:
+            self._recent_heightmaps.append(raw)  # (the initial state's repeats send the same stamp again)
+        self.pub_heightmap.publish(raw)
 
     # -- end of run -------------------------------------------------------------------------------------
     def _fall_ends_run(self) -> bool:
