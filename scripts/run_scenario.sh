@@ -60,6 +60,9 @@ tce_max_defer() { if [ "$1" = realtime ]; then echo 0.006; else echo 0.004; fi; 
 # publishes one every 50 ms of sim time (sim_bridge.heightmap_rate_hz 20), and DDS gives no order between topics
 # (a CI machine delivered a map after the next tick's joint state). On the wall clock nobody waits for maps.
 map_period() { if [ "$1" = realtime ]; then echo 0.0; else echo 0.05; fi; }
+# In lockstep the estimator's tick uses the tce's answer one tce period (4 ms) back and waits for it, so a run
+# on the estimate repeats itself bit for bit; on the wall clock it takes the latest impedance as it arrives.
+impedance_period() { if [ "$1" = realtime ]; then echo 0.0; else echo 0.004; fi; }
 
 walk() {
     local gait="$1" speed="$2" course="${3:-flat_rigid}" state_source="${4:-estimate}" duration="${DURATION_S:-20.0}"
@@ -114,6 +117,7 @@ stance() {
         -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" \
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=terrain_aware" \
+        -s "state_estimator.impedance_period_s:=$(impedance_period lockstep)" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
         -s "bag_recorder.topics:=$RECORDED_TOPICS" \
@@ -182,6 +186,7 @@ tour() {
         -s "wbc.contact_source:=$contact_source" -s "wbc.touchdown_depth_m:=$touchdown_depth" \
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=$odometry" \
+        -s "state_estimator.impedance_period_s:=$(impedance_period "$mode")" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "vfa.summary_path:=$dir/vfa_summary.json" -s "vpa.summary_path:=$dir/vpa_summary.json" \
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \

@@ -87,6 +87,10 @@ class StateEstimatorNode(Node):
         use_mag = declare(self, "use_magnetometer", False, "fuse imu/mag (heading) in the attitude observer")
         field = declare(self, "magnetic_field_world", [2.3e-5, 0.0, -4.1e-5],
                         "[T] Earth's field in the world frame (for use_magnetometer)")
+        impedance_period = declare(self, "impedance_period_s", 0.0,
+                                   "[s] the tce's period: a tick uses the terrain impedance of the tce tick at least "
+                                   "one such period before it and waits for it (lockstep: runs on the estimate repeat "
+                                   "bit for bit); 0: the latest impedance as it arrives", low=0.0, high=1.0)
         settings = StateEstimatorSettings(
             period_s=period,
             accel_noise_m_s2=declare(self, "accel_noise_m_s2", 0.5, "[m/s^2] KF acceleration input std",
@@ -130,7 +134,8 @@ class StateEstimatorNode(Node):
         self.stream = StreamingEstimator(
             self.model, settings, magnetic_field_world=np.array(field, float) if use_mag else None,
             wait_for_initial_pose=self.init_source == "ground_truth",
-            initial_xy=(float(initial_xy[0]), float(initial_xy[1])), on_reject=self._log_rejection,
+            initial_xy=(float(initial_xy[0]), float(initial_xy[1])), impedance_period_s=impedance_period,
+            on_reject=self._log_rejection,
             on_restart=self._log_restart)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}
         self.period_ns = self.stream.period_ns
@@ -246,8 +251,8 @@ class StateEstimatorNode(Node):
         valid = view.array("valid").astype(bool) & np.isfinite(k) & np.isfinite(d) & (k > 0) & (d > 0)
         # The odometry models sinking only from a confident soft-ground fit (not from a rigid lower bound).
         confidence = np.nan_to_num(view.array("confidence").astype(float), nan=0.0)
-        self.stream.impedance = LegImpedance(k, d, normals / norms[:, None], valid, confidence,
-                                             view.array("rigid").astype(bool))
+        self._output(self.stream.add_impedance(view.stamp_ns, LegImpedance(
+            k, d, normals / norms[:, None], valid, confidence, view.array("rigid").astype(bool))))
 
     def _on_imu(self, view: CdrView) -> None:
         self._output(self.stream.add_imu(view.stamp_ns, view.vector("linear_acceleration").copy(),
@@ -331,6 +336,8 @@ class StateEstimatorNode(Node):
         """Counters and, when ground truth was seen, drift [m] and velocity RMSE [m/s] per axis."""
         out: dict = {"ticks": self.ticks, "restarts": self.restarts, "held_imu_ticks": self.stream.held_imu_ticks,
                      "duplicates": self.stream.duplicates,
+                     "late_impedance_ticks": self.stream.late_impedance_ticks,
+                     "impedance_repeats": self.stream.impedance_repeats,
                      "reinitialisations": self.estimator.reinitialisations,
                      "rejected": dict(self.rejections),
                      "leg_odometry": self.estimator.settings.leg_odometry.mode}

@@ -33,6 +33,7 @@ be and still take a tick's grid point.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,7 +43,7 @@ import numpy as np
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
-from tal_core.ticks import CLOCK_RESET_NS, reaches_tick, tick_after
+from tal_core.ticks import CLOCK_RESET_NS, StampedInbox, reaches_tick, tick_after
 
 from .joint_velocity import JointVelocityFilter
 from .leg_odometry import LegImpedance
@@ -73,14 +74,15 @@ class StreamingEstimator:
     ground truth). Without a position the first tick stands the robot on flat ground at ``initial_xy``
     [m] (attitude ``initial_world_R_base``, level if None), unless ``wait_for_initial_pose``: then the first
     tick stays pending until a pose is set (and a restart forgets it). ``impedance`` and
-    ``magnetic_field`` are the latest terrain impedance and magnetometer sample (IMU frame) a tick uses.
-    ``on_reject(reason, message)`` and ``on_restart(stamp_ns)`` let a node log them.
+    ``magnetic_field`` are the latest terrain impedance and magnetometer sample (IMU frame) a tick uses;
+    with ``impedance_period_s`` > 0 the impedance is streamed with ``add_impedance`` and waited for (see the
+    module docstring). ``on_reject(reason, message)`` and ``on_restart(stamp_ns)`` let a node log them.
     """
 
     def __init__(self, model: RobotModel, settings: StateEstimatorSettings | None = None, *,
                  magnetic_field_world: np.ndarray | None = None, initial_position: np.ndarray | None = None,
                  initial_world_R_base: np.ndarray | None = None, wait_for_initial_pose: bool = False,
-                 initial_xy: tuple[float, float] = (0.0, 0.0),
+                 initial_xy: tuple[float, float] = (0.0, 0.0), impedance_period_s: float = 0.0,
                  on_reject: Callable[[str, str], None] | None = None,
                  on_restart: Callable[[int], None] | None = None) -> None:
         self.model = model
@@ -94,6 +96,12 @@ class StreamingEstimator:
         self.on_reject = on_reject
         self.on_restart = on_restart
         self.impedance: LegImpedance | None = None
+        if not (math.isfinite(impedance_period_s) and impedance_period_s >= 0.0):
+            raise ValueError(f"impedance_period_s must be >= 0, got {impedance_period_s}")
+        impedance_period_ns = round(impedance_period_s * 1e9)
+        self._impedances = StampedInbox(impedance_period_ns, period_ns=impedance_period_ns) \
+            if impedance_period_ns else None
+        self.late_impedance_ticks = 0  # ticks run without the impedance they waited for
         self.magnetic_field: np.ndarray | None = None
         self.rejections: Counter[str] = Counter()
         self.ticks = 0
@@ -231,13 +239,32 @@ class StreamingEstimator:
             self._velocity_filter.update(t, q)
         out = []
         if self._pending is not None and self._pending[0] < stamp_ns:
-            out += self._tick(self._pending)  # its IMU sample never came: run it with what arrived
+            if self._impedance_awaited(self._pending[0]):
+                self.late_impedance_ticks += 1
+            out += self._tick(self._pending)  # its IMU sample (or impedance) never came: run it with what arrived
         # The grid point is taken: later samples before the next one are not ticks, whether or not the
         # IMU sample of this one has arrived yet (topics are delivered in no fixed order).
         self._next_tick_ns = tick_after(stamp_ns, self.period_ns, self._tolerance_ns)
         contact = None if foot_contact is None else np.asarray(foot_contact, dtype=float)
         self._pending = (stamp_ns, t, q, qd, tau, contact)
         return out + self._try_tick()
+
+    def add_impedance(self, stamp_ns: int, impedance: LegImpedance) -> list[EstimatorOutput]:
+        """The TCE's answer to its tick at ``stamp_ns``; the waiting tick it completes, if any. Without an
+        ``impedance_period_s`` it is simply the latest."""
+        if self._impedances is None:
+            self.impedance = impedance
+            return []
+        self._impedances.add(stamp_ns, impedance)
+        return self._try_tick()
+
+    @property
+    def impedance_repeats(self) -> int:
+        """Streamed impedances dropped as repeats of a stamp already received (a re-sent answer)."""
+        return 0 if self._impedances is None else self._impedances.repeats
+
+    def _impedance_awaited(self, stamp_ns: int) -> bool:
+        return self._impedances is not None and self._impedances.awaited(stamp_ns) is not None
 
     def add_sample(self, stamp_ns: int, specific_force: np.ndarray, angular_rate: np.ndarray,
                    joint_position: np.ndarray, joint_velocity: np.ndarray | None, joint_torque: np.ndarray | None,
@@ -268,6 +295,9 @@ class StreamingEstimator:
         self._contacts.clear()
         self._last_contact_ns = None
         self._held_contact = None
+        if self._impedances is not None:  # a streamed impedance belongs to the old clock
+            self._impedances.clear()
+            self.impedance = None
         self._velocity_filter.reset()
         if self.wait_for_initial_pose:
             self._initial_pose = None
@@ -278,6 +308,8 @@ class StreamingEstimator:
         if self._sensed_contacts and self._pending[5] is None and (
                 self._last_contact_ns is None or self._last_contact_ns < self._pending[0]):
             return []  # the foot contact sample of this stamp may still come
+        if self.estimator.initialised and self._impedance_awaited(self._pending[0]):
+            return []  # the TCE's answer due at this tick may still come
         return self._tick(self._pending)
 
     def _tick_contact(self, stamp: int, given: np.ndarray | None) -> np.ndarray | None:
@@ -328,6 +360,10 @@ class StreamingEstimator:
         else:
             self._reject("no_imu", f"no IMU sample for the tick at {stamp * 1e-9:.6f} s")
             return []
+        if self._impedances is not None:
+            due = self._impedances.due(stamp)
+            if due:
+                self.impedance = due[-1][1]
         contact = self._tick_contact(stamp, given_contact)
         if self._sensed_contacts and contact is None:
             self._reject("no_contacts", f"no foot contact sample for the tick at {stamp * 1e-9:.6f} s")

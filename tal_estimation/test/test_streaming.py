@@ -11,6 +11,7 @@ import pytest
 
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
+from tal_estimation.leg_odometry import LegImpedance
 from tal_estimation.live_settings import with_field
 from tal_estimation.state_estimator import StateEstimate, StateEstimator
 from tal_estimation.streaming import CLOCK_RESET_NS, EstimatorOutput, StreamingEstimator
@@ -256,3 +257,68 @@ def test_settings_change_at_run_time_and_survive_a_restart() -> None:
         stream.reconfigure(with_field(stream.settings, "leg_odometry.mode", "terrain_aware"))
     with pytest.raises(ValueError, match="k_p"):
         with_field(stream.settings, "attitude.k_p", -1.0)
+
+
+def soft_ground(k_ms: int) -> LegImpedance:
+    """A confident soft-ground fit, a different one for each TCE tick (stamp k_ms), so which one a tick used
+    shows in its estimate."""
+    k = np.full(4, 3000.0 + 400.0 * k_ms)
+    return LegImpedance(k, np.full(4, 300.0), np.tile([0.0, 0.0, 1.0], (4, 1)), np.ones(4, bool), np.ones(4),
+                        np.zeros(4, bool))
+
+
+def terrain_aware(**kwargs) -> StreamingEstimator:
+    settings = with_field(StreamingEstimator(model()).settings, "leg_odometry.mode", "terrain_aware")
+    return StreamingEstimator(model(), settings, **kwargs)
+
+
+def test_a_streamed_impedance_is_used_one_tce_period_later_and_waited_for() -> None:
+    """With impedance_period_s (the TCE's 4 ms) the tick at J uses the TCE's answer to its tick at the newest
+    4 ms grid point at least 4 ms before J, whether that answer arrives long before the tick (a fast TCE) or
+    after the tick's joint and IMU samples (a slow one): the estimates are identical, and a tick waits for it."""
+    tce_ticks = range(0, 24, 4)
+
+    def run(early: bool) -> tuple[list[EstimatorOutput], StreamingEstimator]:
+        stream = terrain_aware(impedance_period_s=0.004)
+        out: list[EstimatorOutput] = []
+        for k in range(0, 25):
+            if early and k in tce_ticks:
+                out += stream.add_impedance(k * MS, soft_ground(k))
+            out += add_imu(stream, k) + add_joints(stream, k)
+            # The slow TCE answers its tick u after the sample u + 6: every tick has to wait for its answer.
+            if not early and k >= 6 and (k - 6) in tce_ticks:
+                if k == 6:
+                    assert 6 * MS not in estimates(out)  # the 6 ms tick waits for the answer to the 0 ms tick
+                out += stream.add_impedance((k - 6) * MS, soft_ground(k - 6))
+        if not early:
+            out += stream.add_impedance(20 * MS, soft_ground(20))  # the answer the 24 ms tick waits for
+        return out, stream
+
+    fast, fast_stream = run(early=True)
+    slow, slow_stream = run(early=False)
+    assert sorted(estimates(fast)) == [k * MS for k in range(3, 25, 3)]
+    assert_same(estimates(slow), estimates(fast))
+    assert fast_stream.late_impedance_ticks == slow_stream.late_impedance_ticks == 0
+
+    # Control: the latest impedance as it arrives (no period) gives other estimates for the fast TCE.
+    latest = terrain_aware()
+    out: list[EstimatorOutput] = []
+    for k in range(0, 25):
+        if k in tce_ticks:
+            out += latest.add_impedance(k * MS, soft_ground(k))
+        out += add_imu(latest, k) + add_joints(latest, k)
+    with pytest.raises(AssertionError):
+        assert_same(estimates(out), estimates(fast))
+
+
+def test_a_tick_whose_impedance_never_comes_runs_late_and_is_counted() -> None:
+    """The TCE stops answering: a waiting tick runs with the impedance it has once the next grid sample
+    arrives (counted in late_impedance_ticks); a re-sent answer is dropped as a repeat."""
+    stream = terrain_aware(impedance_period_s=0.004)
+    out = stream.add_impedance(0, soft_ground(0)) + stream.add_impedance(0, soft_ground(0))
+    out += paired(stream, range(0, 10))
+    assert sorted(estimates(out)) == [3 * MS, 6 * MS]  # 9 ms waits for the answer to the 4 ms tick
+    assert stream.late_impedance_ticks == 0 and stream.impedance_repeats == 1
+    out += paired(stream, range(10, 13))
+    assert 9 * MS in estimates(out) and stream.late_impedance_ticks == 1
+    assert stream.impedance is not None and stream.impedance.stiffness_n_per_m[0] == soft_ground(0).stiffness_n_per_m[0]
