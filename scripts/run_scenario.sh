@@ -60,8 +60,12 @@ tce_max_defer() { if [ "$1" = realtime ]; then echo 0.006; else echo 0.004; fi; 
 # publishes one every 50 ms of sim time (sim_bridge.heightmap_rate_hz 20), and DDS gives no order between topics
 # (a CI machine delivered a map after the next tick's joint state). On the wall clock nobody waits for maps.
 map_period() { if [ "$1" = realtime ]; then echo 0.0; else echo 0.05; fi; }
+# ... and a lockstep bridge takes its first step once that many map consumers have subscribed (DDS drops the
+# first map for a subscription that matches after it; a CI run's vpa planned its 0.052 s update without it).
+map_subscribers() { if [ "$1" = realtime ]; then echo 0; else echo "$2"; fi; }
 # In lockstep the estimator's tick uses the tce's answer one tce period (4 ms) back and waits for it, so a run
 # on the estimate repeats itself bit for bit; on the wall clock it takes the latest impedance as it arrives.
+# A later joint sample (up to one tce period on) may come before the answer (another topic): it waits that long.
 impedance_period() { if [ "$1" = realtime ]; then echo 0.0; else echo 0.004; fi; }
 
 walk() {
@@ -114,10 +118,12 @@ stance() {
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=crawl" -s "wbc.contact_model:=compliant" -s "wbc.impedance_source:=tce" \
         -s "wbc.heightmap_period_s:=$(map_period lockstep)" -s "tce.heightmap_period_s:=$(map_period lockstep)" \
+        -s "sim_bridge.map_subscribers:=$(map_subscribers lockstep 2)" \
         -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" \
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=terrain_aware" \
         -s "state_estimator.impedance_period_s:=$(impedance_period lockstep)" \
+        -s "state_estimator.impedance_max_defer_s:=$(impedance_period lockstep)" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \
         -s "bag_recorder.topics:=$RECORDED_TOPICS" \
@@ -179,6 +185,7 @@ tour() {
         -s "wbc.startup_inputs:=impedance,footholds,body_pose" "${stairs_settings[@]}" \
         -s "wbc.heightmap_period_s:=$(map_period "$mode")" -s "tce.heightmap_period_s:=$(map_period "$mode")" \
         -s "vfa.map_period_s:=$(map_period "$mode")" -s "vpa.map_period_s:=$(map_period "$mode")" \
+        -s "sim_bridge.map_subscribers:=$(map_subscribers "$mode" 4)" \
         -s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \
@@ -187,6 +194,7 @@ tour() {
         -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=$odometry" \
         -s "state_estimator.impedance_period_s:=$(impedance_period "$mode")" \
+        -s "state_estimator.impedance_max_defer_s:=$(impedance_period "$mode")" \
         -s "state_estimator.summary_path:=$dir/estimator_summary.json" \
         -s "vfa.summary_path:=$dir/vfa_summary.json" -s "vpa.summary_path:=$dir/vpa_summary.json" \
         -s "bag_recorder.output:=$dir/bag" -s "bag_recorder.use_sim_time:=true" \

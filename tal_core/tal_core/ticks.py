@@ -37,7 +37,8 @@ class StampedInbox:
     received (a producer re-sending what a late-matched consumer may have missed) is dropped, counted in
     ``repeats``. With ``period_ns``, a tick whose due input never came while a newer one did (DDS dropped it:
     published before the consumer's subscription matched) uses an older input or none; each such input is
-    counted once in ``missed`` (the run then depends on when the consumer started).
+    counted once in ``missed`` (the run then depends on when the consumer started; a lockstep bridge holds its
+    first step until the map consumers' subscriptions have matched).
 
     At most ``keep`` inputs are held (the oldest are dropped, counted); inputs from before a restarted clock
     (stamped more than ``CLOCK_RESET_NS`` after the tick asking) are forgotten."""
@@ -104,6 +105,9 @@ class StampedInbox:
             return None
         return due
 
+    def _received(self, stamp_ns: int) -> bool:
+        return any(abs(stamp - stamp_ns) <= TICK_TOLERANCE_NS for stamp in self._recent)
+
     def has_due(self, tick_ns: int) -> bool:
         """Whether ``due(tick_ns)`` would hand something over (without handing it over)."""
         cutoff = tick_ns - self.lag_ns + TICK_TOLERANCE_NS
@@ -113,8 +117,7 @@ class StampedInbox:
         """(stamp, item) of the held inputs stamped at least ``lag_ns`` before ``tick_ns``, oldest first."""
         expected = self.due_stamp(tick_ns)
         if (expected is not None and self._newest_ns is not None and self._newest_ns > expected + TICK_TOLERANCE_NS
-                and expected != self._missed_ns
-                and not any(abs(stamp - expected) <= TICK_TOLERANCE_NS for stamp in self._recent)):
+                and expected != self._missed_ns and not self._received(expected)):
             self.missed += 1
             self._missed_ns = expected
         cutoff = tick_ns - self.lag_ns + TICK_TOLERANCE_NS

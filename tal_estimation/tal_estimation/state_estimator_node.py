@@ -91,6 +91,10 @@ class StateEstimatorNode(Node):
                                    "[s] the tce's period: a tick uses the terrain impedance of the tce tick at least "
                                    "one such period before it and waits for it (lockstep: runs on the estimate repeat "
                                    "bit for bit); 0: the latest impedance as it arrives", low=0.0, high=1.0)
+        impedance_defer = declare(self, "impedance_max_defer_s", 0.0,
+                                  "[s] with impedance_period_s: a tick waits for its impedance until a joint sample "
+                                  "this far past it (0: the next tick's sample), then runs without it (counted)",
+                                  low=0.0, high=1.0)
         settings = StateEstimatorSettings(
             period_s=period,
             accel_noise_m_s2=declare(self, "accel_noise_m_s2", 0.5, "[m/s^2] KF acceleration input std",
@@ -135,6 +139,7 @@ class StateEstimatorNode(Node):
             self.model, settings, magnetic_field_world=np.array(field, float) if use_mag else None,
             wait_for_initial_pose=self.init_source == "ground_truth",
             initial_xy=(float(initial_xy[0]), float(initial_xy[1])), impedance_period_s=impedance_period,
+            impedance_max_defer_s=impedance_defer,
             on_reject=self._log_rejection,
             on_restart=self._log_restart)
         self.joint_index = {name: i for i, name in enumerate(self.model.description.joint_names)}

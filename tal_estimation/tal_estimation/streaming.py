@@ -29,6 +29,15 @@ velocities (None) gets them from ``JointVelocityFilter`` (finite difference + lo
 ``joint_velocity_cutoff_hz``); from the first such sample on, every joint sample is read and feeds the
 filter, not only the ticks'. Stamps with jitter: ``tick_tolerance_s`` (settings) is how early a sample may
 be and still take a tick's grid point.
+
+Terrain impedance (the TCE's answer, stamped with the TCE tick it was computed on): set ``impedance`` to take
+whatever arrived last, or stream it with ``add_impedance`` and an ``impedance_period_s`` (the TCE's period):
+then a tick uses the impedance of the TCE tick at least one TCE period before it (``StampedInbox``) and waits
+for it, so what a tick uses does not depend on how fast the TCE answered (lockstep runs on the estimate repeat
+bit for bit; the TCE's tick waits for the estimate of its own stamp, so the lag keeps the two from waiting on
+each other). A tick still waiting for it when a joint sample more than ``impedance_max_defer_s`` after it
+arrives (0: the next grid sample) runs with the impedance it has, counted in ``late_impedance_ticks`` (the
+TCE is slower than the robot, or gone); later ticks queue behind it, in order.
 """
 
 from __future__ import annotations
@@ -83,6 +92,7 @@ class StreamingEstimator:
                  magnetic_field_world: np.ndarray | None = None, initial_position: np.ndarray | None = None,
                  initial_world_R_base: np.ndarray | None = None, wait_for_initial_pose: bool = False,
                  initial_xy: tuple[float, float] = (0.0, 0.0), impedance_period_s: float = 0.0,
+                 impedance_max_defer_s: float = 0.0,
                  on_reject: Callable[[str, str], None] | None = None,
                  on_restart: Callable[[int], None] | None = None) -> None:
         self.model = model
@@ -101,7 +111,11 @@ class StreamingEstimator:
         impedance_period_ns = round(impedance_period_s * 1e9)
         self._impedances = StampedInbox(impedance_period_ns, period_ns=impedance_period_ns) \
             if impedance_period_ns else None
+        if not (math.isfinite(impedance_max_defer_s) and impedance_max_defer_s >= 0.0):
+            raise ValueError(f"impedance_max_defer_s must be >= 0, got {impedance_max_defer_s}")
+        self.impedance_max_defer_ns = round(impedance_max_defer_s * 1e9)
         self.late_impedance_ticks = 0  # ticks run without the impedance they waited for
+        self._waiting: list[_Pending] = []  # ticks whose samples are here, waiting for the impedance, in order
         self.magnetic_field: np.ndarray | None = None
         self.rejections: Counter[str] = Counter()
         self.ticks = 0
@@ -237,11 +251,9 @@ class StreamingEstimator:
             qd = self._velocity_filter.update(t, q)
         elif self.deriving_velocities:
             self._velocity_filter.update(t, q)
-        out = []
+        out = self._release_waiting(stamp_ns)
         if self._pending is not None and self._pending[0] < stamp_ns:
-            if self._impedance_awaited(self._pending[0]):
-                self.late_impedance_ticks += 1
-            out += self._tick(self._pending)  # its IMU sample (or impedance) never came: run it with what arrived
+            out += self._wait_or_tick(self._pending)  # its IMU sample never came: run it with what arrived
         # The grid point is taken: later samples before the next one are not ticks, whether or not the
         # IMU sample of this one has arrived yet (topics are delivered in no fixed order).
         self._next_tick_ns = tick_after(stamp_ns, self.period_ns, self._tolerance_ns)
@@ -256,7 +268,7 @@ class StreamingEstimator:
             self.impedance = impedance
             return []
         self._impedances.add(stamp_ns, impedance)
-        return self._try_tick()
+        return self._release_waiting(None) + self._try_tick()
 
     @property
     def impedance_repeats(self) -> int:
@@ -265,6 +277,29 @@ class StreamingEstimator:
 
     def _impedance_awaited(self, stamp_ns: int) -> bool:
         return self._impedances is not None and self._impedances.awaited(stamp_ns) is not None
+
+    def _wait_or_tick(self, pending: _Pending) -> list[EstimatorOutput]:
+        """A tick whose samples are complete: computed now, or queued while it (or an earlier one) waits for
+        the impedance."""
+        if self.estimator.initialised and (self._waiting or self._impedance_awaited(pending[0])):
+            if self._pending is pending:
+                self._pending = None
+            self._waiting.append(pending)
+            return self._release_waiting(None)
+        return self._tick(pending)
+
+    def _release_waiting(self, newest_ns: int | None) -> list[EstimatorOutput]:
+        """The queued ticks that can run, in order: their impedance is here, or a joint sample stamped
+        ``newest_ns`` is more than impedance_max_defer_s past them (late)."""
+        out: list[EstimatorOutput] = []
+        while self._waiting:
+            stamp = self._waiting[0][0]
+            if self._impedance_awaited(stamp):
+                if newest_ns is None or newest_ns - stamp <= self.impedance_max_defer_ns:
+                    break
+                self.late_impedance_ticks += 1
+            out += self._tick(self._waiting.pop(0))
+        return out
 
     def add_sample(self, stamp_ns: int, specific_force: np.ndarray, angular_rate: np.ndarray,
                    joint_position: np.ndarray, joint_velocity: np.ndarray | None, joint_torque: np.ndarray | None,
@@ -295,6 +330,7 @@ class StreamingEstimator:
         self._contacts.clear()
         self._last_contact_ns = None
         self._held_contact = None
+        self._waiting.clear()
         if self._impedances is not None:  # a streamed impedance belongs to the old clock
             self._impedances.clear()
             self.impedance = None
@@ -308,9 +344,7 @@ class StreamingEstimator:
         if self._sensed_contacts and self._pending[5] is None and (
                 self._last_contact_ns is None or self._last_contact_ns < self._pending[0]):
             return []  # the foot contact sample of this stamp may still come
-        if self.estimator.initialised and self._impedance_awaited(self._pending[0]):
-            return []  # the TCE's answer due at this tick may still come
-        return self._tick(self._pending)
+        return self._wait_or_tick(self._pending)
 
     def _tick_contact(self, stamp: int, given: np.ndarray | None) -> np.ndarray | None:
         """The foot contact values of the tick at ``stamp``: those given with its joint sample, else the
@@ -340,7 +374,8 @@ class StreamingEstimator:
             self._last_tick_ns = stamp
             self._tick_contact(stamp, given_contact)
             return [EstimatorOutput("initial", stamp, None, (q, qd, tau))]
-        self._pending = None
+        if self._pending is pending:
+            self._pending = None
         samples = [s for s in self._imu if s[0] <= stamp]
         self._imu = [s for s in self._imu if s[0] > stamp]
         rejected_in_window = (self._rejected_imu_ns is not None and self._last_tick_ns is not None

@@ -322,3 +322,34 @@ def test_a_tick_whose_impedance_never_comes_runs_late_and_is_counted() -> None:
     out += paired(stream, range(10, 13))
     assert 9 * MS in estimates(out) and stream.late_impedance_ticks == 1
     assert stream.impedance is not None and stream.impedance.stiffness_n_per_m[0] == soft_ground(0).stiffness_n_per_m[0]
+
+
+def test_ticks_queue_behind_a_waiting_one_up_to_the_defer_limit() -> None:
+    """A TCE that answers its tick u only after the sample u + 10 (up to 6 ms after the estimator's tick that
+    needs it): with impedance_max_defer_s 8 ms a waiting tick is not released by the next grid sample (3 ms
+    later), the ticks after it queue, and the estimates are those of a fast TCE; with no defer the same
+    schedule runs ticks late (the control)."""
+    tce_ticks = range(0, 28, 4)
+
+    def run(defer_s: float | None) -> tuple[dict[int, StateEstimate], StreamingEstimator]:
+        stream = terrain_aware(impedance_period_s=0.004, impedance_max_defer_s=defer_s or 0.0)
+        out: list[EstimatorOutput] = []
+        for k in range(0, 37):
+            if defer_s is None and k in tce_ticks:
+                out += stream.add_impedance(k * MS, soft_ground(k))
+            out += add_imu(stream, k) + add_joints(stream, k)
+            if defer_s is not None and (k - 10) in tce_ticks:
+                out += stream.add_impedance((k - 10) * MS, soft_ground(k - 10))
+        return {s: e for s, e in estimates(out).items() if s <= 27 * MS}, stream
+
+    fast, _ = run(None)
+    queued, stream = run(0.008)
+    assert sorted(fast) == [k * MS for k in range(3, 28, 3)]
+    assert_same(queued, fast)
+    assert stream.late_impedance_ticks == 0
+    impatient, stream = run(0.0)
+    assert stream.late_impedance_ticks > 0
+    with pytest.raises(AssertionError):
+        assert_same(impatient, fast)
+    with pytest.raises(ValueError, match="impedance_max_defer_s"):
+        terrain_aware(impedance_period_s=0.004, impedance_max_defer_s=-1.0)

@@ -119,6 +119,8 @@ class SimBridgeNode(Node):
         self._recent_heightmaps: deque[bytes] = deque(maxlen=RESENT_MAPS)
         self._last_map_resend_s = 0.0
         self.heightmap_resends = 0
+        self.commands_before_map_subscribers = 0  # first commands dropped while map consumers were matching
+        self._map_subscribers_ready = self.mode != "lockstep" or p["map_subscribers"] == 0
         self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
 
         qos_sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -157,6 +159,12 @@ class SimBridgeNode(Node):
             "lockstep_timeout_s": declare(self, "lockstep_timeout_s", 2.0,
                                           "[s] wall time to wait for a command before advancing anyway",
                                           low=0.01, high=3600.0, on_change=self._set_gate("timeout_s")),
+            "map_subscribers": declare(self, "map_subscribers", 0,
+                                       "[-] lockstep: the first step waits (up to startup_timeout_s) until this many "
+                                       "terrain/heightmap subscriptions have matched, and sends the first map again "
+                                       "for them (a map consumer holds its ticks for the map due at them; DDS drops "
+                                       "what was published before a subscription matched); 0: no wait",
+                                       low=0, high=100),
             "startup_timeout_s": declare(self, "startup_timeout_s", 30.0,
                                          "[s] wall time to wait for the very first command (DDS discovery)",
                                          low=0.01, high=3600.0, on_change=self._set_gate("startup_timeout_s")),
@@ -234,6 +242,9 @@ class SimBridgeNode(Node):
     def _on_command(self, msg: JointCommand) -> None:
         arrived_s = time.monotonic()
         stamp_ns = ns_from_stamp(msg.header.stamp)
+        if not self._map_subscribers_ready and self._awaiting_map_subscribers(arrived_s):
+            self.commands_before_map_subscribers += 1
+            return  # the controller answers the initial state's next repeat again
         try:
             self.core.commands.submit(stamp_ns, list(msg.name), msg.effort, msg.position, msg.velocity,
                                       msg.kp, msg.kd)
@@ -248,6 +259,25 @@ class SimBridgeNode(Node):
             self.pacer.start_s = self._run_start_s = time.monotonic()
         if self.gate.releases(stamp_ns):
             self._advance_control_period()
+
+    def _awaiting_map_subscribers(self, now: float) -> bool:
+        """Lockstep, before the first step: whether a command must wait for the map consumers' subscriptions
+        (map_subscribers). When they are all matched (or startup_timeout_s has passed) the initial state and
+        its map go out once more, so each has the first map before the first step; the command that arrived
+        answers an earlier repeat and waits for the controller's answer to this one."""
+        if self.core.sim.step_count or self.core.commands.accepted:
+            self._map_subscribers_ready = True
+            return False
+        matched = self.pub_heightmap.get_subscription_count() >= self.params["map_subscribers"]
+        if matched or now - self._run_start_s > self.params["startup_timeout_s"]:
+            if not matched:
+                self.get_logger().warn(f"lockstep: {self.pub_heightmap.get_subscription_count()} of "
+                                       f"{self.params['map_subscribers']} heightmap subscriptions matched after "
+                                       f"{self.params['startup_timeout_s']} s; starting")
+            self._map_subscribers_ready = True
+            self._publish_step_outputs(force_all=True, record=False)
+            self.initial_state_repeats += 1
+        return True
 
     def _check_lockstep_timeout(self) -> None:
         if self.finished or self.gate.awaiting_tick_ns is None:
@@ -389,6 +419,7 @@ class SimBridgeNode(Node):
         summary = self.core.summary(time.monotonic() - self._run_start_s)
         summary.update(mode=self.mode, lockstep_timeouts=self.gate.timeouts,
                        initial_state_repeats=self.initial_state_repeats, heightmap_resends=self.heightmap_resends,
+                       commands_before_map_subscribers=self.commands_before_map_subscribers,
                        realtime_overruns=self.pacer.overruns, stop_on_fall=bool(self.params["stop_on_fall"]),
                        stopped_on_fall=self.stopped_on_fall, command_latency_ms=self.latency.summary())
         return summary
