@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import signal
 import subprocess
 import sys
 from contextlib import contextmanager
@@ -43,7 +44,7 @@ def run_trot(run_dir: Path) -> dict:
     """The trot graph as `make run` starts it (scripts/run_scenario.sh walk()), recording the ground truth
     and the commands; returns the bridge's and the wbc's summaries."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 140)))
-    result = subprocess.run(
+    result = run_group(
         ["bash", str(RUN_GRAPH), "-d", str(run_dir), "-w", "sim_bridge",
          "-s", "sim_bridge.course:=flat_rigid", "-s", f"sim_bridge.duration_s:={DURATION_S}",
          "-s", f"sim_bridge.summary_path:={run_dir / 'bridge.json'}",
@@ -51,10 +52,24 @@ def run_trot(run_dir: Path) -> dict:
          "-s", f"bag_recorder.output:={run_dir / 'bag'}", "-s", "bag_recorder.use_sim_time:=true",
          "-s", "bag_recorder.topics:=['ground_truth/odom', 'joint_command']",
          "-s", f"cmd_vel_script.profile:={PROFILE}", *NODES],
-        env=env, capture_output=True, text=True, timeout=300)
+        env=env, timeout=300)
     assert result.returncode == 0, result.stderr + (run_dir / "sim_bridge.log").read_text()
     return {"bridge": json.loads((run_dir / "bridge.json").read_text()),
             "wbc": json.loads((run_dir / "wbc.json").read_text())}
+
+
+def run_group(command: list[str], env: dict, timeout: float) -> subprocess.CompletedProcess:
+    """``command`` in a process group of its own, its output captured; on a timeout the whole group (the graph's
+    nodes included) is killed before the test fails, so a stalled graph does not outlive it."""
+    with subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                          start_new_session=True) as process:
+        try:
+            stdout, stderr = process.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
+            raise
+    return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
 
 
 def trajectory(bag: Path) -> dict[int, np.ndarray]:
@@ -126,8 +141,7 @@ def run_tour(runs_dir: Path, params: str = "") -> Path:
     bag."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 140)), RUNS_DIR=str(runs_dir),
                DURATION_S=str(TOUR_DURATION_S), PARAMS=params)
-    result = subprocess.run(["bash", str(ROOT / "scripts" / "run_scenario.sh"), "tour"], env=env,
-                            capture_output=True, text=True, timeout=500)
+    result = run_group(["bash", str(ROOT / "scripts" / "run_scenario.sh"), "tour"], env=env, timeout=500)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (bag,) = runs_dir.glob("*-tour/bag")
     return bag
