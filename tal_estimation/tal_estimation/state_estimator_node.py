@@ -138,7 +138,9 @@ class StateEstimatorNode(Node):
         self.stream = StreamingEstimator(
             self.model, settings, magnetic_field_world=np.array(field, float) if use_mag else None,
             wait_for_initial_pose=self.init_source == "ground_truth",
-            initial_xy=(float(initial_xy[0]), float(initial_xy[1])), impedance_period_s=impedance_period,
+            initial_xy=(float(initial_xy[0]), float(initial_xy[1])),
+            # Only the terrain-aware odometry subscribes to the impedance: the rigid one must not wait for it.
+            impedance_period_s=impedance_period if mode == "terrain_aware" else 0.0,
             impedance_max_defer_s=impedance_defer,
             on_reject=self._log_rejection,
             on_restart=self._log_restart)
