@@ -82,6 +82,18 @@ def load_config(path: str | Path = DEFAULT_CONFIG) -> dict:
     return config
 
 
+def _portable(path: object) -> object:
+    """A path inside the repository as relative to its root (a manifest is committed; an absolute path names
+    one machine's checkout); anything else as it is."""
+    if not isinstance(path, str):
+        return path
+    root = Path(__file__).resolve().parents[2]
+    try:
+        return str(Path(path).resolve().relative_to(root))
+    except ValueError:
+        return path
+
+
 def _per_leg(config: dict, section: str, key: str) -> np.ndarray:
     values = config[section][key]
     if set(values) != set(LEG_NAMES):
@@ -283,7 +295,7 @@ def generate(out: str | Path, config: dict | None = None, *, duration_s: float |
     slip = stance_slip(result)
     errors = sensor.errors
     manifest = {
-        "robot": config["robot"], "config": config["source"] if "source" in config else None,
+        "robot": config["robot"], "config": _portable(config.get("source")),
         "seed": int(config["seed"]), "duration_s": float(config["duration_s"]), "course": course.name,
         "rows": len(sensor.rows), "samples": len(sensor.truth), "dropped_rows": len(sensor.truth) - len(sensor.rows),
         "distance_m": round(float(np.sum(np.linalg.norm(np.diff(xy[::50], axis=0), axis=1))), 3),
@@ -297,7 +309,7 @@ def generate(out: str | Path, config: dict | None = None, *, duration_s: float |
             "foot_force_saturated_fraction": round(float(np.mean(
                 np.array(sensor.rows)[:, -NUM_LEGS:] >= int(config["foot_force"]["max_counts"]))), 4),
         },
-        "config_used": {k: v for k, v in config.items() if k != "source"},
+        "config_used": {k: _portable(v) if k == "course" else v for k, v in config.items() if k != "source"},
     }
     (out / "manifest.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False, default_flow_style=None, width=110))
     return manifest
