@@ -136,11 +136,11 @@ def test_the_same_lockstep_trot_twice_once_under_cpu_load_gives_the_same_traject
     assert deviation.max() < 1e-3                               # [m] at every common stamp
 
 
-def run_tour(runs_dir: Path, params: str = "") -> Path:
-    """`make run`'s tour (all eight nodes, lockstep) for TOUR_DURATION_S with PARAMS ``params``; returns its
-    bag."""
+def run_tour(runs_dir: Path) -> Path:
+    """`make run`'s tour (all eight nodes, lockstep, no PARAMS from the caller's environment) for
+    TOUR_DURATION_S; returns its bag."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 140)), RUNS_DIR=str(runs_dir),
-               DURATION_S=str(TOUR_DURATION_S), PARAMS=params)
+               DURATION_S=str(TOUR_DURATION_S), PARAMS="")
     result = run_group(["bash", str(ROOT / "scripts" / "run_scenario.sh"), "tour"], env=env, timeout=500)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (bag,) = runs_dir.glob("*-tour/bag")
@@ -148,30 +148,19 @@ def run_tour(runs_dir: Path, params: str = "") -> Path:
 
 
 TOUR_DURATION_S = 4.0
-ON_THE_ESTIMATE = "wbc.state_source:=estimate tce.base_source:=estimate"
-
-
-def estimates(bag: Path) -> dict[int, np.ndarray]:
-    """The state estimate's position and linear velocity by stamp [ns]."""
-    out = {}
-    for m in BagReader(bag).messages(["/state_estimate"]):
-        p, v = m.message.pose.pose.position, m.message.twist.twist.linear
-        out[ns_from_stamp(m.message.header.stamp)] = np.array([p.x, p.y, p.z, v.x, v.y, v.z])
-    return out
 
 
 @pytest.mark.skipif(not (ROOT / "ros2_ws" / "install").is_dir(), reason="workspace not built")
-# ON_THE_ESTIMATE is not in the list: such tours stalled in 2 of 5 loaded runs (a lockstep timeout per tick,
-# mechanism not found yet); `PARAMS="$ON_THE_ESTIMATE" make run` repeats bit for bit when it does not stall.
-@pytest.mark.parametrize("params", [""], ids=["ground_truth"])
-def test_the_whole_tour_graph_repeats_itself_bit_for_bit_under_cpu_load(tmp_path, params) -> None:
+# Not checked here: the tour with the wbc and the tce on the estimate (PARAMS="wbc.state_source:=estimate
+# tce.base_source:=estimate"). It repeated bit for bit in 3 of 5 loaded pairs and stalled in 2 (a lockstep
+# timeout per tick; mechanism not found yet).
+def test_the_whole_tour_graph_repeats_itself_bit_for_bit_under_cpu_load(tmp_path) -> None:
     """Footholds, body pose references and terrain impedance are used one tick after the tick they answer,
     and the wbc waits for each answer: the tour's ground truth and commands are identical with a busy loop
-    on every core. So are they, and the estimate, with the wbc and the tce on the estimate (the estimator
-    uses the tce's answer one tce period back and waits for it)."""
-    quiet = run_tour(tmp_path / "quiet", params)
+    on every core."""
+    quiet = run_tour(tmp_path / "quiet")
     with cpu_hog():
-        loaded = run_tour(tmp_path / "loaded", params)
+        loaded = run_tour(tmp_path / "loaded")
     for bag in (quiet, loaded):
         # What would make a run depend on timing: the bridge stepping past a silent wbc, a tick run without
         # what it waits for, a map used late (the summaries say which).
@@ -194,12 +183,5 @@ def test_the_whole_tour_graph_repeats_itself_bit_for_bit_under_cpu_load(tmp_path
     common_commands = sorted(set(ca) & set(cb))
     assert len(common_commands) >= 0.9 * TOUR_DURATION_S * 250
     assert all(np.array_equal(ca[k], cb[k]) for k in common_commands)
-    if params:
-        ea, eb = estimates(quiet), estimates(loaded)
-        common_estimates = sorted(set(ea) & set(eb))
-        assert len(common_estimates) >= 0.9 * TOUR_DURATION_S * 333
-        assert all(np.array_equal(ea[k], eb[k]) for k in common_estimates)
-        for bag in (quiet, loaded):
-            assert json.loads((bag.parent / "estimator_summary.json").read_text())["late_impedance_ticks"] == 0
     footholds = [m for m in BagReader(quiet).messages(["/footholds"])]
     assert len(footholds) >= 0.9 * TOUR_DURATION_S * 250  # the vfa answered every tick (mostly "no news")

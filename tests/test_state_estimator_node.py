@@ -5,6 +5,7 @@ samples, missing and unknown joints, stamps going backwards; a long gap re-initi
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -144,15 +145,27 @@ def test_ticks_at_333_hz_and_survives_bad_input(context, spin_until) -> None:
         robot.node.destroy_node()
 
 
-def test_clock_jumping_back_restarts_the_estimator(context, spin_until) -> None:
+@contextmanager
+def standing_graph(context, spin_until, *overrides: Parameter):
+    """A state_estimator (standing start, ``overrides``) and a FakeRobot on one executor, matched; yields
+    (estimator, robot, executor) and tears them down."""
     estimator = StateEstimatorNode(context=context, parameter_overrides=[
-        Parameter("initial_pose_source", value="standing")])
+        Parameter("initial_pose_source", value="standing"), *overrides])
     robot = FakeRobot(context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(estimator)
     executor.add_node(robot.node)
     try:
         assert spin_until(executor, robot.matched, 20.0)
+        yield estimator, robot, executor
+    finally:
+        executor.shutdown()
+        estimator.destroy_node()
+        robot.node.destroy_node()
+
+
+def test_clock_jumping_back_restarts_the_estimator(context, spin_until) -> None:
+    with standing_graph(context, spin_until) as (estimator, robot, executor):
         for k in range(2000, 2007):
             robot.sample(k * MS)
         assert spin_until(executor, lambda: len(robot.estimates) >= 3, 10.0)
@@ -162,35 +175,21 @@ def test_clock_jumping_back_restarts_the_estimator(context, spin_until) -> None:
             robot.sample(k * MS)
         assert spin_until(executor, lambda: ns_from_stamp(robot.estimates[-1].header.stamp) == 3 * MS, 10.0)
         assert estimator.restarts == 1
-    finally:
-        executor.shutdown()
-        estimator.destroy_node()
-        robot.node.destroy_node()
 
 
 def test_the_rigid_odometry_does_not_wait_for_an_impedance_it_does_not_read(context, spin_until) -> None:
     """make run sets impedance_period_s for the lockstep tour; with the rigid odometry (LEG_ODOMETRY=rigid) the
     node does not subscribe to terrain_impedance, so no tick may wait for it (a tour on the estimate stalled at
     1.1 s, a lockstep timeout per tick, when each tick waited for the next grid sample)."""
-    estimator = StateEstimatorNode(context=context, parameter_overrides=[
-        Parameter("initial_pose_source", value="standing"), Parameter("leg_odometry", value="rigid"),
-        Parameter("impedance_period_s", value=0.004), Parameter("impedance_max_defer_s", value=0.004)])
-    robot = FakeRobot(context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(estimator)
-    executor.add_node(robot.node)
-    try:
-        assert spin_until(executor, robot.matched, 20.0)
+    with standing_graph(context, spin_until, Parameter("leg_odometry", value="rigid"),
+                        Parameter("impedance_period_s", value=0.004),
+                        Parameter("impedance_max_defer_s", value=0.004)) as (estimator, robot, executor):
         for k in range(2000, 2020):
             robot.sample(k * MS)
         # The last grid sample's tick (2019 ms) is published without a later sample to release it.
         assert spin_until(executor, lambda: robot.estimates and ns_from_stamp(robot.estimates[-1].header.stamp)
                           == 2019 * MS, 10.0), [ns_from_stamp(e.header.stamp) for e in robot.estimates]
         assert estimator.stream.late_impedance_ticks == 0
-    finally:
-        executor.shutdown()
-        estimator.destroy_node()
-        robot.node.destroy_node()
 
 
 def test_invalid_parameters_are_refused_at_start_up(context) -> None:

@@ -106,13 +106,13 @@ class StreamingEstimator:
         self.on_reject = on_reject
         self.on_restart = on_restart
         self.impedance: LegImpedance | None = None
-        if not (math.isfinite(impedance_period_s) and impedance_period_s >= 0.0):
-            raise ValueError(f"impedance_period_s must be >= 0, got {impedance_period_s}")
+        for name, value in (("impedance_period_s", impedance_period_s),
+                            ("impedance_max_defer_s", impedance_max_defer_s)):
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be >= 0, got {value}")
         impedance_period_ns = round(impedance_period_s * 1e9)
         self._impedances = StampedInbox(impedance_period_ns, period_ns=impedance_period_ns) \
             if impedance_period_ns else None
-        if not (math.isfinite(impedance_max_defer_s) and impedance_max_defer_s >= 0.0):
-            raise ValueError(f"impedance_max_defer_s must be >= 0, got {impedance_max_defer_s}")
         self.impedance_max_defer_ns = round(impedance_max_defer_s * 1e9)
         self.late_impedance_ticks = 0  # ticks run without the impedance they waited for
         self._waiting: list[_Pending] = []  # ticks whose samples are here, waiting for the impedance, in order

@@ -57,8 +57,9 @@ from .sensor_messages import SensorWriters
 from .stepping import LockstepGate, OutputSchedule, RealtimePacer
 
 MAP_RESEND_AFTER_S = 0.5
-RESENT_MAPS = 2  # a waiting consumer's due map is the last or the one before it
-"""[s] of wall time a lockstep tick waits before the last heightmap is sent again (then once per this period)."""
+"""[s] of wall time a lockstep tick waits before the last heightmaps are sent again (then once per this period)."""
+RESENT_MAPS = 2
+"""Heightmaps re-sent while a tick waits: a waiting consumer's due map is the last or the one before it."""
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
     "actuator_delay_s": (0.0, "[s] transport delay of the joint torques"),
