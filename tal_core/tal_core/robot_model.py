@@ -32,6 +32,7 @@ import pinocchio as pin
 from tal_core.errors import InputError, RobotConfigError
 from tal_core.legs import JOINTS_PER_LEG, LEG_NAMES, NUM_LEGS, Leg, leg_from_name
 from tal_core.robot_description import NUM_JOINTS, RobotDescription, load_robot_description
+from tal_core.rotations import quat_xyzw_from_rotation as _quat_xyzw_from_rotation
 from tal_core.rotations import rotation_from_quat_xyzw as _rotation_from_quat_xyzw
 
 ArrayLike = Sequence[float] | np.ndarray
@@ -71,6 +72,9 @@ class RobotModel:
         self._joint_q_indices = np.array([self.model.joints[j].idx_q for j in joint_ids], dtype=int)
         self._joint_v_indices = np.array([self.model.joints[j].idx_v for j in joint_ids], dtype=int)
         self._joint_v_indices.setflags(write=False)
+        # Index arrays of the four legs' 3 x 3 foot-Jacobian blocks over their own joints (batched statics).
+        self._leg_block_rows = np.arange(NUM_LEGS * 3).reshape(NUM_LEGS, 3, 1)
+        self._leg_block_cols = self._joint_v_indices.reshape(NUM_LEGS, 1, JOINTS_PER_LEG)
         self._check_base_frame()
         self._foot_frame_ids = tuple(self._frame_id(name, "foot_frames") for name in description.foot_frames)
         self._hip_frame_ids = tuple(self._frame_id(name, "hip_frames") for name in description.hip_frames)
@@ -181,6 +185,24 @@ class RobotModel:
         v[self._joint_v_indices] = _checked_vector(joint_velocities, NUM_JOINTS, "joint_velocities")
         return v
 
+    def make_q_v(self, base_position_world: ArrayLike, world_R_base: np.ndarray, joint_positions: ArrayLike,
+                 base_lin_vel_world: ArrayLike, base_ang_vel_world: ArrayLike,
+                 joint_velocities: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """``make_q`` and ``make_v`` in one, from the rotation matrix ``world_R_base`` instead of a quaternion
+        (what an estimator holds; the conversion back and forth is left out)."""
+        rotation = np.asarray(world_R_base, dtype=float)
+        if rotation.shape != (3, 3) or not np.isfinite(rotation).all():
+            raise InputError(f"world_R_base: expected a finite (3, 3) rotation, got shape {rotation.shape}")
+        q = np.empty(self.nq)
+        q[0:3] = _checked_vector(base_position_world, 3, "base_position_world")
+        q[3:7] = _quat_xyzw_from_rotation(rotation)
+        q[self._joint_q_indices] = _checked_vector(joint_positions, NUM_JOINTS, "joint_positions")
+        v = np.empty(self.nv)
+        v[0:3] = rotation.T @ _checked_vector(base_lin_vel_world, 3, "base_lin_vel_world")
+        v[3:6] = rotation.T @ _checked_vector(base_ang_vel_world, 3, "base_ang_vel_world")
+        v[self._joint_v_indices] = _checked_vector(joint_velocities, NUM_JOINTS, "joint_velocities")
+        return q, v
+
     def split_v(self, v: ArrayLike, base_quat_xyzw: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Inverse of ``make_v``: (base linear velocity [m/s] world, base angular velocity [rad/s] world,
         12 canonical joint velocities [rad/s])."""
@@ -241,9 +263,9 @@ class RobotModel:
             upper = pin.crba(model, data, q)
             mass = np.where(self._upper_triangle, upper, upper.T)
         feet = self._foot_frame_ids
-        full = [pin.getFrameJacobian(model, data, fid, _LWA) for fid in feet]
-        jacobians = np.vstack([j[:3] for j in full])
-        angular = np.array([j[3:] @ v for j in full])
+        full = np.array([pin.getFrameJacobian(model, data, fid, _LWA) for fid in feet])   # (4, 6, nv)
+        jacobians = full[:, :3].reshape(NUM_LEGS * 3, self.nv)
+        angular = full[:, 3:] @ v
         positions = np.array([data.oMf[fid].translation for fid in feet])
         return FootDynamics(positions, jacobians, (jacobians @ v).reshape(NUM_LEGS, 3), angular, nle, mass)
 
@@ -343,6 +365,24 @@ class RobotModel:
         rhs = -tau if h_leg is None else _checked_vector(h_leg, JOINTS_PER_LEG, "h_leg") - tau
         grf, *_ = np.linalg.lstsq(self.leg_jacobian(leg).T, rhs, rcond=None)
         return grf
+
+    def foot_forces_from_joint_torques(self, foot_jacobians: np.ndarray, tau: ArrayLike, h: ArrayLike) -> np.ndarray:
+        """(4, 3) ground reaction forces on the feet [N], world frame, rows LF, RF, LH, RH: each leg's
+        ``foot_force_from_leg_torques`` from the stacked (12, nv) foot Jacobians (``foot_jacobians()`` or
+        ``FootDynamics.foot_jacobians``), the 12 joint torques in canonical order and h (nv,) (with M vdot
+        added for the full leg dynamics), the four 3 x 3 systems in one batched solve; a singular (stretched)
+        leg falls back to that leg's minimum-norm least-squares force."""
+        tau = _checked_vector(tau, NUM_LEGS * JOINTS_PER_LEG, "tau")
+        h = _checked_vector(h, self.nv, "h")
+        jacobians = np.asarray(foot_jacobians, dtype=float)
+        if jacobians.shape != (NUM_LEGS * 3, self.nv):
+            raise InputError(f"foot_jacobians: expected shape ({NUM_LEGS * 3}, {self.nv}), got {jacobians.shape}")
+        blocks_t = jacobians[self._leg_block_rows, self._leg_block_cols].transpose(0, 2, 1)   # (4, 3, 3) J_leg^T
+        rhs = (h[self._joint_v_indices] - tau).reshape(NUM_LEGS, JOINTS_PER_LEG, 1)
+        try:
+            return np.linalg.solve(blocks_t, rhs)[..., 0]
+        except np.linalg.LinAlgError:
+            return np.array([np.linalg.lstsq(blocks_t[leg], rhs[leg, :, 0], rcond=None)[0] for leg in range(NUM_LEGS)])
 
     # ------------------------------------------------------------------------------------------------
     # Validation

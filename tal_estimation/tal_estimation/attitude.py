@@ -81,6 +81,19 @@ class VectorMeasurement:
     variance: float
 
 
+def _inverse3(matrix: np.ndarray) -> np.ndarray:
+    """Inverse of an invertible 3 x 3 matrix from its adjugate in scalar arithmetic (a LAPACK solve costs
+    several times more at this size; the XKF's innovation covariance is positive definite)."""
+    (a, b, c), (d, e, f), (g, h, i) = matrix.tolist()
+    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * c00 + b * c01 + c * c02
+    if not (math.isfinite(det) and det != 0.0):
+        raise np.linalg.LinAlgError(f"singular 3 x 3 matrix (determinant {det})")
+    return np.array([[c00, c * h - b * i, b * f - c * e],
+                     [c01, a * i - c * g, c * d - a * f],
+                     [c02, b * g - a * h, a * e - b * d]]) / det
+
+
 def _vex(matrix: np.ndarray) -> np.ndarray:
     return np.array([matrix[2, 1], matrix[0, 2], matrix[1, 0]])
 
@@ -167,7 +180,9 @@ class ExogenousKalmanFilter:
                 innovation[rows] = m.base - nlo.rotation.T @ m.world - h[rows, :3] @ delta
                 variances[rows] = m.variance
             r = np.diag(variances)
-            gain = np.linalg.solve(h @ p @ h.T + r, h @ p).T
+            hp = h @ p
+            innovation_cov = hp @ h.T + r
+            gain = (_inverse3(innovation_cov) @ hp).T if k == 1 else np.linalg.solve(innovation_cov, hp).T
             x = x + gain @ innovation
             ikh = np.eye(6) - gain @ h
             p = ikh @ p @ ikh.T + gain @ r @ gain.T  # Joseph form: stays symmetric positive definite

@@ -43,10 +43,12 @@ import numpy as np
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
-from tal_core.rotations import cross_rows, quat_xyzw_from_rotation
+from tal_core.rotations import cross_rows
 
 LEG_ODOMETRY_MODES = ("rigid", "terrain_aware")
 CONTACT_SOURCES = ("torque", "force_sensor", "contact_flags")
+VERTICAL_NORMALS = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1))   # flat ground's contact normals (read only)
+VERTICAL_NORMALS.setflags(write=False)
 
 
 @dataclass(frozen=True)
@@ -162,8 +164,6 @@ class LegOdometry:
         self.settings = settings or LegOdometrySettings()
         self._gravity_m_s2 = gravity_m_s2
         self._set_thresholds()
-        self._v_index = [model.leg_joint_v_indices(leg) for leg in range(NUM_LEGS)]
-        self._tau_index = [np.arange(3 * leg, 3 * leg + 3) for leg in range(NUM_LEGS)]
         self._origin = np.zeros(3)
         self._radius = model.description.foot_radius_m
         self.penetration = np.zeros(NUM_LEGS)
@@ -190,16 +190,6 @@ class LegOdometry:
                              f"got {settings.contact_source!r}")
         self.settings = settings
         self._set_thresholds()
-
-    def _forces(self, jacobians: np.ndarray, h: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """(4, 3) ground reaction forces [N] world: J_leg^T F = h_leg - tau_leg for all legs in one batched
-        solve; a singular (stretched) leg falls back to the least-squares force."""
-        blocks = np.stack([jacobians[3 * leg:3 * leg + 3, self._v_index[leg]].T for leg in range(NUM_LEGS)])
-        rhs = np.stack([h[self._v_index[leg]] - tau[self._tau_index[leg]] for leg in range(NUM_LEGS)])
-        try:
-            return np.linalg.solve(blocks, rhs[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            return np.stack([np.linalg.lstsq(blocks[leg], rhs[leg], rcond=None)[0] for leg in range(NUM_LEGS)])
 
     def contact_probability(self, normal_force_n: np.ndarray) -> np.ndarray:
         """Smoothstep from 0 at threshold - width to 1 at threshold + width: exactly zero for a swinging
@@ -244,9 +234,8 @@ class LegOdometry:
             raise InputError(f"contact_source {s.contact_source!r} needs the feet's sensor values")
         if not sensed and joint_torques is None:
             raise InputError("contact_source 'torque' needs the joint torques")
-        quat = quat_xyzw_from_rotation(world_R_base)
-        q = m.make_q(self._origin, quat, joint_positions)
-        v = m.make_v(self._origin, angular_velocity_world, joint_velocities, quat)
+        q, v = m.make_q_v(self._origin, world_R_base, joint_positions, self._origin, angular_velocity_world,
+                          joint_velocities)
         terrain_aware = s.mode == "terrain_aware"
         inertia = terrain_aware and s.use_leg_inertia and not sensed
         feet = m.foot_dynamics(q, v, with_mass_matrix=inertia)
@@ -258,14 +247,14 @@ class LegOdometry:
                 h = h + feet.mass_matrix @ vdot
             self._previous_v = v
         relative = feet.foot_velocities
-        normals = np.tile([0.0, 0.0, 1.0], (NUM_LEGS, 1)) if impedance is None else impedance.normal
+        normals = VERTICAL_NORMALS if impedance is None else impedance.normal
         if sensed:
             assert foot_contact is not None
             sensed_force, sensed_probability = self.sensed_contact(foot_contact, terrain_aware)
             force = sensed_force[:, None] * normals
         else:
             assert joint_torques is not None
-            force = self._forces(feet.foot_jacobians, h, np.asarray(joint_torques, dtype=float))
+            force = m.foot_forces_from_joint_torques(feet.foot_jacobians, joint_torques, h)
         foot_velocity = np.zeros((NUM_LEGS, 3))
         if terrain_aware:
             # A foot sphere that rolls without slipping: its contact point is still, its centre is not. A

@@ -134,7 +134,7 @@ def _checked(value: np.ndarray, size: int, name: str, reason: str) -> np.ndarray
     array = np.asarray(value, dtype=float)
     if array.shape != (size,):
         raise EstimatorInputError(reason, f"{name} must have {size} values, got shape {array.shape}")
-    if not np.all(np.isfinite(array)):
+    if not np.isfinite(array).all():
         raise EstimatorInputError(reason, f"{name} has NaN or inf: {array}")
     return array
 
@@ -220,7 +220,7 @@ class StateEstimator:
         s = self.settings
         f = _checked(specific_force, 3, "specific force", "imu_nan")
         w = _checked(angular_rate, 3, "angular rate", "imu_nan")
-        if np.max(np.abs(f)) >= s.accel_range_m_s2 or np.max(np.abs(w)) >= s.gyro_range_rad_s:
+        if np.abs(f).max() >= s.accel_range_m_s2 or np.abs(w).max() >= s.gyro_range_rad_s:
             raise EstimatorInputError("imu_saturated", f"IMU sample at or beyond its range "
                                       f"(|f| max {np.max(np.abs(f)):.1f} m/s^2, |w| max {np.max(np.abs(w)):.2f} rad/s)")
         return f, w
@@ -358,7 +358,7 @@ class MotionCompensatedGravity:
 
     def update(self, dt: float, specific_force: np.ndarray, omega_base: np.ndarray,
                velocity_base: np.ndarray | None) -> np.ndarray:
-        if velocity_base is None or not np.all(np.isfinite(velocity_base)):
+        if velocity_base is None or not np.isfinite(velocity_base).all():
             self._velocity = None
             self._filtered = None
             return specific_force

@@ -28,16 +28,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu, JointState
 
+from tal_core.errors import InputError
 from tal_core.legs import LEGS, NUM_LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.ros.bag_io import BagReader
+from tal_core.ros.cdr import CdrReader
+from tal_core.ros.conversions import JointStateReader, base_state_from_odometry_view
 from tal_core.rotations import rotation_from_quat_xyzw
-from tal_core.state import BaseState
 from tal_core.terrain import Course, load_course
 from tal_estimation.drift_statistics import DriftStatistics
 from tal_estimation.leg_odometry import LegOdometrySettings
-from tal_estimation.messages import joint_state_arrays
 from tal_estimation.state_estimator import StateEstimatorSettings, legs_from_impedance_arrays
 from tal_estimation.streaming import EstimatorOutput, StreamingEstimator
 from tal_estimation.tce import PENETRATION_REFERENCES, TceSettings
@@ -47,19 +50,10 @@ from .section_drift import SectionDrift, format_section_table
 
 LOG = logging.getLogger("tal_lab.estimation_replay")
 TCE_BASES = ("estimate", "ground_truth")
+# The topics read, and their types (read in place, as the nodes read them).
+REPLAY_TOPICS = {"/joint_states": JointState, "/imu": Imu, "/ground_truth/odom": Odometry, "/state_estimate": Odometry}
 MATCH_WINDOW_NS = 20_000_000     # [ns] an estimate, truth or live sample unmatched for this long is dropped
 PLOT_PERIOD_NS = 50_000_000      # [ns] plot series decimation (20 Hz)
-
-
-def _odometry_state(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(position, world_R_base, world velocity) of a nav_msgs/Odometry (twist in the base frame)."""
-    p, o, v = msg.pose.pose.position, msg.pose.pose.orientation, msg.twist.twist.linear
-    rotation = rotation_from_quat_xyzw(np.array([o.x, o.y, o.z, o.w]))
-    return np.array([p.x, p.y, p.z]), rotation, rotation @ np.array([v.x, v.y, v.z])
-
-
-def _stamp(msg) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
 
 class BagReplay:
@@ -94,6 +88,9 @@ class BagReplay:
         self.vs_live = DriftStatistics(align_start=False)
         self.joint_samples = 0
         self.imu_samples = 0
+        self.unreadable: dict[str, int] = {}   # topic -> records that could not be read
+        self.read_joints = JointStateReader(self.joint_index, efforts=True)
+        self._readers = {topic: CdrReader(msg_type) for topic, msg_type in REPLAY_TOPICS.items()}
         self.series: dict[str, list] = {k: [] for k in ("t", "position", "velocity", "truth_position",
                                                         "truth_velocity", "stiffness")}
         self._next_plot_ns = 0
@@ -105,35 +102,48 @@ class BagReplay:
         counts: dict[str, object] = {
             "joint_samples": self.joint_samples, "imu_samples": self.imu_samples, "ticks": stream.ticks,
             "duplicates": stream.duplicates, "restarts": stream.restarts, "held_imu_ticks": stream.held_imu_ticks,
-            "rejected": sum(stream.rejections.values()), "rejected_by_reason": dict(stream.rejections)}
+            "rejected": sum(stream.rejections.values()), "rejected_by_reason": dict(stream.rejections),
+            "unreadable": dict(self.unreadable)}
         if self.tce is not None:
             counts.update(tce_ticks=self.tce.ticks, tce_rejected=self.tce.rejected)
         return counts
 
     # -- input ------------------------------------------------------------------------------------------------
-    def add(self, topic: str, msg) -> None:
+    def add(self, topic: str, data: bytes) -> None:
+        """One serialised message of ``topic`` (REPLAY_TOPICS), read in place as the nodes read it
+        (tal_core.ros.cdr.CdrReader: no Python message is built); an unreadable one is counted."""
+        try:
+            view = self._readers[topic].read(data)
+        except Exception as exc:  # noqa: BLE001 - a corrupt record is counted, the replay goes on
+            self.unreadable[topic] = self.unreadable.get(topic, 0) + 1
+            LOG.warning("unreadable %s message (%d so far): %s", topic, self.unreadable[topic], exc)
+            return
+        stamp = view.stamp_ns
         if topic == "/joint_states":
             self.joint_samples += 1
-            self._outputs(self.stream.add_joints(_stamp(msg), lambda: joint_state_arrays(msg, self.joint_index)))
+            self._outputs(self.stream.add_joints(stamp, lambda: self.read_joints(view)))
         elif topic == "/imu":
             self.imu_samples += 1
-            a, w = msg.linear_acceleration, msg.angular_velocity
-            self._outputs(self.stream.add_imu(_stamp(msg), np.array([a.x, a.y, a.z]), np.array([w.x, w.y, w.z])))
+            self._outputs(self.stream.add_imu(stamp, view.vector("linear_acceleration").copy(),
+                                              view.vector("angular_velocity").copy()))
         elif topic == "/ground_truth/odom":
-            stamp = _stamp(msg)
-            position, rotation, velocity = _odometry_state(msg)
+            try:
+                base = base_state_from_odometry_view(view)
+            except InputError as exc:
+                self.unreadable[topic] = self.unreadable.get(topic, 0) + 1
+                LOG.warning("ground truth rejected: %s", exc)
+                return
+            rotation = rotation_from_quat_xyzw(base.quat_xyzw)
             if self.tce is not None and self.tce_base == "ground_truth":
-                w = msg.twist.twist.angular
-                o = msg.pose.pose.orientation
-                self.tce.set_base(stamp, BaseState(position, np.array([o.x, o.y, o.z, o.w]), velocity,
-                                                   rotation @ np.array([w.x, w.y, w.z])))
-            self._outputs(self.stream.set_initial_pose(position, rotation))
-            self._truth[stamp] = (position, velocity)
+                self.tce.set_base(stamp, base)
+            self._outputs(self.stream.set_initial_pose(base.position, rotation))
+            self._truth[stamp] = (base.position, base.linear_velocity)
             self._match(stamp)
         elif topic == "/state_estimate":
-            position, _, velocity = _odometry_state(msg)
-            self._live[_stamp(msg)] = (position, velocity)
-            self._match(_stamp(msg))
+            self._live[stamp] = (view.vector("pose.pose.position").copy(),
+                                 rotation_from_quat_xyzw(view.quaternion("pose.pose.orientation"))
+                                 @ view.vector("twist.twist.linear"))
+            self._match(stamp)
 
     def _outputs(self, outputs: list[EstimatorOutput]) -> None:
         for out in outputs:
@@ -211,11 +221,10 @@ def replay_bag(bag: str | Path, model: RobotModel, *, leg_odometry: str = "rigid
     reader = BagReader(bag)
     replay = BagReplay(model, leg_odometry, run_tce, tce_base, course, vertical_crossover_rad_s,
                        penetration_reference)
-    topics = ("/joint_states", "/imu", "/ground_truth/odom", "/state_estimate")
     wall = time.perf_counter()
     last_report = wall
-    for message in reader.messages(topics):
-        replay.add(message.topic, message.message)
+    for message in reader.messages(REPLAY_TOPICS, decode=False):
+        replay.add(message.topic, message.data)
         if progress and time.perf_counter() - last_report > 2.0:
             last_report = time.perf_counter()
             sys.stderr.write(f"[replay] t = {message.log_time_ns * 1e-9:.1f} s, {replay.counts['ticks']} ticks\n")

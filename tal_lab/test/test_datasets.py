@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import struct
+
 import pytest
 import yaml
 from tal_lab.datasets import SCENARIOS, DatasetError, generate_all
 from tal_lab.estimation_replay import replay_bag
 
 from tal_core.robot_model import RobotModel
-from tal_core.ros.bag_io import BagReader
+from tal_core.ros.bag_io import BagReader, BagWriter
 
 pytestmark = pytest.mark.slow
 DURATION_S = 1.0
@@ -60,6 +62,33 @@ def test_the_estimator_replays_a_dataset_against_its_ground_truth(twice):
     truth = summary["vs_ground_truth"]
     assert truth["samples"] == 333
     assert max(abs(v) for v in truth["final_drift_m"]) < 0.01  # 1 s of trotting in place on rigid ground
+
+
+def test_the_replay_counts_unreadable_records_and_goes_on(twice, tmp_path):
+    """The replay reads records in place (as the nodes do): a truncated IMU and joint-state record and a
+    ground truth with a NaN are counted per topic, and every other record is replayed."""
+    roots, manifests = twice
+    source = BagReader(roots[0] / manifests[0]["datasets"][0]["bag"])
+    broken = {"/imu": 100, "/joint_states": 200, "/ground_truth/odom": 300}   # topic -> index of the bad record
+    seen: dict[str, int] = {}
+    with BagWriter(tmp_path / "bag") as writer:
+        for topic, type_name in source.topics().items():
+            writer.add_topic(topic, type_name)
+        for message in source.messages(decode=False):
+            index = seen[message.topic] = seen.get(message.topic, -1) + 1
+            data = message.data
+            if broken.get(message.topic) == index:
+                if message.topic == "/ground_truth/odom":   # position.x NaN: 85 float64 from the end
+                    at = len(data) - 8 * 85
+                    data = data[:at] + struct.pack("<d", float("nan")) + data[at + 8:]
+                else:
+                    data = data[: len(data) // 2]
+            writer.write(message.topic, data, message.log_time_ns)
+    _, summary = replay_bag(tmp_path / "bag", RobotModel.from_name("hyq"), leg_odometry="terrain_aware")
+    counts = summary["counts"]
+    assert counts["unreadable"] == {"/imu": 1, "/joint_states": 1, "/ground_truth/odom": 1}
+    assert counts["imu_samples"] == counts["joint_samples"] == round(DURATION_S * 1000)
+    assert counts["ticks"] >= 332 and summary["vs_ground_truth"]["samples"] >= 331
 
 
 def test_unknown_dataset_names_are_refused(tmp_path):
