@@ -43,7 +43,7 @@ from tal_msgs.msg import ContactState, TerrainImpedance
 
 from .attitude import AttitudeSettings
 from .drift_statistics import DriftStatistics, StampMatcher
-from .leg_odometry import CONTACT_SOURCES, LEG_ODOMETRY_MODES, LegImpedance, LegOdometrySettings
+from .leg_odometry import CONTACT_SOURCES, LEG_ODOMETRY_MODES, VERTICAL_NORMALS, LegImpedance, LegOdometrySettings
 from .live_settings import with_field
 from .messages import EstimateWriters, foot_contact_values
 from .state_estimator import StateEstimate, StateEstimator, StateEstimatorSettings
@@ -311,7 +311,7 @@ class StateEstimatorNode(Node):
         contact = None
         if self.pub_contact.get_subscription_count():  # built only for a listener (333 Hz)
             impedance = self.stream.impedance
-            normals = impedance.normal if impedance is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
+            normals = impedance.normal if impedance is not None else VERTICAL_NORMALS
             contact = self.writers.contacts(stamp, e, normals,
                                             self.estimator.settings.leg_odometry.mode == "terrain_aware")
             self.pub_contact.publish(contact)
