@@ -16,7 +16,7 @@ the thesis studies. Nothing here imports rclpy: the node and the offline replay 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -63,6 +63,9 @@ class StateEstimatorSettings:
     sinking (from the TCE) moves the estimate as a real sinking would; a TCE fed with that estimate sees its
     own model again and cannot tell soft from rigid ground. With the channel the base's motion within a
     stance is the IMU's.
+    leg_velocity_gate_m_s: 0 off; > 0: a supporting leg whose implied base velocity is further than this from
+    the KF's prediction (its velocity plus the IMU's acceleration over the tick) gets no weight in that tick's
+    velocity measurement (a landing foot that still moves, a slipping one); counted in ``gated_legs``.
     """
 
     period_s: float = 0.003
@@ -78,6 +81,7 @@ class StateEstimatorSettings:
     joint_velocity_cutoff_hz: float = 40.0
     tick_tolerance_s: float = 1e-4
     vertical_crossover_rad_s: float = 0.0
+    leg_velocity_gate_m_s: float = 0.0
     attitude: AttitudeSettings = field(default_factory=AttitudeSettings)
     leg_odometry: LegOdometrySettings = field(default_factory=LegOdometrySettings)
 
@@ -89,9 +93,10 @@ class StateEstimatorSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise InputError(f"StateEstimatorSettings.{name} must be finite and > 0, got {value!r}")
-        if not (math.isfinite(self.vertical_crossover_rad_s) and self.vertical_crossover_rad_s >= 0.0):
-            raise InputError(f"StateEstimatorSettings.vertical_crossover_rad_s must be finite and >= 0, got "
-                             f"{self.vertical_crossover_rad_s!r}")
+        for name in ("vertical_crossover_rad_s", "leg_velocity_gate_m_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"StateEstimatorSettings.{name} must be finite and >= 0, got {value!r}")
         if self.tick_tolerance_s >= 0.5 * self.period_s:
             raise InputError(f"StateEstimatorSettings.tick_tolerance_s must be below half the period "
                              f"({0.5 * self.period_s} s), got {self.tick_tolerance_s!r}")
@@ -156,6 +161,7 @@ class StateEstimator:
         self.kf: KalmanFilter | None = None
         self.t_s: float | None = None
         self.reinitialisations = 0
+        self.gated_legs = 0   # supporting legs left out of a tick's velocity measurement (leg_velocity_gate_m_s)
         self._model_dt = -1.0
         self._measurement_noise = np.eye(3) * self.settings.leg_velocity_noise_m_s**2
         self._vertical = VerticalChannel()
@@ -276,6 +282,8 @@ class StateEstimator:
         legs = self.legs.update(dt, previous_R, previous_R @ previous_omega_base, q, qd, tau,
                                 base_acceleration_world=self._last_acceleration, impedance=impedance,
                                 foot_contact=contact)
+        if s.leg_velocity_gate_m_s > 0.0 and self._last_acceleration is not None:
+            legs = self._gated(legs, self.kf.x.ravel()[3:] + self._last_acceleration * dt, s.leg_velocity_gate_m_s)
         supported = legs.weight_sum >= s.min_support
         velocity_base = previous_R.T @ legs.base_velocity if supported else None
         self.attitude.update(dt, self._gravity.update(dt, f_base, previous_omega_base, velocity_base), gyro, mag)
@@ -303,6 +311,19 @@ class StateEstimator:
         return StateEstimate(self.t_s, x[:3].copy(), quat_xyzw_from_rotation(world_R_base), x[3:].copy(),
                              omega_base, p[:3, :3].copy(), p[3:, 3:].copy(), attitude_cov,
                              self.attitude.gyro_bias.copy(), legs)
+
+    def _gated(self, legs: LegOdometryOutput, predicted: np.ndarray, gate: float) -> LegOdometryOutput:
+        """``legs`` with the supporting legs whose implied base velocity is further than ``gate`` [m/s] from
+        ``predicted`` (world) taken out of the weighted mean (their contact flags and probabilities stay)."""
+        weights = legs.probability
+        far = (weights > 0.0) & (np.linalg.norm(legs.leg_velocity - predicted, axis=1) > gate)
+        if not far.any():
+            return legs
+        self.gated_legs += int(far.sum())
+        weights = np.where(far, 0.0, weights)
+        weight_sum = float(weights.sum())
+        base = (weights @ legs.leg_velocity) / weight_sum if weight_sum > 1e-6 else np.full(3, np.nan)
+        return replace(legs, base_velocity=base, weight_sum=weight_sum)
 
     def _reinitialise_velocity(self) -> None:
         """After a gap: keep position and attitude, forget the velocity and the leg states."""

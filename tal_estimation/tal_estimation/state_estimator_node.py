@@ -106,6 +106,11 @@ class StateEstimatorNode(Node):
                 "follow the IMU above this crossover and the KF below it (a TCE on the estimate then sees the base's "
                 "own motion within a stance, not the modelled sinking); 0: the KF's", low=0.0, high=100.0,
                 on_change=self._setting("vertical_crossover_rad_s")),
+            leg_velocity_gate_m_s=declare(
+                self, "leg_velocity_gate_m_s", 0.0, "[m/s] > 0: a supporting leg whose implied base velocity is "
+                "further than this from the KF's prediction is left out of the tick's velocity measurement (a "
+                "landing or slipping foot); 0: off", low=0.0, high=100.0,
+                on_change=self._setting("leg_velocity_gate_m_s")),
             max_gap_periods=declare(self, "max_gap_periods", 10, "[-] a larger gap re-initialises the velocity",
                                     low=1, high=100000, on_change=self._setting("max_gap_periods")),
             accel_range_m_s2=declare(self, "accel_range_m_s2", 392.0, "[m/s^2] IMU accelerometer range "
@@ -323,8 +328,8 @@ class StateEstimatorNode(Node):
         status.level = DiagnosticStatus.OK if rejected == 0 else DiagnosticStatus.WARN
         status.message = "ok" if rejected == 0 else f"{rejected} inputs rejected"
         values = {"ticks": self.ticks, "restarts": self.restarts, "held_imu_ticks": self.stream.held_imu_ticks,
-                  "reinitialisations": self.estimator.reinitialisations, **{f"rejected_{k}": v for k, v in
-                                                                           sorted(self.rejections.items())}}
+                  "reinitialisations": self.estimator.reinitialisations, "gated_legs": self.estimator.gated_legs,
+                  **{f"rejected_{k}": v for k, v in sorted(self.rejections.items())}}
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = stamp_from_ns(stamp)
@@ -345,7 +350,7 @@ class StateEstimatorNode(Node):
                      "duplicates": self.stream.duplicates,
                      "late_impedance_ticks": self.stream.late_impedance_ticks,
                      "impedance_repeats": self.stream.impedance_repeats,
-                     "reinitialisations": self.estimator.reinitialisations,
+                     "reinitialisations": self.estimator.reinitialisations, "gated_legs": self.estimator.gated_legs,
                      "rejected": dict(self.rejections),
                      "leg_odometry": self.estimator.settings.leg_odometry.mode}
         out.update(self._vs_truth.summary(decimals=4))

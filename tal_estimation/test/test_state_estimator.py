@@ -394,3 +394,29 @@ def test_the_vertical_channel_follows_the_imu_above_its_crossover_and_the_refere
     assert z[-1][0] == pytest.approx(0.1 * t[-1], abs=1e-3) and z[-1][1] == pytest.approx(0.1, abs=1e-3)
     with pytest.raises(InputError, match="vertical_crossover_rad_s"):
         StateEstimatorSettings(vertical_crossover_rad_s=-1.0)
+
+
+def test_the_velocity_gate_leaves_out_a_leg_whose_foot_still_moves() -> None:
+    """One stance leg's knee turning at 1 rad/s (a landing foot still moving, 0.3-0.4 m/s at the foot) pulls the
+    ungated estimate along; with leg_velocity_gate_m_s that leg is left out of the measurement and counted."""
+    model = robot("hyq")
+    joints = nominal_joints(model)
+    tau = standing_torques(model, joints)
+    qd = np.zeros(12)
+    qd[11] = 1.0   # RH knee
+    results = {}
+    for gate in (0.0, 0.1):
+        estimator = standing_estimator(settings=StateEstimatorSettings(leg_velocity_gate_m_s=gate))
+        for k in range(1, 6):
+            estimate = estimator.update(k * PERIOD_S, AT_REST, np.zeros(3), joints, np.zeros(12) if k < 3 else qd, tau)
+        results[gate] = (float(np.linalg.norm(estimate.linear_velocity)), estimator.gated_legs,
+                         float(estimate.legs.weight_sum), bool(estimate.legs.in_contact[3]))
+    ungated, gated = results[0.0], results[0.1]
+    assert ungated[1] == 0 and ungated[0] > 0.03
+    assert gated[1] == 3 and gated[0] < 0.01          # the three ticks with the moving knee
+    assert gated[2] == pytest.approx(3.0) and gated[3]  # weight from the other three legs; RH still in contact
+
+
+def test_the_velocity_gate_setting_is_checked() -> None:
+    with pytest.raises(InputError, match="leg_velocity_gate_m_s"):
+        StateEstimatorSettings(leg_velocity_gate_m_s=-0.1)

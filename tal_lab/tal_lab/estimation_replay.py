@@ -61,7 +61,7 @@ class BagReplay:
 
     def __init__(self, model: RobotModel, leg_odometry: str = "rigid", run_tce: bool = True,
                  tce_base: str = "estimate", course: Course | None = None, vertical_crossover_rad_s: float = 0.0,
-                 penetration_reference: str = "surface") -> None:
+                 penetration_reference: str = "surface", leg_velocity_gate_m_s: float = 0.0) -> None:
         if tce_base not in TCE_BASES:
             raise ValueError(f"tce_base must be one of {TCE_BASES}, got {tce_base!r}")
         self.model = model
@@ -69,7 +69,8 @@ class BagReplay:
         self.course = course
         self.joint_index = {name: i for i, name in enumerate(model.description.joint_names)}
         self.settings = StateEstimatorSettings(leg_odometry=LegOdometrySettings(mode=leg_odometry),
-                                               vertical_crossover_rad_s=vertical_crossover_rad_s)
+                                               vertical_crossover_rad_s=vertical_crossover_rad_s,
+                                               leg_velocity_gate_m_s=leg_velocity_gate_m_s)
         self.stream = StreamingEstimator(model, self.settings)
         self.tce: TceDriver | None = None
         if run_tce:
@@ -101,7 +102,8 @@ class BagReplay:
         stream = self.stream
         counts: dict[str, object] = {
             "joint_samples": self.joint_samples, "imu_samples": self.imu_samples, "ticks": stream.ticks,
-            "duplicates": stream.duplicates, "restarts": stream.restarts, "held_imu_ticks": stream.held_imu_ticks,
+            "duplicates": stream.duplicates, "gated_legs": stream.estimator.gated_legs, "restarts": stream.restarts,
+            "held_imu_ticks": stream.held_imu_ticks,
             "rejected": sum(stream.rejections.values()), "rejected_by_reason": dict(stream.rejections),
             "unreadable": dict(self.unreadable)}
         if self.tce is not None:
@@ -204,6 +206,7 @@ class BagReplay:
             "counts": self.counts, "leg_odometry": self.settings.leg_odometry.mode,
             "tce_base": self.tce_base if self.tce is not None else None,
             "vertical_crossover_rad_s": self.settings.vertical_crossover_rad_s,
+            "leg_velocity_gate_m_s": self.settings.leg_velocity_gate_m_s,
             "penetration_reference": self.tce.settings.penetration_reference if self.tce is not None else None,
             "course": self.course.name if self.course is not None else None,
             "sections": self.sections.summary() if self.sections is not None else [],
@@ -216,11 +219,12 @@ class BagReplay:
 def replay_bag(bag: str | Path, model: RobotModel, *, leg_odometry: str = "rigid", run_tce: bool = True,
                progress: bool = False, tce_base: str = "estimate",
                course: Course | None = None, vertical_crossover_rad_s: float = 0.0,
-               penetration_reference: str = "surface") -> tuple[BagReplay, dict[str, object]]:
+               penetration_reference: str = "surface",
+               leg_velocity_gate_m_s: float = 0.0) -> tuple[BagReplay, dict[str, object]]:
     """Replay ``bag`` and return the replay (with its plot series) and its summary."""
     reader = BagReader(bag)
     replay = BagReplay(model, leg_odometry, run_tce, tce_base, course, vertical_crossover_rad_s,
-                       penetration_reference)
+                       penetration_reference, leg_velocity_gate_m_s)
     wall = time.perf_counter()
     last_report = wall
     for message in reader.messages(REPLAY_TOPICS, decode=False):
@@ -333,6 +337,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="the estimator's vertical channel crossover (state_estimator.vertical_crossover_rad_s)")
     parser.add_argument("--penetration-reference", choices=PENETRATION_REFERENCES, default="surface",
                         help="the TCE's penetration reference (tce.penetration_reference)")
+    parser.add_argument("--leg-velocity-gate", type=float, default=0.0, metavar="M_S",
+                        help="the estimator's leg velocity gate (state_estimator.leg_velocity_gate_m_s; 0: off)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     course_name = args.course if args.course is not None else course_of_run(args.bag)
@@ -340,7 +346,8 @@ def main(argv: list[str] | None = None) -> int:
     replay, summary = replay_bag(args.bag, RobotModel.from_name(args.robot), leg_odometry=args.leg_odometry,
                                  run_tce=not args.no_tce, progress=True, tce_base=args.tce_base, course=course,
                                  vertical_crossover_rad_s=args.vertical_crossover,
-                                 penetration_reference=args.penetration_reference)
+                                 penetration_reference=args.penetration_reference,
+                                 leg_velocity_gate_m_s=args.leg_velocity_gate)
     out = args.out or (args.bag / "replay" if args.bag.is_dir() else args.bag.with_suffix(".replay"))
     write_report(replay, summary, out)
     sys.stdout.write((out / "report.md").read_text())

@@ -45,7 +45,8 @@ LEG_NAMES = tuple(leg.name for leg in LEGS)
 PATH_SAMPLE_S = 0.1  # [s] the path length is measured on 10 Hz samples (the trot's sway is not distance)
 
 # state_estimator parameters -> StateEstimatorSettings fields (the node's names)
-_TOP = ("period_s", "accel_noise_m_s2", "leg_velocity_noise_m_s", "vertical_crossover_rad_s", "max_gap_periods",
+_TOP = ("period_s", "accel_noise_m_s2", "leg_velocity_noise_m_s", "vertical_crossover_rad_s", "leg_velocity_gate_m_s",
+        "max_gap_periods",
         "accel_range_m_s2", "gyro_range_rad_s", "joint_velocity_cutoff_hz", "tick_tolerance_s")
 _LEG = {"leg_odometry": "mode", "contact_source": "contact_source",
         "contact_threshold_weight_fraction": "contact_threshold_weight_fraction",
