@@ -65,7 +65,8 @@ class StateEstimatorSettings:
     stance is the IMU's.
     leg_velocity_gate_m_s: 0 off; > 0: a supporting leg whose implied base velocity is further than this from
     the KF's prediction (its velocity plus the IMU's acceleration over the tick) gets no weight in that tick's
-    velocity measurement (a landing foot that still moves, a slipping one); counted in ``gated_legs``.
+    velocity measurement (a landing foot that still moves, a slipping one); counted in ``gated_legs``. When
+    that would leave less than ``min_support`` the legs stay (they agree that the prediction is off).
     """
 
     period_s: float = 0.003
@@ -319,9 +320,12 @@ class StateEstimator:
         far = (weights > 0.0) & (np.linalg.norm(legs.leg_velocity - predicted, axis=1) > gate)
         if not far.any():
             return legs
+        kept = np.where(far, 0.0, weights)
+        weight_sum = float(kept.sum())
+        if weight_sum < self.settings.min_support:
+            return legs   # the legs agree the prediction is off (the IMU's): they stay the measurement
         self.gated_legs += int(far.sum())
-        weights = np.where(far, 0.0, weights)
-        weight_sum = float(weights.sum())
+        weights = kept
         base = (weights @ legs.leg_velocity) / weight_sum if weight_sum > 1e-6 else np.full(3, np.nan)
         return replace(legs, base_velocity=base, weight_sum=weight_sum)
 

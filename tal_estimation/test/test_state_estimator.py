@@ -420,3 +420,17 @@ def test_the_velocity_gate_leaves_out_a_leg_whose_foot_still_moves() -> None:
 def test_the_velocity_gate_setting_is_checked() -> None:
     with pytest.raises(InputError, match="leg_velocity_gate_m_s"):
         StateEstimatorSettings(leg_velocity_gate_m_s=-0.1)
+
+
+def test_the_velocity_gate_keeps_the_legs_when_they_all_disagree_with_the_prediction() -> None:
+    """An IMU that reads a push the legs do not feel (2 m/s^2 along x for 40 ticks): every leg is soon further
+    than the gate from the prediction, and the legs, which agree with each other, stay the measurement."""
+    model = robot("hyq")
+    joints = nominal_joints(model)
+    tau = standing_torques(model, joints)
+    estimator = standing_estimator(settings=StateEstimatorSettings(leg_velocity_gate_m_s=0.02))
+    push = AT_REST + np.array([2.0, 0.0, 0.0])
+    for k in range(1, 41):
+        estimate = estimator.update(k * PERIOD_S, push, np.zeros(3), joints, np.zeros(12), tau)
+    assert estimator.gated_legs == 0
+    assert abs(float(estimate.linear_velocity[0])) < 0.05   # 40 ticks of the push alone: 0.24 m/s
