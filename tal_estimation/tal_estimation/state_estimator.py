@@ -82,7 +82,7 @@ class StateEstimatorSettings:
     joint_velocity_cutoff_hz: float = 40.0
     tick_tolerance_s: float = 1e-4
     vertical_crossover_rad_s: float = 0.0
-    leg_velocity_gate_m_s: float = 0.0
+    leg_velocity_gate_m_s: float = 0.08
     attitude: AttitudeSettings = field(default_factory=AttitudeSettings)
     leg_odometry: LegOdometrySettings = field(default_factory=LegOdometrySettings)
 

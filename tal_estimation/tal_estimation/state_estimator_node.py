@@ -107,7 +107,7 @@ class StateEstimatorNode(Node):
                 "own motion within a stance, not the modelled sinking); 0: the KF's", low=0.0, high=100.0,
                 on_change=self._setting("vertical_crossover_rad_s")),
             leg_velocity_gate_m_s=declare(
-                self, "leg_velocity_gate_m_s", 0.0, "[m/s] > 0: a supporting leg whose implied base velocity is "
+                self, "leg_velocity_gate_m_s", 0.08, "[m/s] > 0: a supporting leg whose implied base velocity is "
                 "further than this from the KF's prediction is left out of the tick's velocity measurement (a "
                 "landing or slipping foot); 0: off", low=0.0, high=100.0,
                 on_change=self._setting("leg_velocity_gate_m_s")),

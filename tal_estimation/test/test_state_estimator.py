@@ -371,7 +371,8 @@ def test_run_estimator_matches_hand_fed_ticks(mode: str, initial_position: np.nd
     np.testing.assert_allclose(result.force, [e.legs.force for e in expected], rtol=0.0, atol=1e-9)
     np.testing.assert_array_equal(result.contact, [e.legs.in_contact for e in expected])
     np.testing.assert_allclose(result.support, [e.legs.weight_sum for e in expected], rtol=0.0, atol=1e-12)
-    assert np.all(result.support >= 3.0)  # the legs did support the robot: the KF was corrected
+    # the legs did support the robot: the KF was corrected (the swaying legs disagree now and then: some gated)
+    assert np.all(result.support >= settings.min_support) and np.median(result.support) >= 3.0
     assert np.all(np.isfinite(result.position))
 
 

@@ -61,7 +61,8 @@ class BagReplay:
 
     def __init__(self, model: RobotModel, leg_odometry: str = "rigid", run_tce: bool = True,
                  tce_base: str = "estimate", course: Course | None = None, vertical_crossover_rad_s: float = 0.0,
-                 penetration_reference: str = "surface", leg_velocity_gate_m_s: float = 0.0) -> None:
+                 penetration_reference: str = "surface",
+                 leg_velocity_gate_m_s: float = StateEstimatorSettings.leg_velocity_gate_m_s) -> None:
         if tce_base not in TCE_BASES:
             raise ValueError(f"tce_base must be one of {TCE_BASES}, got {tce_base!r}")
         self.model = model
@@ -220,7 +221,8 @@ def replay_bag(bag: str | Path, model: RobotModel, *, leg_odometry: str = "rigid
                progress: bool = False, tce_base: str = "estimate",
                course: Course | None = None, vertical_crossover_rad_s: float = 0.0,
                penetration_reference: str = "surface",
-               leg_velocity_gate_m_s: float = 0.0) -> tuple[BagReplay, dict[str, object]]:
+               leg_velocity_gate_m_s: float = StateEstimatorSettings.leg_velocity_gate_m_s,
+               ) -> tuple[BagReplay, dict[str, object]]:
     """Replay ``bag`` and return the replay (with its plot series) and its summary."""
     reader = BagReader(bag)
     replay = BagReplay(model, leg_odometry, run_tce, tce_base, course, vertical_crossover_rad_s,
@@ -337,8 +339,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the estimator's vertical channel crossover (state_estimator.vertical_crossover_rad_s)")
     parser.add_argument("--penetration-reference", choices=PENETRATION_REFERENCES, default="surface",
                         help="the TCE's penetration reference (tce.penetration_reference)")
-    parser.add_argument("--leg-velocity-gate", type=float, default=0.0, metavar="M_S",
-                        help="the estimator's leg velocity gate (state_estimator.leg_velocity_gate_m_s; 0: off)")
+    parser.add_argument("--leg-velocity-gate", type=float, default=StateEstimatorSettings.leg_velocity_gate_m_s,
+                        metavar="M_S", help="the estimator's leg velocity gate (state_estimator.leg_velocity_gate_m_s; "
+                        "0: off)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     course_name = args.course if args.course is not None else course_of_run(args.bag)
