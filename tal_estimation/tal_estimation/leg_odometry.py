@@ -155,6 +155,13 @@ class LegOdometryOutput:
     foot_offset: np.ndarray
 
 
+def weighted_base_velocity(weights: np.ndarray, leg_velocity: np.ndarray) -> tuple[np.ndarray, float]:
+    """(the legs' weighted mean base velocity (NaN without support), the weight sum) of per-leg weights (4,)
+    and the base velocities the legs read (4, 3)."""
+    weight_sum = float(weights.sum())
+    return ((weights @ leg_velocity) / weight_sum if weight_sum > 1e-6 else np.full(3, np.nan)), weight_sum
+
+
 class LegOdometry:
     """Base velocity from the legs; robot agnostic (everything from the RobotModel's URDF + YAML)."""
 
@@ -281,8 +288,7 @@ class LegOdometry:
             probability = in_contact.astype(float)
             weights = probability
         leg_velocity = foot_velocity - relative
-        weight_sum = float(weights.sum())
-        base_velocity = (weights @ leg_velocity) / weight_sum if weight_sum > 1e-6 else np.full(3, np.nan)
+        base_velocity, weight_sum = weighted_base_velocity(weights, leg_velocity)
         return LegOdometryOutput(base_velocity, weight_sum, force, in_contact, probability, leg_velocity,
                                  foot_velocity, self.penetration.copy(), feet.foot_positions)
 

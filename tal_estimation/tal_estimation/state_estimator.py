@@ -28,7 +28,7 @@ from tal_core.rotations import cross3, quat_xyzw_from_rotation, rotation_from_qu
 from tal_core.state import BaseState
 
 from .attitude import AttitudeEstimator, AttitudeSettings
-from .leg_odometry import LegImpedance, LegOdometry, LegOdometryOutput, LegOdometrySettings
+from .leg_odometry import LegImpedance, LegOdometry, LegOdometryOutput, LegOdometrySettings, weighted_base_velocity
 
 GRAVITY_WORLD = np.array([0.0, 0.0, -9.81])
 KNOWN_ATTITUDE_STD_RAD = 0.01  # [rad] uncertainty of an initial attitude that is given (e.g. ground truth)
@@ -316,17 +316,13 @@ class StateEstimator:
     def _gated(self, legs: LegOdometryOutput, predicted: np.ndarray, gate: float) -> LegOdometryOutput:
         """``legs`` with the supporting legs whose implied base velocity is further than ``gate`` [m/s] from
         ``predicted`` (world) taken out of the weighted mean (their contact flags and probabilities stay)."""
-        weights = legs.probability
-        far = (weights > 0.0) & (np.linalg.norm(legs.leg_velocity - predicted, axis=1) > gate)
+        far = (legs.probability > 0.0) & (np.linalg.norm(legs.leg_velocity - predicted, axis=1) > gate)
         if not far.any():
             return legs
-        kept = np.where(far, 0.0, weights)
-        weight_sum = float(kept.sum())
+        base, weight_sum = weighted_base_velocity(np.where(far, 0.0, legs.probability), legs.leg_velocity)
         if weight_sum < self.settings.min_support:
             return legs   # the legs agree the prediction is off (the IMU's): they stay the measurement
         self.gated_legs += int(far.sum())
-        weights = kept
-        base = (weights @ legs.leg_velocity) / weight_sum if weight_sum > 1e-6 else np.full(3, np.nan)
         return replace(legs, base_velocity=base, weight_sum=weight_sum)
 
     def _reinitialise_velocity(self) -> None:

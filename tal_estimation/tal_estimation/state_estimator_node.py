@@ -242,7 +242,7 @@ class StateEstimatorNode(Node):
         stamp = view.stamp_ns
         if self.summary_path:
             self._add_drift(stamp, self._truth_pairs.add_reference(stamp, base))
-        if self.init_source == "ground_truth":
+        if self.init_source == "ground_truth" and not self.stream.has_initial_pose:
             self._output(self.stream.set_initial_pose(base.position, rotation_from_quat_xyzw(base.quat_xyzw)))
 
     def _on_mag(self, msg: MagneticField) -> None:

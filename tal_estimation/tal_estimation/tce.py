@@ -29,7 +29,7 @@ import numpy as np
 
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
-from tal_core.robot_description import RobotDescription
+from tal_core.robot_description import NUM_JOINTS
 from tal_core.robot_model import RobotModel
 from tal_core.rotations import cross3
 
@@ -414,7 +414,6 @@ class TerrainComplianceEstimator:
         self.settings = settings or TceSettings()
         self.normal = KelvinVoigtWindows(self.settings, NUM_LEGS)
         self.tangential = KelvinVoigtWindows(self.settings, NUM_LEGS) if self.settings.estimate_tangential else None
-        self._tau_slice = [RobotDescription.leg_joint_slice(leg) for leg in range(NUM_LEGS)]
         self._anchor: list[np.ndarray | None] = [None] * NUM_LEGS   # foot position at touchdown (tangential)
         self._was_in_contact = np.zeros(NUM_LEGS, dtype=bool)
         self._touchdown_offset = np.zeros(NUM_LEGS)   # penetration_reference touchdown: p = p_surface - offset
@@ -453,8 +452,8 @@ class TerrainComplianceEstimator:
         full leg dynamics J_leg^T F = M_leg vdot + h_leg - tau_leg (touchdown impacts), without it the static
         part only."""
         tau = np.asarray(tau, dtype=float)
-        if tau.shape != (len(self._tau_slice) * 3,) or not np.all(np.isfinite(tau)):
-            raise InputError(f"TCE needs {len(self._tau_slice) * 3} finite joint torques, got {tau!r}")
+        if tau.shape != (NUM_JOINTS,) or not np.all(np.isfinite(tau)):
+            raise InputError(f"TCE needs {NUM_JOINTS} finite joint torques, got {tau!r}")
         m = self.model
         # Foot kinematics and h alone (RobotModel.foot_dynamics, about 4x cheaper than a full update), M only
         # with accelerations; the four legs' forces in one batched solve.

@@ -136,10 +136,10 @@ class BagReplay:
                 self.unreadable[topic] = self.unreadable.get(topic, 0) + 1
                 LOG.warning("ground truth rejected: %s", exc)
                 return
-            rotation = rotation_from_quat_xyzw(base.quat_xyzw)
             if self.tce is not None and self.tce_base == "ground_truth":
                 self.tce.set_base(stamp, base)
-            self._outputs(self.stream.set_initial_pose(base.position, rotation))
+            if not self.stream.has_initial_pose:   # only the first ground truth is the start pose
+                self._outputs(self.stream.set_initial_pose(base.position, rotation_from_quat_xyzw(base.quat_xyzw)))
             self._truth[stamp] = (base.position, base.linear_velocity)
             self._match(stamp)
         elif topic == "/state_estimate":
