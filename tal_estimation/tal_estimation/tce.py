@@ -39,7 +39,7 @@ NormalFunction = Callable[[float, float], np.ndarray]
 PENETRATION_REFERENCES = ("surface", "touchdown")
 
 # Index of each weighted sum in KelvinVoigtWindows._sums' last axis.
-_W, _F, _FF, _PP, _PR, _RR, _PF, _RF, _P, _R = range(10)
+_W, _F, _FF, _PP, _PR, _RR, _PF, _RF, _P, _R, _T, _TT, _TP, _TR, _TF = range(15)
 
 
 @dataclass(frozen=True)
@@ -97,6 +97,14 @@ class TceSettings:
     # drifting estimate, surface-referenced windows read rigid ground as soft: 10 % quantile 100 N/m). The
     # offset check (max_penetration_offset_m) does not apply to touchdown-referenced windows.
     penetration_reference: str = "surface"
+    # Base drift (touchdown reference only): a base estimate whose vertical velocity is off by e makes every
+    # stance's penetration read e t too shallow (t: time since its touchdown) and its rate e too small. On a
+    # soft patch the TCE then reads the ground stiffer, the terrain-aware odometry counts less sinking, the
+    # estimate's vertical velocity errs further the same way: the loop has no anchor (graph_tour, TCE on the
+    # estimate: T1 read +94 %, the estimate rose 0.3-0.5 m per metre walked; measured). With base_drift_fit the
+    # window is fitted as F = k p + d dp/dt + (k e) t + c, so k comes from how F and p vary together within the
+    # stances, not from their drift; the rigid check uses the part of p that the drift does not explain.
+    base_drift_fit: bool = False
 
     def __post_init__(self) -> None:
         if self.penetration_reference not in PENETRATION_REFERENCES:
@@ -155,7 +163,7 @@ class KelvinVoigtWindows:
     def __init__(self, settings: TceSettings, n: int) -> None:
         self.settings, self.n = settings, int(n)
         m = settings.window
-        self._data = np.zeros((self.n, 3, m))          # force, penetration, rate
+        self._data = np.zeros((self.n, 4, m))          # force, penetration, rate, time since touchdown
         self._next = np.zeros(self.n, dtype=int)
         self._count = np.zeros(self.n, dtype=int)       # ring slots in use (samples and lost ticks)
         self._valid = np.zeros((self.n, m), dtype=bool)  # slots holding a sample (not a lost tick)
@@ -165,9 +173,13 @@ class KelvinVoigtWindows:
         self.restarts = np.zeros(self.n, dtype=np.int64)  # windows restarted at a terrain change
         self.estimates = [LegEstimate() for _ in range(self.n)]
 
-    def add(self, mask: np.ndarray, force: np.ndarray, penetration: np.ndarray, rate: np.ndarray) -> None:
-        """Append one sample to each channel where ``mask``; non-finite samples are ignored."""
-        sample = np.stack([np.asarray(force, float), np.asarray(penetration, float), np.asarray(rate, float)], 1)
+    def add(self, mask: np.ndarray, force: np.ndarray, penetration: np.ndarray, rate: np.ndarray,
+            elapsed: np.ndarray | None = None) -> None:
+        """Append one sample to each channel where ``mask``; non-finite samples are ignored. ``elapsed``: time
+        since the stance's touchdown (any unit; base_drift_fit), zeros when None."""
+        elapsed = np.zeros(self.n) if elapsed is None else np.asarray(elapsed, float)
+        sample = np.stack([np.asarray(force, float), np.asarray(penetration, float), np.asarray(rate, float),
+                           elapsed], 1)
         take = np.asarray(mask, dtype=bool) & np.all(np.isfinite(sample), axis=1)
         self._segment = np.where(take, self._segment + 1, 0)
         if not take.any():
@@ -210,15 +222,22 @@ class KelvinVoigtWindows:
         mask = np.ones(self.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
         w = self.weights()
         counts = self.samples(w)
-        force, pen, rate = self._data[:, 0], self._data[:, 1], self._data[:, 2]
-        products = np.stack([np.ones_like(force), force, force * force, pen * pen, pen * rate, rate * rate,
-                             pen * force, rate * force, pen, rate], axis=1)
+        force, pen, rate, elapsed = self._data[:, 0], self._data[:, 1], self._data[:, 2], self._data[:, 3]
+        columns = [np.ones_like(force), force, force * force, pen * pen, pen * rate, rate * rate,
+                   pen * force, rate * force, pen, rate]
+        if self._drift_fit:
+            columns += [elapsed, elapsed * elapsed, elapsed * pen, elapsed * rate, elapsed * force]
+        products = np.stack(columns, axis=1)
         sums = np.einsum("lm,lkm->lk", w, products)
         for leg in np.flatnonzero(mask):
             self._fit_channel(self.estimates[leg], int(counts[leg]), sums[leg], pen[leg], w[leg])
             if self.settings.window_restart and self._restart_due(int(leg), int(counts[leg])):
                 self._check_restart(int(leg), products[leg], pen[leg], w[leg])
         return self.estimates
+
+    @property
+    def _drift_fit(self) -> bool:
+        return self.settings.base_drift_fit and self.settings.penetration_reference == "touchdown"
 
     def _restart_due(self, leg: int, count: int) -> bool:
         """Whether the current stance is at a point where its fit is compared with the window's."""
@@ -265,6 +284,9 @@ class KelvinVoigtWindows:
             est.stale = est.valid
             est.confidence = est.confidence * 0.99 if est.valid else 0.0
             return
+        if self._drift_fit:
+            self._fit_with_drift(est, count, sums)
+            return
         total_w = sums[_W]
         mean_p = float(w @ pen) / total_w
         variance_p = max(sums[_PP] / total_w - mean_p**2, 0.0)
@@ -300,6 +322,63 @@ class KelvinVoigtWindows:
         fill = count / s.window
         consistent = abs(offset) <= s.max_penetration_offset_m   # False for NaN (no offset fit possible)
         est.confidence = float(np.clip(fill * max(r2, 0.0), 0.0, 1.0)) * (0.5 if est.clamped else 1.0) * consistent
+        est.valid, est.stale, est.rigid = True, False, False
+
+    def _fit_with_drift(self, est: LegEstimate, count: int, sums: np.ndarray) -> None:
+        """``base_drift_fit``: F = k p (+ d dp/dt) + g t + c by weighted least squares (g = k e, c also takes
+        d e and a touchdown depth that was off); the rigid check on the part of p that t and a constant do not
+        explain."""
+        s = self.settings
+        total_w = sums[_W]
+        # p's variance left after its regression on (t, 1): what the drift cannot have made
+        drift = np.array([[sums[_TT], sums[_T]], [sums[_T], total_w]])
+        det_drift = drift[0, 0] * drift[1, 1] - drift[0, 1] ** 2
+        cross = np.array([sums[_TP], sums[_P]])
+        if not det_drift > 1e-12 * drift[0, 0] * drift[1, 1]:
+            self._keep_previous(est)
+            return
+        explained_p = float(cross @ np.linalg.solve(drift, cross))
+        variance_p = max(sums[_PP] - explained_p, 0.0) / total_w
+        variance_f = max(sums[_FF] / total_w - (sums[_F] / total_w) ** 2, 0.0)
+        std_f, std_p = math.sqrt(variance_f), math.sqrt(variance_p)
+        if std_f >= s.min_force_variation_n and std_f >= s.rigid_stiffness_n_per_m * std_p:
+            ratio = std_f / std_p if std_p > 0.0 else math.inf
+            est.stiffness_n_per_m = float(min(ratio, s.stiffness_range_n_per_m[1]))
+            est.confidence = count / s.window
+            est.valid, est.stale, est.clamped, est.rigid = True, False, False, True
+            est.penetration_offset_m = 0.0
+            return
+        if std_p < s.min_penetration_variation_m:
+            self._keep_previous(est)
+            return
+        if s.estimate_damping:
+            normal = np.array([[sums[_PP], sums[_PR], sums[_TP], sums[_P]],
+                               [sums[_PR], sums[_RR], sums[_TR], sums[_R]],
+                               [sums[_TP], sums[_TR], sums[_TT], sums[_T]],
+                               [sums[_P], sums[_R], sums[_T], total_w]])
+            rhs = np.array([sums[_PF], sums[_RF], sums[_TF], sums[_F]])
+        else:
+            normal = np.array([[sums[_PP], sums[_TP], sums[_P]], [sums[_TP], sums[_TT], sums[_T]],
+                               [sums[_P], sums[_T], total_w]])
+            rhs = np.array([sums[_PF], sums[_TF], sums[_F]])
+        diagonal = np.diag(normal)
+        scale = np.sqrt(np.where(diagonal > 0.0, diagonal, 1.0))
+        scaled = normal / np.outer(scale, scale)
+        if not np.linalg.det(scaled) > s.min_relative_determinant:
+            self._keep_previous(est)
+            return
+        theta = np.linalg.solve(scaled, rhs / scale) / scale
+        k = float(theta[0])
+        d = float(theta[1]) if s.estimate_damping else float("nan")
+        total = sums[_FF] - sums[_F] ** 2 / total_w
+        residual = max(sums[_FF] - float(theta @ rhs), 0.0)
+        r2 = 1.0 - residual / total if total > 0.0 else 1.0
+        k_clamped = float(np.clip(k, *s.stiffness_range_n_per_m))
+        d_clamped = float(np.clip(d, *s.damping_range_ns_per_m)) if s.estimate_damping else d
+        est.clamped = k_clamped != k or (s.estimate_damping and d_clamped != d)
+        est.stiffness_n_per_m, est.damping_ns_per_m = k_clamped, d_clamped
+        est.penetration_offset_m = 0.0
+        est.confidence = float(np.clip(count / s.window * max(r2, 0.0), 0.0, 1.0)) * (0.5 if est.clamped else 1.0)
         est.valid, est.stale, est.rigid = True, False, False
 
     def _solve(self, a: float, b: float, c: float, g_p: float, g_r: float) -> tuple[float, float] | None:
@@ -417,6 +496,7 @@ class TerrainComplianceEstimator:
         self._anchor: list[np.ndarray | None] = [None] * NUM_LEGS   # foot position at touchdown (tangential)
         self._was_in_contact = np.zeros(NUM_LEGS, dtype=bool)
         self._touchdown_offset = np.zeros(NUM_LEGS)   # penetration_reference touchdown: p = p_surface - offset
+        self._stance_ticks = np.zeros(NUM_LEGS)        # updates since each stance's first sample (base_drift_fit)
         self._relief_offsets = self._offsets(self.settings.relief_radius_m)
         self.edge_samples = np.zeros(NUM_LEGS, dtype=np.int64)   # stance samples left out at edges, per leg
 
@@ -487,6 +567,12 @@ class TerrainComplianceEstimator:
                                          relief))   # rows of this call's own arrays
         return samples
 
+    def skip(self, mask: np.ndarray, slots: int) -> None:
+        """Lost ticks of the legs in ``mask`` (``KelvinVoigtWindows.skip``): their stances' clocks go on."""
+        mask = np.asarray(mask, dtype=bool)
+        self.normal.skip(mask, slots)
+        self._stance_ticks = np.where(mask & self._was_in_contact, self._stance_ticks + slots, self._stance_ticks)
+
     def update(self, samples: list[ContactSample]) -> list[LegEstimate]:
         """Feed the stance legs' samples and refit them; swing legs keep their estimate. Returns the
         normal-direction estimates."""
@@ -499,7 +585,8 @@ class TerrainComplianceEstimator:
             pen = self._from_touchdown(stance, force, pen, rate)
         edge = stance & ~(relief <= self.settings.max_surface_relief_m)   # NaN relief counts as an edge
         self.edge_samples += edge
-        self.normal.add(stance & ~edge, force, pen, rate)
+        self._stance_ticks = np.where(stance & self._was_in_contact, self._stance_ticks + 1.0, 0.0)
+        self.normal.add(stance & ~edge, force, pen, rate, self._stance_ticks)
         self.normal.fit(stance & ~edge)
         if self.tangential is not None:
             self._update_tangential(samples, stance)

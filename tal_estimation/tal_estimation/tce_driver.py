@@ -313,7 +313,7 @@ class TceDriver:
             # Lost ticks age the stance legs' windows as their samples would have, so that a window still spans
             # the time of the thesis' 250 samples at 250 Hz (fed at 100 Hz it held a patch's stiffness 2.5
             # times as long, over the rigid metre before the stairs).
-            self.tce.normal.skip([s.in_contact for s in samples], lost)
+            self.tce.skip([s.in_contact for s in samples], lost)
             self.lost_ticks += lost
         usable = []
         for sample in samples:

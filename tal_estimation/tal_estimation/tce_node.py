@@ -95,7 +95,11 @@ class TceNode(Node):
                                           "the base state; thesis, motion capture) or touchdown (each stance's "
                                           "first sample; for a base estimate that drifts in height)",
                                           choices=PENETRATION_REFERENCES,
-                                          on_change=self._setting("penetration_reference")))
+                                          on_change=self._setting("penetration_reference")),
+            base_drift_fit=declare(self, "base_drift_fit", False,
+                                   "with the touchdown reference: fit the base estimate's vertical drift within "
+                                   "the window too (F = k p + d dp/dt + g t + c), so a drifting estimate does "
+                                   "not bias the stiffness", on_change=self._setting("base_drift_fit")))
         self.model = RobotModel.from_name(robot)
         base_period = (period if base_source == "ground_truth" else estimate_period) if wait_for_base else None
         self.driver = TceDriver(self.model, settings, period_s=period, stale_state_periods=stale_periods,

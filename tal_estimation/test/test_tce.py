@@ -446,3 +446,28 @@ def test_the_offset_check_does_not_apply_to_touchdown_referenced_windows(model) 
     surface = TerrainComplianceEstimator(model, TceSettings(penetration_reference="surface"))
     drifting_base_stances(surface, k=3500.0, d=400.0, drift_per_stance_m=0.0, drift_within_stance_m=0.02)
     assert surface.estimates[0].penetration_offset_m != 0.0
+
+
+@pytest.mark.parametrize("within_m", [-0.02, 0.02])
+def test_the_base_drift_fit_reads_the_ground_through_a_base_velocity_error(model, within_m) -> None:
+    """A base estimate whose vertical velocity is off reads each stance's sinking too shallow (or deep) by the
+    drift since touchdown: the touchdown-referenced fit is biased by tens of percent, the drift fit recovers
+    the ground's stiffness (and, on rigid ground, calls it rigid)."""
+    plain = TerrainComplianceEstimator(model, TceSettings(penetration_reference="touchdown"))
+    drifting_base_stances(plain, k=3500.0, d=400.0, drift_per_stance_m=0.0, drift_within_stance_m=within_m)
+    assert plain.estimates[0].stiffness_n_per_m != pytest.approx(3500.0, rel=0.15)
+    settings = TceSettings(penetration_reference="touchdown", base_drift_fit=True)
+    drift = TerrainComplianceEstimator(model, settings)
+    drifting_base_stances(drift, k=3500.0, d=400.0, drift_per_stance_m=0.003, drift_within_stance_m=within_m)
+    estimate = drift.estimates[0]
+    assert estimate.valid and not estimate.rigid and estimate.confidence > 0.5, estimate
+    assert estimate.stiffness_n_per_m == pytest.approx(3500.0, rel=0.05)   # the samples' own law: ~3 % off
+    still = TerrainComplianceEstimator(model, settings)                     # the same as with a true base
+    drifting_base_stances(still, k=3500.0, d=400.0, drift_per_stance_m=0.0)
+    assert estimate.stiffness_n_per_m == pytest.approx(still.estimates[0].stiffness_n_per_m, rel=0.005)
+    rigid = TerrainComplianceEstimator(model, settings)
+    drifting_base_stances(rigid, k=2e6, d=2e4, drift_per_stance_m=0.0, drift_within_stance_m=within_m)
+    assert rigid.estimates[0].rigid and rigid.estimates[0].stiffness_n_per_m >= 5e4
+    surface = TerrainComplianceEstimator(model, TceSettings(base_drift_fit=True))   # the surface reference:
+    drifting_base_stances(surface, k=3500.0, d=400.0, drift_per_stance_m=0.0)      # the thesis' fit, unchanged
+    assert surface.estimates[0].stiffness_n_per_m == pytest.approx(3500.0, rel=0.05)

@@ -62,7 +62,8 @@ class BagReplay:
     def __init__(self, model: RobotModel, leg_odometry: str = "rigid", run_tce: bool = True,
                  tce_base: str = "estimate", course: Course | None = None, vertical_crossover_rad_s: float = 0.0,
                  penetration_reference: str = "surface",
-                 leg_velocity_gate_m_s: float = StateEstimatorSettings.leg_velocity_gate_m_s) -> None:
+                 leg_velocity_gate_m_s: float = StateEstimatorSettings.leg_velocity_gate_m_s,
+                 base_drift_fit: bool = False) -> None:
         if tce_base not in TCE_BASES:
             raise ValueError(f"tce_base must be one of {TCE_BASES}, got {tce_base!r}")
         self.model = model
@@ -75,7 +76,8 @@ class BagReplay:
         self.stream = StreamingEstimator(model, self.settings)
         self.tce: TceDriver | None = None
         if run_tce:
-            self.tce = TceDriver(model, TceSettings(penetration_reference=penetration_reference),
+            self.tce = TceDriver(model, TceSettings(penetration_reference=penetration_reference,
+                                                    base_drift_fit=base_drift_fit),
                                  period_s=self.settings.period_s)
             if course is None:
                 self.tce.set_terrain(lambda x, y: 0.0)
@@ -209,6 +211,7 @@ class BagReplay:
             "vertical_crossover_rad_s": self.settings.vertical_crossover_rad_s,
             "leg_velocity_gate_m_s": self.settings.leg_velocity_gate_m_s,
             "penetration_reference": self.tce.settings.penetration_reference if self.tce is not None else None,
+            "base_drift_fit": self.tce.settings.base_drift_fit if self.tce is not None else None,
             "course": self.course.name if self.course is not None else None,
             "sections": self.sections.summary() if self.sections is not None else [],
             "vs_ground_truth": self.vs_truth.summary(), "vs_live_estimate": self.vs_live.summary(),
@@ -222,11 +225,11 @@ def replay_bag(bag: str | Path, model: RobotModel, *, leg_odometry: str = "rigid
                course: Course | None = None, vertical_crossover_rad_s: float = 0.0,
                penetration_reference: str = "surface",
                leg_velocity_gate_m_s: float = StateEstimatorSettings.leg_velocity_gate_m_s,
-               ) -> tuple[BagReplay, dict[str, object]]:
+               base_drift_fit: bool = False) -> tuple[BagReplay, dict[str, object]]:
     """Replay ``bag`` and return the replay (with its plot series) and its summary."""
     reader = BagReader(bag)
     replay = BagReplay(model, leg_odometry, run_tce, tce_base, course, vertical_crossover_rad_s,
-                       penetration_reference, leg_velocity_gate_m_s)
+                       penetration_reference, leg_velocity_gate_m_s, base_drift_fit)
     wall = time.perf_counter()
     last_report = wall
     for message in reader.messages(REPLAY_TOPICS, decode=False):
@@ -342,6 +345,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--leg-velocity-gate", type=float, default=StateEstimatorSettings.leg_velocity_gate_m_s,
                         metavar="M_S", help="the estimator's leg velocity gate (state_estimator.leg_velocity_gate_m_s; "
                         "0: off)")
+    parser.add_argument("--base-drift-fit", action="store_true",
+                        help="the TCE also fits the base estimate's vertical drift (tce.base_drift_fit; with "
+                        "--penetration-reference touchdown)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     course_name = args.course if args.course is not None else course_of_run(args.bag)
@@ -350,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
                                  run_tce=not args.no_tce, progress=True, tce_base=args.tce_base, course=course,
                                  vertical_crossover_rad_s=args.vertical_crossover,
                                  penetration_reference=args.penetration_reference,
-                                 leg_velocity_gate_m_s=args.leg_velocity_gate)
+                                 leg_velocity_gate_m_s=args.leg_velocity_gate, base_drift_fit=args.base_drift_fit)
     out = args.out or (args.bag / "replay" if args.bag.is_dir() else args.bag.with_suffix(".replay"))
     write_report(replay, summary, out)
     sys.stdout.write((out / "report.md").read_text())
