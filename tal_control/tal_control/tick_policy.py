@@ -7,7 +7,8 @@ Stamps are integer nanoseconds of sim time. Ticks lie on the grid k * period_ns 
 - A tick is due when a joint state reaches the next grid point. It is computed once the base state
   expected for it has arrived (ground truth: the same stamp; an estimate published every
   ``base_period_ns``: the estimator's latest tick at or before it) and, with ``contacts``, the foot
-  contacts of its stamp. Arrival order does not matter, so lockstep runs are deterministic. A tick whose
+  contacts of its stamp (with ``contact_period_ns``, as the estimator's contact estimate: its latest tick at
+  or before the stamp). Arrival order does not matter, so lockstep runs are deterministic. A tick whose
   inputs have not arrived is deferred; it is decided, with whatever base state is there, when a later
   joint state arrives (the robot driver moved on).
 - A tick whose base state is older than ``stale_periods`` control periods is a safe-mode tick (joint
@@ -69,7 +70,9 @@ class Mode(Enum):
 class TickPolicyConfig:
     """period_ns: control tick [ns]. stale_periods: a base state older than this many periods means safe
     mode. base_period_ns: the base state's publishing period [ns] (None: one with every joint state, as
-    ground truth). contacts: a tick also waits for the foot contacts of its stamp. command_source_wait_s
+    ground truth). contacts: a tick also waits for the foot contacts of its stamp. contact_period_ns: the
+    contacts' publishing period [ns] (None: with every joint state, as contact sensors; the estimator's
+    contact estimate: its tick period). command_source_wait_s
     [s] (wall time): the first tick waits this long for a command source (0: no wait).
     watchdog_timeout_s [s] (steady time): silence of the driver before safe mode (0: off).
     max_defer_ns: a tick deferred for its base state (or contacts) runs anyway on the first joint sample more
@@ -89,6 +92,7 @@ class TickPolicyConfig:
     stale_periods: int = 3
     base_period_ns: int | None = None
     contacts: bool = False
+    contact_period_ns: int | None = None
     command_source_wait_s: float = 0.0
     watchdog_timeout_s: float = 0.0
     max_defer_ns: int = 0
@@ -390,7 +394,14 @@ class WbcTickPolicy:
     def expected_base_stamp(self, stamp_ns: int) -> int:
         """The stamp of the newest base state the source publishes at or before ``stamp_ns``: ground truth
         comes with every physics step, an estimate on its own tick grid."""
-        period = self.config.base_period_ns
+        return self._latest_on_grid(stamp_ns, self.config.base_period_ns)
+
+    def expected_contacts_stamp(self, stamp_ns: int) -> int:
+        """The stamp of the newest foot contacts the source publishes at or before ``stamp_ns``."""
+        return self._latest_on_grid(stamp_ns, self.config.contact_period_ns)
+
+    @staticmethod
+    def _latest_on_grid(stamp_ns: int, period: int | None) -> int:
         if period is None:
             return stamp_ns
         return ((stamp_ns + TICK_TOLERANCE_NS) // period) * period
@@ -414,7 +425,8 @@ class WbcTickPolicy:
         deferred_before = (self._deferred_tick_ns is not None
                            and stamp > self._deferred_tick_ns + self.config.max_defer_ns)
         contacts_missing = self.config.contacts and (
-            self._contacts is None or self._contacts.stamp_ns < stamp - TICK_TOLERANCE_NS)
+            self._contacts is None
+            or self._contacts.stamp_ns < self.expected_contacts_stamp(stamp) - TICK_TOLERANCE_NS)
         waited_missing = self._waited_missing(stamp)
         map_missing = self._heightmaps.awaited(stamp) is not None
         base_missing = base_stamp < self.expected_base_stamp(stamp) - TICK_TOLERANCE_NS

@@ -5,7 +5,8 @@ state_source), cmd_vel_stamped (TwistStamped, applied from the first tick at or 
 lockstep run with a scripted command does not depend on when the script's process runs), cmd_vel (Twist,
 applied from the tick after it arrives, unless stamped commands are in use; see velocity_command),
 footholds, body_pose_reference, terrain/heightmap, and with contact_source ground_truth
-ground_truth/contacts (the simulator's foot contacts standing in for foot contact sensors: a planned
+ground_truth/contacts (the simulator's foot contacts standing in for foot contact sensors) or with
+contact_source estimate the state estimator's contact_estimate (on its tick grid) for touchdowns: a planned
 stance foot that does not touch searches for the ground, a swing foot that lands late in its swing is a
 support; ``TouchdownSearch``).
 Publishes: joint_command (feed-forward torques), gait_state, wbc/diagnostics.
@@ -157,6 +158,8 @@ class WbcNode(Node):
                              base_period_ns=(None if p["state_source"] == "ground_truth"
                                              else round(p["estimate_period_s"] * 1e9)),
                              contacts=p["contact_source"] != "none",
+                             contact_period_ns=(round(p["estimate_period_s"] * 1e9)
+                                                if p["contact_source"] == "estimate" else None),
                              command_source_wait_s=p["command_source_wait_s"],
                              watchdog_timeout_s=p["watchdog_timeout_s"],
                              max_defer_ns=round(p["max_defer_s"] * 1e9),
@@ -199,8 +202,9 @@ class WbcNode(Node):
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
         self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
-        if p["contact_source"] == "ground_truth":
-            subscribe_view(self, ContactState, "ground_truth/contacts", self._on_contacts, 10,
+        if p["contact_source"] != "none":
+            contact_topic = "ground_truth/contacts" if p["contact_source"] == "ground_truth" else "contact_estimate"
+            subscribe_view(self, ContactState, contact_topic, self._on_contacts, 10,
                            on_error=lambda exc: self._reject("contacts", exc))
         self._impedance: LegImpedance | None = None
         self.impedance_gate = ImpedanceGate(p["terrain_stiffness_n_per_m"], p["terrain_damping_ns_per_m"],
@@ -284,7 +288,9 @@ class WbcNode(Node):
             "contact_source": declare(self, "contact_source", "none",
                                       "foot contacts for late and early touchdowns: none (trust the gait plan) "
                                       "or ground_truth (ground_truth/contacts, the simulator's contacts as foot "
-                                      "contact sensors)", choices=("none", "ground_truth")),
+                                      "contact sensors) or estimate (contact_estimate, the state estimator's "
+                                      "contacts on its tick grid, estimate_period_s)",
+                                      choices=("none", "ground_truth", "estimate")),
             "touchdown_depth_m": declare(self, "touchdown_depth_m", 0.0,
                                          "[m] swings end this far below the foothold (a target a little too "
                                          "high still meets the ground)", low=0.0, high=0.1,

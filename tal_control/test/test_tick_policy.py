@@ -187,6 +187,25 @@ def test_with_contacts_a_tick_waits_for_the_contacts_of_its_stamp_and_goes_on_wi
     assert tick is not None and tick.contacts is None and p.counters.ticks_without_contacts == 1
 
 
+def test_contacts_on_the_estimators_grid_are_expected_at_its_latest_tick_not_the_wbcs_stamp() -> None:
+    # The estimator's contact estimate comes every 3 ms (0, 3, 6, 9 ...): the wbc's tick at 4 ms uses the
+    # one of 3 ms, and waits for it; on the joint state's own grid it would wait for contacts of 4 ms that
+    # never come.
+    p = policy(contacts=True, contact_period_ns=3 * MS, base_period_ns=3 * MS)
+    p.contacts(0, "c@0")
+    assert step(p, 0).tick.contacts == "c@0"
+    assert step(p, 4 * MS, base_ns=3 * MS).tick is None               # contacts of 3 ms not there yet
+    tick = p.contacts(3 * MS, "c@3").tick
+    assert tick is not None and tick.stamp_ns == 4 * MS and tick.contacts == "c@3"
+    p.contacts(6 * MS, "c@6")
+    tick = step(p, 8 * MS, base_ns=6 * MS).tick                       # 6 ms is the latest at or before 8
+    assert tick is not None and tick.contacts == "c@6" and p.counters.deferred_ticks == 1
+    same_grid = policy(contacts=True, base_period_ns=3 * MS)
+    same_grid.contacts(3 * MS, "c@3")
+    step(same_grid, 0)
+    assert step(same_grid, 4 * MS, base_ns=3 * MS).tick is None       # waits for contacts stamped 4 ms
+
+
 def test_without_contacts_configured_ticks_carry_none() -> None:
     p = policy()
     p.contacts(0, "flags")
