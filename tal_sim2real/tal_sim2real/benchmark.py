@@ -242,6 +242,58 @@ def _planned(label_path: Path) -> list | None:
         return None
 
 
+def benchmark_cases(count: int = 30, seed: int = 0, out_of_library: int = 3, variants: int = 3) -> list[tuple]:
+    """(name, effects, generator seed) of every dataset of ``run_benchmark`` with these arguments, in its order:
+    ``count`` hidden-effect datasets (``hidden_effects.plan``), then ``variants`` ``variant_NN`` and
+    ``out_of_library`` ``outlib_NN`` ones, each kind drawn from its own random stream (so that the hidden set
+    stays the same); the generator seed of the i-th is ``seed * 1000 + i``."""
+    from .hidden_effects import OUT_OF_LIBRARY_TYPES, VARIANT_TYPES, draw_effect, plan
+
+    rng = np.random.default_rng(seed + 1)
+    cases = [(name, [draw_effect(k, rng) for k in kinds]) for name, kinds in plan(count, seed)]
+    rng_variants = np.random.default_rng([seed, 34])
+    cases += [
+        (f"variant_{i:02d}", [draw_effect(VARIANT_TYPES[i % len(VARIANT_TYPES)], rng_variants)])
+        for i in range(variants)
+    ]
+    rng_outside = np.random.default_rng([seed, 34, 6])
+    cases += [
+        (f"outlib_{i:02d}", [draw_effect(OUT_OF_LIBRARY_TYPES[i % len(OUT_OF_LIBRARY_TYPES)], rng_outside)])
+        for i in range(out_of_library)
+    ]
+    return [(name, effects, seed * 1000 + i) for i, (name, effects) in enumerate(cases)]
+
+
+def generate_cases(
+    data_dir: Path,
+    names: list[str] | None = None,
+    count: int = 30,
+    seed: int = 0,
+    out_of_library: int = 3,
+    variants: int = 3,
+) -> list[tuple[Path, Path]]:
+    """Generate the benchmark's datasets called ``names`` (all when None) exactly as ``run_benchmark`` with the
+    same arguments would (same effects, same seeds) under ``data_dir`` (``bags/`` and ``sealed/``), one after
+    the other; returns their (bag, label) paths."""
+    from .hidden_effects import generate_hidden
+
+    cases = benchmark_cases(count, seed, out_of_library, variants)
+    if names is not None:
+        known = {c[0] for c in cases}
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            raise ValueError(
+                f"no dataset {unknown} among the benchmark's {len(cases)} (--count {count} --seed {seed} "
+                f"--out-of-library {out_of_library} --variants {variants})"
+            )
+        cases = [c for c in cases if c[0] in set(names)]
+    out = []
+    for i, (name, effects, case_seed) in enumerate(cases, 1):
+        sys.stderr.write(f"[sim2real] generating {i}/{len(cases)} {name}\n")
+        out.append(generate_hidden(Path(data_dir), name, effects, seed=case_seed))
+    return out
+
+
 def run_benchmark(
     out: Path,
     data_dir: Path,
@@ -257,32 +309,19 @@ def run_benchmark(
     ``hidden_effects.OUT_OF_LIBRARY_TYPES`` in turn); the last two are drawn from their own random streams so
     that the hidden set stays the same. Datasets already in ``data_dir`` with the same planned effects are
     reused; the missing ones are generated ``jobs`` at a time."""
-    from .hidden_effects import OUT_OF_LIBRARY_TYPES, VARIANT_TYPES, draw_effect, plan
-
     for name, value in (("count", count), ("jobs", jobs), ("out_of_library", out_of_library), ("variants", variants)):
         if value < 0 or (name == "jobs" and value < 1):
             raise ValueError(f"benchmark: {name} must be {'>= 1' if name == 'jobs' else '>= 0'}, got {value}")
     out, data_dir = Path(out), Path(data_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed + 1)
     todo = []
-    cases = [(name, [draw_effect(k, rng) for k in kinds]) for name, kinds in plan(count, seed)]
-    rng_variants = np.random.default_rng([seed, 34])
-    cases += [
-        (f"variant_{i:02d}", [draw_effect(VARIANT_TYPES[i % len(VARIANT_TYPES)], rng_variants)])
-        for i in range(variants)
-    ]
-    rng_outside = np.random.default_rng([seed, 34, 6])
-    cases += [
-        (f"outlib_{i:02d}", [draw_effect(OUT_OF_LIBRARY_TYPES[i % len(OUT_OF_LIBRARY_TYPES)], rng_outside)])
-        for i in range(out_of_library)
-    ]
+    cases = benchmark_cases(count, seed, out_of_library, variants)
     missing = []
-    for i, (name, effects) in enumerate(cases):
+    for name, effects, case_seed in cases:
         bag, label = data_dir / "bags" / name, data_dir / "sealed" / f"{name}.yaml"
         planned = [{"kind": e.kind, "values": dict(e.values)} for e in effects]
         if not ((bag / "metadata.yaml").exists() and label.exists() and _planned(label) == planned):
-            missing.append((str(data_dir), name, effects, seed * 1000 + i))
+            missing.append((str(data_dir), name, effects, case_seed))
         todo.append((str(bag), str(out / "datasets" / name)))
     if missing:
         with ProcessPoolExecutor(max_workers=jobs) as pool:

@@ -2,8 +2,9 @@
 
 tal_sim2real identify BAG [--model SIM_BRIDGE.yaml | --course NAME] --out DIR [--no-closed-loop]
     find, name and fit the missing effect(s), write the updated model and report.md with plots
-tal_sim2real generate --out DIR [--count 30] [--seed 0]
-    hidden-effect test bags (labels sealed in DIR/sealed/)
+tal_sim2real generate --out DIR [--count 30] [--seed 0] [--variants N] [--out-of-library N] [--only NAME ...]
+    hidden-effect test bags (labels sealed in DIR/sealed/); --only: just the benchmark's datasets so named
+    (e.g. outlib_00 variant_02), the same bags the benchmark with these arguments generates
 tal_sim2real benchmark --out results/sim2real [--count 30] [--jobs 2]
     generate, identify every bag, score against the sealed labels, write the summary
 tal_sim2real mujoco --out results/sim2real/mujoco [--data data/sim2real/mujoco]
@@ -79,6 +80,15 @@ def main(argv: list[str] | None = None) -> int:
     p_gen.add_argument("--out", type=Path, required=True)
     p_gen.add_argument("--count", type=int, default=30)
     p_gen.add_argument("--seed", type=int, default=0)
+    p_gen.add_argument(
+        "--variants", type=int, help="variant_NN datasets as in benchmark (default 0; with --only: 3, the benchmark's)"
+    )
+    p_gen.add_argument(
+        "--out-of-library", type=int, help="outlib_NN datasets as in benchmark (default 0; with --only: 3)"
+    )
+    p_gen.add_argument(
+        "--only", nargs="+", metavar="NAME", help="generate only these datasets of the benchmark's list (hidden_13 ...)"
+    )
     p_b = sub.add_parser("benchmark", help="generate, identify and score hidden-effect datasets")
     p_b.add_argument("--out", type=Path, default=Path("results/sim2real"))
     p_b.add_argument("--data", type=Path, default=Path("data/sim2real"), help="where the bags go (git-ignored)")
@@ -104,9 +114,20 @@ def main(argv: list[str] | None = None) -> int:
             model = SimModel.from_yaml(args.model) if args.model else SimModel.nominal(args.course)
             print(f"report: {run_identify(args.bag, model, args.out, not args.no_closed_loop, args.gait)}")
         elif args.command == "generate":
-            from .hidden_effects import generate_set
+            from .benchmark import generate_cases
 
-            generate_set(args.out, args.count, args.seed)
+            default_local = 3 if args.only else 0
+            try:
+                generate_cases(
+                    args.out,
+                    args.only,
+                    args.count,
+                    args.seed,
+                    default_local if args.out_of_library is None else args.out_of_library,
+                    default_local if args.variants is None else args.variants,
+                )
+            except ValueError as exc:
+                parser.error(str(exc))
         elif args.command == "mujoco":
             from .mujoco_experiment import run_mujoco_experiment
 
