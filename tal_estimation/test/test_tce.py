@@ -471,3 +471,19 @@ def test_the_base_drift_fit_reads_the_ground_through_a_base_velocity_error(model
     surface = TerrainComplianceEstimator(model, TceSettings(base_drift_fit=True))   # the surface reference:
     drifting_base_stances(surface, k=3500.0, d=400.0, drift_per_stance_m=0.0)      # the thesis' fit, unchanged
     assert surface.estimates[0].stiffness_n_per_m == pytest.approx(3500.0, rel=0.05)
+
+
+def test_the_base_drift_fit_is_not_confident_where_p_carries_only_noise(model) -> None:
+    """A leg standing on rigid ground under a noisy estimate: its force barely varies (no rigid verdict) and
+    its penetration is noise; the drift fit must not hand a confident soft stiffness to the c3WBC."""
+    rng = np.random.default_rng(1)
+    up = np.array([0.0, 0.0, 1.0])
+    tce = TerrainComplianceEstimator(model, TceSettings(penetration_reference="touchdown", base_drift_fit=True))
+    for i in range(400):
+        force = 210.0 + 5.0 * np.sin(0.05 * i) + rng.normal(0.0, 2.0)
+        sample = ContactSample(True, force * up, up, rng.normal(0.0, 2e-4) + 1e-5 * i, rng.normal(0.0, 5e-3),
+                               np.zeros(3), np.zeros(3))
+        tce.update([sample] * 4)
+    estimate = tce.estimates[0]
+    assert not estimate.rigid and estimate.clamped and estimate.stiffness_n_per_m == 100.0   # the range's floor
+    assert estimate.confidence == 0.0, estimate   # a clamped drift fit is never adopted
