@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tal_core.robot_description import RobotDescription
+from tal_sim_bridge.effects import ActuatorModel
 from tal_sim_bridge.physics import Simulation
 
 from .errors import MissingSignalsError
@@ -42,6 +43,8 @@ CHANNEL_SIZES = {
     "joint_velocity": 12,
 }
 ACTUATOR_WARMUP_STEPS = 60  # commands fed to the actuator model before a segment (delay + lag history)
+DELIVERED_CACHE_SIZE = 4096
+"""Segments' delivered torques kept by a ``SegmentSimulator`` (100 x 12 each: 40 MB at most)."""
 
 
 @dataclass(frozen=True)
@@ -82,11 +85,26 @@ class SegmentSimulator:
         self.description = description
         self.data = data
         self.torque_source = torque_source
-        self.torques = data.effort_nm if torque_source == "effort" else data.command_in_force()
+        self._torques = data.effort_nm if torque_source == "effort" else data.command_in_force()
+        # (segment start, horizon, actuator effects) -> the torques the actuator model delivers over the
+        # segment; valid for these torques only (cleared when they are replaced)
+        self._delivered: dict[tuple, np.ndarray] = {}
+        # the actuator model's output depends on the joint angles only through angle-dependent torque limits
+        self._constant_limits = all(len(t.joint_angles_rad) == 1 for t in description.torque_limit_tables)
         self._sim: Simulation | None = None
         self._links: LowerLinkMasses | None = None
         self._urdf_key: tuple | None = None
         self.simulated_steps = 0
+
+    @property
+    def torques(self) -> np.ndarray:
+        """(samples, 12) joint torques [N m] that drive the segments: measured (``effort``) or commanded."""
+        return self._torques
+
+    @torques.setter
+    def torques(self, value: np.ndarray) -> None:
+        self._torques = value
+        self._delivered.clear()
 
     def close(self) -> None:
         if self._sim is not None:
@@ -138,18 +156,50 @@ class SegmentSimulator:
                 self.data.q_rad[i0] if q_offset_rad is None else self.data.q_rad[i0] - q_offset_rad,
                 self.data.qd_rad_s[i0],
             )
-            if self.torque_source == "command":
-                for k in range(i0 - ACTUATOR_WARMUP_STEPS + 1, i0 + 1):
-                    sim.actuators.delivered_torque(self.torques[k])
+            delivered = self._segment_torques(sim, i0, plan.horizon_steps)
             j = 0
             for step in range(1, plan.horizon_steps + 1):
-                sim.step(self.torques[i0 + step])
+                if delivered is None:
+                    sim.step(self.torques[i0 + step])
+                else:
+                    sim.step_delivered(delivered[step - 1])
                 if step == offsets[j]:
                     out[s, j] = state_vector(sim)
                     j = min(j + 1, len(offsets) - 1)
             self.simulated_steps += plan.horizon_steps
         if q_offset_rad is not None:
             out[..., Q_START : Q_START + len(q_offset_rad)] += q_offset_rad
+        return out
+
+
+    def _segment_torques(self, sim: Simulation, i0: int, horizon: int) -> np.ndarray | None:
+        """(horizon, 12) torques the actuator model delivers over the segment from sample ``i0`` (commanded
+        torques after ``ACTUATOR_WARMUP_STEPS`` of warm-up; measured ones pass unchanged but for the limits),
+        computed with the bridge's ``ActuatorModel`` as ``Simulation.step`` would, once per segment and
+        actuator effects (the candidates that change only the plant reuse them). None when the torque limits
+        depend on the joint angles: then ``Simulation.step`` runs the actuator model on the simulated angles."""
+        if not self._constant_limits:
+            if self.torque_source == "command":
+                for k in range(i0 - ACTUATOR_WARMUP_STEPS + 1, i0 + 1):
+                    sim.actuators.delivered_torque(self.torques[k])
+            return None
+        actuators = sim.actuators
+        e = actuators.effects
+        key = (i0, horizon, e.actuator_delay_s, e.actuator_lag_s, e.torque_gain, e.torque_limit_scale)
+        out = self._delivered.get(key)
+        if out is None:
+            model = ActuatorModel(e, actuators.dt_s, actuators.tau_min, actuators.tau_max)
+            if self.torque_source == "command":
+                for k in range(i0 - ACTUATOR_WARMUP_STEPS + 1, i0 + 1):
+                    model.delivered_torque(self.torques[k])
+            tau_min, tau_max = self.description.torque_limits(self.description.nominal_joint_positions_rad)
+            out = np.array(
+                [model.delivered_torque(np.asarray(self.torques[i0 + k], dtype=float), tau_min, tau_max)
+                 for k in range(1, horizon + 1)]
+            )
+            if len(self._delivered) >= DELIVERED_CACHE_SIZE:  # commanded torques under many actuator fits
+                self._delivered.clear()
+            self._delivered[key] = out
         return out
 
 

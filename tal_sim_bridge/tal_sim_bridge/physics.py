@@ -367,15 +367,38 @@ class Simulation:
             self._apply_power_law_ground()
         tau_min, tau_max = self.description.torque_limits(q)
         delivered = self.actuators.delivered_torque(np.asarray(commanded_torque_nm, dtype=float), tau_min, tau_max)
-        applied = delivered + self.actuators.friction_torque(qd)
+        self._advance(delivered, delivered + self.actuators.friction_torque(qd))
+        vel = self.base_velocity()[0]
+        self._base_acc = (vel - self._prev_base_vel) / self.time_step_s
+        self._prev_base_vel = vel
+
+    def step_delivered(self, delivered_torque_nm: np.ndarray) -> None:
+        """Advance one physics step with joint torques [N m] that already went through the actuator model
+        (what ``step`` computes from a command with ``actuators.delivered_torque``), plus the joint friction.
+
+        For open-loop re-simulation (tal_sim2real): the actuator model's output depends only on the command
+        sequence when the torque limits do not depend on the joint angles, so a caller can compute a whole
+        segment's torques ahead. The physics is ``step``'s: the same applied torques, except that without
+        joint friction the joint state is not read and no friction is added (``step`` adds a signed zero,
+        which can turn a torque of -0.0 into 0.0: the same force). The base acceleration of ``robot_state``
+        is not updated.
+        """
+        if self.effects.ground_contact_exponent != 1.0:
+            self._apply_power_law_ground()
+        delivered = np.asarray(delivered_torque_nm, dtype=float)
+        friction = self.actuators.effects
+        if friction.joint_viscous_friction_nms_per_rad != 0.0 or friction.joint_coulomb_friction_nm != 0.0:
+            self._advance(delivered, delivered + self.actuators.friction_torque(self.joint_state()[1]))
+        else:
+            self._advance(delivered, delivered)
+
+    def _advance(self, delivered: np.ndarray, applied: np.ndarray) -> None:
+        """Apply ``applied`` [N m] (delivered + friction) to the joints and step the physics once."""
         self.client.setJointMotorControlArray(self.robot, self.joint_ids, pybullet.TORQUE_CONTROL,
                                               forces=applied.tolist())
         self.client.stepSimulation()
         self.step_count += 1
         self._last_torque = delivered
-        vel = self.base_velocity()[0]
-        self._base_acc = (vel - self._prev_base_vel) / self.time_step_s
-        self._prev_base_vel = vel
 
     def _apply_power_law_ground(self) -> None:
         """Give each foot the secant stiffness [N/m] and damping [N s/m] of its patch's power law at its

@@ -1,0 +1,123 @@
+"""The open-loop segment replay's shortcuts (issue 34, the workflow's time) must not change a single bit of
+its predictions: the torques the actuator model delivers are computed ahead per segment and stepped with
+``Simulation.step_delivered``, instead of ``Simulation.step`` running the actuator model every physics step.
+The reference here is the plain replay: teleport to the measured state, feed the commands' warm-up to the
+actuator model, then ``Simulation.step`` with each measured or commanded torque."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tal_core.robot_description import load_robot_description
+from tal_core.terrain import load_course
+from tal_sim2real.measured import BaseTrajectory, MeasuredData
+from tal_sim2real.model import SimModel
+from tal_sim2real.segments import ACTUATOR_WARMUP_STEPS, STATE_SIZE, SegmentPlan, SegmentSimulator, state_vector
+from tal_sim_bridge.physics import Simulation
+
+DT = 1e-3
+STEPS = 700
+
+
+@pytest.fixture(scope="module")
+def stepping() -> MeasuredData:
+    """0.7 s of HyQ standing on flat ground under a PD controller whose reference sways every joint (so the
+    joints move, friction acts and the feet load and unload), recorded like a bag: base state, joint states,
+    the delivered torques as the measured effort and the PD torques as the commands."""
+    description = load_robot_description("hyq")
+    sim = Simulation(description, load_course("flat_rigid"))
+    q0 = description.nominal_joint_positions_rad
+    n = STEPS
+    t = np.arange(n) * DT
+    pos, quat, lin, ang = np.zeros((n, 3)), np.zeros((n, 4)), np.zeros((n, 3)), np.zeros((n, 3))
+    q, qd, effort, command = (np.zeros((n, 12)) for _ in range(4))
+    phase = np.arange(12)
+    try:
+        for i in range(n):
+            qi, qdi = sim.joint_state()
+            ref = q0 + 0.08 * np.sin(2.0 * np.pi * 3.0 * t[i] + phase)
+            command[i] = 300.0 * (ref - qi) - 8.0 * qdi
+            sim.step(command[i])
+            state = sim.robot_state()
+            pos[i], quat[i] = state.base_position_m, state.base_quat_xyzw
+            lin[i], ang[i] = state.base_lin_vel_m_s, state.base_ang_vel_rad_s
+            q[i], qd[i], effort[i] = state.joint_position_rad, state.joint_velocity_rad_s, state.joint_torque_nm
+    finally:
+        sim.close()
+    rot = np.array([np.eye(3)] * n)
+    base = BaseTrajectory(pos, quat, rot, lin, ang, "/ground_truth/odom")
+    return MeasuredData(
+        "stand", list(description.joint_names), t, DT, q, qd, effort, base=base, command_t_s=t - DT, command_nm=command
+    )
+
+
+def _plain_replay(segments: SegmentSimulator, model: SimModel, plan: SegmentPlan, link_mass_kg=None) -> np.ndarray:
+    """``SegmentSimulator.predict`` as it was before the shortcuts: ``Simulation.step`` every physics step."""
+    sim = segments._configure(model)
+    segments._links.apply(np.zeros(4) if link_mass_kg is None else link_mass_kg)
+    data, base = segments.data, segments.data.base
+    offsets = plan.sample_offsets
+    out = np.empty((len(plan.starts), len(offsets), STATE_SIZE))
+    for s, i0 in enumerate(plan.starts):
+        sim.set_state(
+            base.position_m[i0],
+            base.quat_xyzw[i0],
+            base.lin_vel_world_m_s[i0],
+            base.ang_vel_world_rad_s[i0],
+            data.q_rad[i0],
+            data.qd_rad_s[i0],
+        )
+        if segments.torque_source == "command":
+            for k in range(i0 - ACTUATOR_WARMUP_STEPS + 1, i0 + 1):
+                sim.actuators.delivered_torque(segments.torques[k])
+        j = 0
+        for step in range(1, plan.horizon_steps + 1):
+            sim.step(segments.torques[i0 + step])
+            if step == offsets[j]:
+                out[s, j] = state_vector(sim)
+                j = min(j + 1, len(offsets) - 1)
+    return out
+
+
+NOMINAL = SimModel.nominal("flat_rigid")
+MODELS = {
+    "nominal": NOMINAL,
+    "payload with offset": NOMINAL.with_values(
+        {"payload_mass_kg": 6.0, "payload_offset_x_m": -0.03, "payload_offset_y_m": -0.12}
+    ),
+    "joint friction": NOMINAL.with_values(
+        {"joint_viscous_friction_nms_per_rad": 1.2, "joint_coulomb_friction_nm": 2.5}
+    ),
+    "soft ground": NOMINAL.with_values({"ground_stiffness_n_per_m": 2e4, "ground_damping_ns_per_m": 500.0}),
+    "power-law ground": NOMINAL.with_values(
+        {"ground_stiffness_n_per_m": 2e4, "ground_damping_ns_per_m": 500.0, "ground_contact_exponent": 1.3}
+    ),
+    "actuators": NOMINAL.with_values(
+        {"actuator_delay_s": 0.004, "actuator_lag_s": 0.003, "torque_gain": 0.9, "torque_limit_scale": 0.3}
+    ),
+}
+
+
+@pytest.mark.parametrize("source", ["effort", "command"])
+def test_segments_replay_bit_for_bit_as_with_the_bridges_step(stepping: MeasuredData, source: str) -> None:
+    description = load_robot_description("hyq")
+    plan = SegmentPlan(np.array([100, 260, 420, 580]), 100, 10)
+    fast = SegmentSimulator(description, stepping, source)
+    plain = SegmentSimulator(description, stepping, source)
+    try:
+        for name, model in MODELS.items():
+            np.testing.assert_array_equal(fast.predict(model, plan), _plain_replay(plain, model, plan), err_msg=name)
+        mass = np.array([0.0, 2.5, 0.0, 0.0])
+        np.testing.assert_array_equal(
+            fast.predict(NOMINAL, plan, link_mass_kg=mass), _plain_replay(plain, NOMINAL, plan, mass)
+        )
+        # the torques replaced (the noise floor's perturbed ones, a sensor gain's corrected ones): not the
+        # segments' torques computed for the previous ones
+        scaled = fast.torques * 0.7
+        fast.torques, plain.torques = scaled, scaled
+        np.testing.assert_array_equal(fast.predict(NOMINAL, plan), _plain_replay(plain, NOMINAL, plan))
+    finally:
+        fast.close()
+        plain.close()
+    assert np.abs(stepping.qd_rad_s).max() > 0.3  # the joints move: friction acts
