@@ -70,6 +70,9 @@ class StateEstimatorNode(Node):
         hysteresis = declare(self, "contact_hysteresis_fraction", 0.3, "[-] force_sensor: a contact ends below "
                              "(1 - this) x the threshold", low=0.001, high=0.999,
                              on_change=self._setting("leg_odometry.contact_hysteresis_fraction"))
+        impedance_confidence = declare(self, "impedance_min_confidence", 0.1, "[-] terrain_aware: a leg whose TCE "
+                                       "confidence is below this is treated as on rigid ground", low=0.0, high=1.0,
+                                       on_change=self._setting("leg_odometry.min_confidence"))
         force_scale = declare(self, "foot_force_scale", [1.0] * 4, "[N per sensor unit] force_sensor calibration "
                               "per leg (LF, RF, LH, RH): force = scale * (raw - offset)",
                               on_change=self._setting("leg_odometry.foot_force_scale", tuple))
@@ -132,6 +135,7 @@ class StateEstimatorNode(Node):
             leg_odometry=LegOdometrySettings(mode=mode, contact_threshold_weight_fraction=fraction,
                                              contact_source=self.contact_source,
                                              contact_hysteresis_fraction=hysteresis,
+                                             min_confidence=impedance_confidence,
                                              foot_force_scale=tuple(force_scale),
                                              foot_force_offset=tuple(force_offset)))
         self.summary_path = declare(self, "summary_path", "", "JSON written at shutdown (counters, drift "

@@ -27,7 +27,10 @@ of its own stamp, the newest on the base publisher's grid at or before it, so th
 whether the joint state or the base state arrives first (lockstep runs repeat bit for bit). A waiting tick
 is computed when that base state arrives (``set_base`` returns it) or, with whatever base state is there
 (counted in ``late_base_ticks``), on the first joint sample more than ``max_defer_s`` after it: the robot
-moved on.
+moved on; or at the latest when the next tick is due (``add_joints_all``): every tick is answered. A waiting
+tick that the next one replaced unanswered stalled lockstep tours on the estimate: the estimator's tick waits
+for the TCE's answer one period back, and the TCE's next tick for that estimator tick's estimate, so the two
+waited on each other until the bridge's 2 s lockstep timeout, one control period at a time.
 
 Heightmaps streamed with ``add_heightmap`` come into use at the first tick at or after their stamp. With
 ``heightmap_period_s`` (the publisher's period on the sim-time grid, as the bridge's) a tick also waits for
@@ -202,29 +205,39 @@ class TceDriver:
                 or (self.average_torque and stamp_ns > self._torque_last_ns))
 
     def add_joints(self, stamp_ns: int, read: Callable[[], JointArrays], t_s: float | None = None) -> TceTick | None:
-        """One joint-state sample; the tick computed on it, if any (see the module docstring): its own, or a
-        waiting one whose base state did not come in time. ``read()`` gives the arrays (called only for a
-        tick). ``t_s``: the tick's time [s] (default stamp_ns * 1e-9)."""
-        late = self._run_pending(late=True) if self._overdue(stamp_ns) else None
+        """``add_joints_all`` for callers that publish one answer per sample: the newest tick computed."""
+        ticks = self.add_joints_all(stamp_ns, read, t_s)
+        return ticks[-1] if ticks else None
+
+    def add_joints_all(self, stamp_ns: int, read: Callable[[], JointArrays],
+                       t_s: float | None = None) -> list[TceTick]:
+        """One joint-state sample; the ticks computed on it, oldest first (see the module docstring): a
+        waiting one whose base state did not come in time (or whose successor is due), and its own. ``read()``
+        gives the arrays (called only for a tick). ``t_s``: the tick's time [s] (default stamp_ns * 1e-9)."""
+        out: list[TceTick | None] = []
+        if self._overdue(stamp_ns):
+            out.append(self._run_pending(late=True))
         waits = self.base_period_ns is not None
         if not reaches_tick(stamp_ns, self._next_tick_ns):
             if self.average_torque and stamp_ns > self._torque_last_ns:
                 self._add_torque(stamp_ns, read)
-            return late
+            return [tick for tick in out if tick is not None]
         map_awaited = self._terrain.awaited(stamp_ns) is not None
         no_terrain = self.height is None and not map_awaited and not self._terrain.has_due(stamp_ns)
         if no_terrain or (self._base is None and not waits):
-            return late
+            return [tick for tick in out if tick is not None]
+        if self._pending is not None:   # the next tick is due: the waiting one is answered with what is here
+            out.append(self._run_pending(late=True))
         self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
         self._torque_last_ns = max(self._torque_last_ns, stamp_ns)
         t = stamp_ns * 1e-9 if t_s is None else t_s
-        if not self._ready(stamp_ns) and (waits or map_awaited):
-            arrays = self._read(read)
-            if arrays is not None:
-                self._pending = (stamp_ns, t, arrays)
-            return late
         arrays = self._read(read)
-        return self._tick(stamp_ns, t, arrays) if arrays is not None else late
+        if arrays is not None:
+            if not self._ready(stamp_ns) and (waits or map_awaited):
+                self._pending = (stamp_ns, t, arrays)
+            else:
+                out.append(self._tick(stamp_ns, t, arrays))
+        return [tick for tick in out if tick is not None]
 
     def _expected_base_stamp(self, stamp_ns: int) -> int:
         """The base state a tick at ``stamp_ns`` waits for (its stamp; 0 when it takes the latest)."""

@@ -174,7 +174,8 @@ class TceNode(Node):
             self.pub.publish(again)
         if repeat:
             return
-        self._publish(self.driver.add_joints(stamp_ns, lambda: self.read_joints(view)))
+        for tick in self.driver.add_joints_all(stamp_ns, lambda: self.read_joints(view)):
+            self._publish(tick)
 
     def _publish(self, tick: TceTick | None) -> None:
         if tick is None:

@@ -208,6 +208,27 @@ def test_a_waiting_tick_runs_late_when_the_robot_moves_on() -> None:
         TceDriver(RobotModel.from_name("hyq"), base_period_s=0.0)
 
 
+def test_a_waiting_tick_is_answered_when_the_next_one_is_due() -> None:
+    """max_defer_s of a whole period (the lockstep tour's): the tick of 4 ms still waits for its estimate when
+    the sample of 8 ms makes the next tick due. It is answered then, with the base state there is (late), and
+    the 8 ms tick waits in its place; replacing it unanswered left the estimator waiting for it and the TCE for
+    the estimator (a lockstep stall). Both ticks of one sample come back, oldest first."""
+    base = standing()[0]
+    driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.003, max_defer_s=0.004)
+    driver.set_terrain(flat)
+    driver.set_base(0, base)
+    assert [t.stamp_ns for t in driver.add_joints_all(0, read())] == [0]
+    assert driver.add_joints_all(4 * MS, read()) == []              # waits for the estimate of 3 ms
+    ticks = driver.add_joints_all(8 * MS, read())
+    assert [t.stamp_ns for t in ticks] == [4 * MS] and driver.late_base_ticks == 1
+    tick = driver.set_base(6 * MS, base)                              # the 8 ms tick's estimate
+    assert tick is not None and tick.stamp_ns == 8 * MS
+    driver.set_base(9 * MS, base)
+    assert driver.add_joints_all(12 * MS, read()) == []               # waits for the estimate of 12 ms
+    late = driver.add_joints_all(17 * MS, read())                     # overdue: answered on the 9 ms estimate
+    assert [t.stamp_ns for t in late] == [12 * MS] and driver.late_base_ticks == 2
+
+
 def test_with_the_heightmap_period_a_tick_waits_for_the_map_of_its_grid_point() -> None:
     """Maps every 8 ms, streamed: the tick at 8 ms uses the map of 8 ms whether it arrives before or after the
     joint state (the maps differ by 1 mm here, as robot-centred maps differ under a foot); a map that comes after
