@@ -33,6 +33,8 @@ from .segments import (
 LOG = logging.getLogger("tal.sim2real.dynamics")
 LINK_MASS = VARIANTS_BY_NAME["leg_link_mass"]
 ENCODER_OFFSET = VARIANTS_BY_NAME["encoder_offset"]
+PREDICTION_MEMO_SIZE = 256
+"""Predictions kept per dynamics search (25 segments x 10 samples x 37 values: 74 kB each)."""
 EXPLAINED_FACTOR = 2.0
 """A fit whose cost is within this many noise floors explains the fitting data: no pair is tried on top
 of it."""
@@ -47,6 +49,46 @@ MIN_GROUND_EXPONENT_EFFECT = 0.2
 """A power-law exponent within this of 1 changes the ground's stiffness by < 15% per doubling of sinkage:
 not worth a model of its own (a Kelvin-Voigt ground's data fit to n = 1.00-1.01 on hidden_10/13/20; with the
 stale contacts of earlier replays they fit to n = 1.14)."""
+
+
+class MemoisedPredictions:
+    """``sim``'s predictions by parameter values (``split`` turns them into a model and the keyword arguments
+    of ``SegmentSimulator.predict``), each simulated once per model, variants, plan and driving torques
+    (``sim.torques``, by identity: the noise floor and a torque-sensor gain replace them), returned read-only. A segment
+    re-simulated repeats bit for bit (``SegmentSimulator.predict`` teleports to the measured state with fresh
+    contacts), and the search asks again for some: a variant's cost at 0 is the chosen model's cost, the
+    chosen fit's prediction is read again for its noise floor and its remainder. Keeps the last ``size``."""
+
+    def __init__(self, sim, split, size: int | None = None) -> None:
+        self.sim = sim
+        self.split = split
+        self.size = PREDICTION_MEMO_SIZE if size is None else size
+        self.hits = 0
+        self._kept: dict[tuple, tuple[SegmentPlan, np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, values: dict[str, float], plan: SegmentPlan) -> np.ndarray:
+        torques = self.sim.torques
+        model, extras = self.split(values)
+        # by what is simulated (an offset of 0 is no offset); float.hex tells -0.0 from 0.0
+        key = (
+            id(plan),
+            id(torques),
+            model.robot,
+            model.course.name,
+            tuple(sorted((k, float(v).hex()) for k, v in model.values().items())),
+            tuple((k, np.asarray(v, dtype=float).tobytes()) for k, v in sorted(extras.items())),
+        )
+        kept = self._kept.get(key)
+        if kept is not None and kept[0] is plan and kept[1] is torques:
+            self.hits += 1
+            return kept[2]
+        out = self.sim.predict(model, plan, **extras)
+        out.setflags(write=False)
+        if self.size > 0:
+            if len(self._kept) >= self.size:
+                del self._kept[next(iter(self._kept))]  # the oldest
+            self._kept[key] = (plan, torques, out)
+        return out
 
 
 # -- dynamics ---------------------------------------------------------------------------------------------
@@ -116,9 +158,7 @@ def _dynamics_with(
         model = nominal.with_values({k: v for k, v in values.items() if k in PARAMETER_NAMES})
         return model, extras
 
-    def predict(values: dict[str, float], plan: SegmentPlan) -> np.ndarray:
-        model, extras = split(values)
-        return sim.predict(model, plan, **extras)
+    predict = MemoisedPredictions(sim, split)
 
     def residual(which: str, values: dict[str, float]) -> np.ndarray:
         return scaled_residual(meas[which], predict(values, plans[which]))

@@ -232,6 +232,34 @@ def test_a_mass_on_one_lower_leg_is_named_for_that_leg_not_as_a_payload() -> Non
     assert result.named == ("leg_link_mass[RF]",) and not result.remainder.flagged
 
 
+def test_the_dynamics_search_is_the_same_with_the_predictions_kept(monkeypatch) -> None:
+    """The whole search on a deterministic stand-in (a lower-leg mass: screening, fits, variants, floors):
+    the same findings and costs whether predictions asked for again are re-simulated or kept."""
+    from tal_sim2real import dynamics
+
+    def search(size: int):
+        monkeypatch.setattr(dynamics, "PREDICTION_MEMO_SIZE", size)
+        data = _stand_in_data()
+        sim = _LegMassStandIn(data)
+        calls = []
+        predict = sim.predict
+        sim.predict = lambda *a, **k: calls.append(1) or predict(*a, **k)
+        windows = {"identification": (1.0, 4.5), "holdout": (4.5, 6.0)}
+        candidates = [CANDIDATES_BY_NAME["payload"], CANDIDATES_BY_NAME["joint_viscous_friction"]]
+        result, findings, _ = dynamics._dynamics_with(sim, data, candidates, SimModel.nominal(), windows, Settings())
+        return result, findings, len(calls)
+
+    plain, kept = search(0), search(256)
+    assert kept[1] == plain[1]  # findings: status, values, intervals, cost ratios, notes
+    assert (kept[0].floor, kept[0].fitted_cost, kept[0].holdout_after, kept[0].verdict) == (
+        plain[0].floor,
+        plain[0].fitted_cost,
+        plain[0].holdout_after,
+        plain[0].verdict,
+    )
+    assert kept[2] < plain[2]
+
+
 def test_the_link_mass_variant_names_its_leg() -> None:
     variant = VARIANTS_BY_NAME["leg_link_mass"]
     assert variant.base == "payload" and variant.scope == "leg"

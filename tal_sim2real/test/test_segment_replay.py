@@ -121,3 +121,50 @@ def test_segments_replay_bit_for_bit_as_with_the_bridges_step(stepping: Measured
         fast.close()
         plain.close()
     assert np.abs(stepping.qd_rad_s).max() > 0.3  # the joints move: friction acts
+
+
+# -- predictions asked for again ------------------------------------------------------------------------------
+class _CountingSim:
+    """A segment simulator stand-in: counts its re-simulations; its prediction depends on the torques."""
+
+    def __init__(self) -> None:
+        self.torques = np.ones((50, 12))
+        self.calls = 0
+
+    def predict(self, model: SimModel, plan: SegmentPlan, q_offset_rad=None, link_mass_kg=None) -> np.ndarray:
+        self.calls += 1
+        out = np.full((len(plan.starts), len(plan.sample_offsets), STATE_SIZE), float(self.torques.sum()))
+        out[..., 0] += model.values()["payload_mass_kg"] + (0.0 if q_offset_rad is None else q_offset_rad.sum())
+        return out
+
+
+def _split(values: dict) -> tuple[SimModel, dict]:
+    offset = values.get("encoder_offset_lf_haa_joint_rad", 0.0)
+    extras = {"q_offset_rad": np.r_[offset, np.zeros(11)]} if offset != 0.0 else {}
+    return NOMINAL.with_values({k: v for k, v in values.items() if not k.startswith("encoder_")}), extras
+
+
+def test_a_prediction_is_simulated_once_per_model_plan_and_torques() -> None:
+    from tal_sim2real.dynamics import MemoisedPredictions
+
+    sim = _CountingSim()
+    predict = MemoisedPredictions(sim, _split)
+    plan, other_plan = SegmentPlan(np.array([5, 20]), 10, 5), SegmentPlan(np.array([5, 20]), 10, 5)
+    first = predict({"payload_mass_kg": 2.0}, plan)
+    assert not first.flags.writeable  # shared: nobody may change it
+    np.testing.assert_array_equal(predict({"payload_mass_kg": 2.0}, plan), first)
+    predict({"payload_mass_kg": 2.0, "encoder_offset_lf_haa_joint_rad": 0.0}, plan)  # an offset of 0: the same
+    assert sim.calls == 1 and predict.hits == 2
+    predict({"payload_mass_kg": 2.0, "encoder_offset_lf_haa_joint_rad": 0.01}, plan)
+    predict({"payload_mass_kg": 2.0}, other_plan)
+    predict({"payload_mass_kg": 3.0}, plan)
+    assert sim.calls == 4
+    predict({"payload_mass_kg": 2.0, "payload_offset_x_m": -0.0}, plan)  # -0.0: not taken for 0.0
+    assert sim.calls == 5
+    raw = sim.torques
+    sim.torques = raw * 0.5  # e.g. a torque-sensor gain: the same model driven otherwise
+    assert predict({"payload_mass_kg": 2.0}, plan)[0, 0, 0] != first[0, 0, 0] and sim.calls == 6
+    sim.torques = raw
+    np.testing.assert_array_equal(predict({"payload_mass_kg": 2.0}, plan), first)
+    assert sim.calls == 6
+
