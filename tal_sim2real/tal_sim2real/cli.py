@@ -41,14 +41,20 @@ def identify_and_report(
 
     from .identify import identify
     from .measured import load_measured
-    from .replay import closed_loop_rerun, holdout_overlay
+    from .replay import closed_loop_rerun, holdout_overlay, start_nominal_rerun
     from .report import write_report
 
     data = load_measured(bag, load_robot_description(model.robot))  # read once for all three steps
-    result = identify(bag, model, data=data)
-    model_path = result.updated.write_yaml(out / "model_updated.yaml")
-    overlay = holdout_overlay(result, data)
-    closed = closed_loop_rerun(result, data, gait) if closed_loop else None
+    # the nominal closed-loop re-run needs nothing identified: it runs in its own process meanwhile
+    nominal_run = start_nominal_rerun(model, data, gait) if closed_loop else None
+    try:
+        result = identify(bag, model, data=data)
+        model_path = result.updated.write_yaml(out / "model_updated.yaml")
+        overlay = holdout_overlay(result, data)
+        closed = closed_loop_rerun(result, data, gait, nominal_run) if closed_loop else None
+    finally:
+        if nominal_run is not None:
+            nominal_run.close()
     path = write_report(result, out, overlay, closed, model_path)
     for f in result.named:
         LOG.info("named %s: %s", f.candidate, {k: round(v, 6) for k, v in f.values.items()})

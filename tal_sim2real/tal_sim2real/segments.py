@@ -171,7 +171,6 @@ class SegmentSimulator:
             out[..., Q_START : Q_START + len(q_offset_rad)] += q_offset_rad
         return out
 
-
     def _segment_torques(self, sim: Simulation, i0: int, horizon: int) -> np.ndarray | None:
         """(horizon, 12) torques the actuator model delivers over the segment from sample ``i0`` (commanded
         torques after ``ACTUATOR_WARMUP_STEPS`` of warm-up; measured ones pass unchanged but for the limits),
@@ -194,8 +193,10 @@ class SegmentSimulator:
                     model.delivered_torque(self.torques[k])
             tau_min, tau_max = self.description.torque_limits(self.description.nominal_joint_positions_rad)
             out = np.array(
-                [model.delivered_torque(np.asarray(self.torques[i0 + k], dtype=float), tau_min, tau_max)
-                 for k in range(1, horizon + 1)]
+                [
+                    model.delivered_torque(np.asarray(self.torques[i0 + k], dtype=float), tau_min, tau_max)
+                    for k in range(1, horizon + 1)
+                ]
             )
             if len(self._delivered) >= DELIVERED_CACHE_SIZE:  # commanded torques under many actuator fits
                 self._delivered.clear()

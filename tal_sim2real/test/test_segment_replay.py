@@ -167,4 +167,3 @@ def test_a_prediction_is_simulated_once_per_model_plan_and_torques() -> None:
     sim.torques = raw
     np.testing.assert_array_equal(predict({"payload_mass_kg": 2.0}, plan), first)
     assert sim.calls == 6
-
