@@ -46,15 +46,16 @@ TOLERANCE = {"ground_stiffness_n_per_m": 0.25, "payload_mass_kg": 0.25, "imu_bia
 """Relative tolerance per scored parameter; the others (friction, actuator, ground exponent): 0.10."""
 
 
-def _identify_one(args: tuple[str, str]) -> dict:
-    """Worker: the workflow on one bag (no labels here). Returns the outcome as plain data."""
-    bag, report_dir = args
-    from .identify import identify
+def _identify_one(args: tuple[str, str, int]) -> dict:
+    """Worker: the workflow on one bag (no labels here), its open-loop segments shared by ``workers``
+    processes. Returns the outcome as plain data."""
+    bag, report_dir, workers = args
+    from .identify import Settings, identify
     from .model import SimModel
     from .report import write_report
 
     started = time.perf_counter()
-    result = identify(bag, SimModel.nominal("flat_rigid"))
+    result = identify(bag, SimModel.nominal("flat_rigid"), Settings(segment_workers=workers))
     result.updated.write_yaml(Path(report_dir) / "model_updated.yaml")
     write_report(result, Path(report_dir))
     return {
@@ -316,13 +317,16 @@ def run_benchmark(
     out.mkdir(parents=True, exist_ok=True)
     todo = []
     cases = benchmark_cases(count, seed, out_of_library, variants)
+    from .cli import available_cpus
+
+    workers = max(1, available_cpus() // jobs)  # the CPUs the jobs leave share each job's segments
     missing = []
     for name, effects, case_seed in cases:
         bag, label = data_dir / "bags" / name, data_dir / "sealed" / f"{name}.yaml"
         planned = [{"kind": e.kind, "values": dict(e.values)} for e in effects]
         if not ((bag / "metadata.yaml").exists() and label.exists() and _planned(label) == planned):
             missing.append((str(data_dir), name, effects, case_seed))
-        todo.append((str(bag), str(out / "datasets" / name)))
+        todo.append((str(bag), str(out / "datasets" / name), workers))
     if missing:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
             for i, name in enumerate(pool.map(_generate_one, missing), 1):

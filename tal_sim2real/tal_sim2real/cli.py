@@ -1,6 +1,6 @@
 """Command line of the sim-vs-measured gap workflow (``python -m tal_sim2real`` or ``tal_sim2real``).
 
-tal_sim2real identify BAG [--model SIM_BRIDGE.yaml | --course NAME] --out DIR [--no-closed-loop]
+tal_sim2real identify BAG [--model SIM_BRIDGE.yaml | --course NAME] --out DIR [--no-closed-loop] [--jobs 2]
     find, name and fit the missing effect(s), write the updated model and report.md with plots
 tal_sim2real generate --out DIR [--count 30] [--seed 0] [--variants N] [--out-of-library N] [--only NAME ...]
     hidden-effect test bags (labels sealed in DIR/sealed/); --only: just the benchmark's datasets so named
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -28,18 +29,29 @@ if TYPE_CHECKING:
 LOG = logging.getLogger("tal.sim2real")
 
 
-def run_identify(bag: Path, model: SimModel, out: Path, closed_loop: bool = True, gait: str | None = None) -> Path:
+def run_identify(
+    bag: Path, model: SimModel, out: Path, closed_loop: bool = True, gait: str | None = None, jobs: int = 1
+) -> Path:
     """The whole workflow on one bag; returns the report path."""
-    return identify_and_report(bag, model, out, closed_loop, gait)[1]
+    return identify_and_report(bag, model, out, closed_loop, gait, jobs)[1]
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def identify_and_report(
-    bag: Path, model: SimModel, out: Path, closed_loop: bool = True, gait: str | None = None
+    bag: Path, model: SimModel, out: Path, closed_loop: bool = True, gait: str | None = None, jobs: int = 1
 ) -> tuple[Identification, Path]:
-    """The whole workflow on one bag; returns the identification and the report path."""
+    """The whole workflow on one bag; returns the identification and the report path. ``jobs``: processes
+    that share the open-loop segments (``Settings.segment_workers``; the results do not depend on it)."""
     from tal_core.robot_description import load_robot_description
 
-    from .identify import identify
+    from .identify import Settings, identify
     from .measured import load_measured
     from .replay import closed_loop_rerun, holdout_overlay, start_nominal_rerun
     from .report import write_report
@@ -48,7 +60,7 @@ def identify_and_report(
     # the nominal closed-loop re-run needs nothing identified: it runs in its own process meanwhile
     nominal_run = start_nominal_rerun(model, data, gait) if closed_loop else None
     try:
-        result = identify(bag, model, data=data)
+        result = identify(bag, model, Settings(segment_workers=max(1, jobs)), data=data)
         model_path = result.updated.write_yaml(out / "model_updated.yaml")
         overlay = holdout_overlay(result, data)
         closed = closed_loop_rerun(result, data, gait, nominal_run) if closed_loop else None
@@ -81,6 +93,12 @@ def main(argv: list[str] | None = None) -> int:
     p_id.add_argument("--no-closed-loop", action="store_true", help="skip the closed-loop re-runs in the report")
     p_id.add_argument(
         "--gait", choices=("stand", "crawl", "trot"), help="gait of the closed-loop re-run (default: the recording's)"
+    )
+    p_id.add_argument(
+        "--jobs",
+        type=int,
+        default=min(2, available_cpus()),
+        help="processes that share the open-loop re-simulations (default: 2, or 1 on one CPU; same results)",
     )
     p_gen = sub.add_parser("generate", help="hidden-effect test bags")
     p_gen.add_argument("--out", type=Path, required=True)
@@ -118,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "identify":
             model = SimModel.from_yaml(args.model) if args.model else SimModel.nominal(args.course)
-            print(f"report: {run_identify(args.bag, model, args.out, not args.no_closed_loop, args.gait)}")
+            report = run_identify(args.bag, model, args.out, not args.no_closed_loop, args.gait, args.jobs)
+            print(f"report: {report}")
         elif args.command == "generate":
             from .benchmark import generate_cases
 

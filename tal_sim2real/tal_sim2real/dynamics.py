@@ -107,7 +107,7 @@ def dynamics_subsystem(
     are the measured ones divided by it), see ``_sensor_gain_test``."""
     source = "effort" if data.effort_nm is not None else "command"
     try:
-        sim = SegmentSimulator(description, data, source)
+        sim = SegmentSimulator(description, data, source, workers=settings.segment_workers)
     except MissingSignalsError as exc:
         return (
             SubsystemResult("dynamics", verdict=str(exc)),

@@ -19,7 +19,9 @@ STIFF_GROUND_N_PER_M = 1e5  # [N/m] stiffer ground sinks a loaded HyQ foot by < 
 
 @dataclass
 class Settings:
-    """Windows [s], segment plan and decision thresholds (see the module docstring)."""
+    """Windows [s], segment plan and decision thresholds (see the module docstring); ``segment_workers``:
+    processes that share the re-simulation of each prediction's open-loop segments (1: this one alone; the
+    results do not depend on it, only the time)."""
 
     settle_s: float = 1.0
     holdout_fraction: float = 0.25
@@ -31,6 +33,7 @@ class Settings:
     max_pair_candidates: int = 3
     torque_block_s: float = 0.5
     torque_holdout_every: int = 4
+    segment_workers: int = 1
 
 
 @dataclass

@@ -13,6 +13,8 @@ frame) [m/s, rad/s], joint positions [rad] and velocities [rad/s].
 from __future__ import annotations
 
 import dataclasses
+import logging
+import multiprocessing
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +28,7 @@ from .links import LowerLinkMasses
 from .measured import MeasuredData
 from .model import SimModel
 
+LOG = logging.getLogger("tal.sim2real.segments")
 CHANNEL_SCALES = {
     "base_position": 0.005,
     "base_orientation": 0.01,
@@ -72,10 +75,15 @@ def plan_segments(
 
 
 class SegmentSimulator:
-    """One PyBullet world reused across segments and across models that differ only in parameters that
-    can change in place (ground, friction, joint friction, actuators); a payload rebuilds it."""
+    """Open-loop segments of one recording: one PyBullet world reused across segments and across models
+    that differ only in parameters that can change in place (ground, friction, joint friction, actuators); a
+    payload rebuilds it. With ``workers`` > 1 the segments of each prediction are shared with ``workers`` - 1
+    processes of their own world each (spawned): a segment starts from its measured state with fresh
+    contacts, so it gives the same bits in whichever world it runs (``test_segment_replay``)."""
 
-    def __init__(self, description: RobotDescription, data: MeasuredData, torque_source: str = "effort") -> None:
+    def __init__(
+        self, description: RobotDescription, data: MeasuredData, torque_source: str = "effort", workers: int = 1
+    ) -> None:
         if data.base is None:
             raise MissingSignalsError("open-loop prediction", ["ground_truth/odom or state_estimate"])
         if torque_source == "effort" and data.effort_nm is None:
@@ -91,9 +99,9 @@ class SegmentSimulator:
         self._delivered: dict[tuple, np.ndarray] = {}
         # the actuator model's output depends on the joint angles only through angle-dependent torque limits
         self._constant_limits = all(len(t.joint_angles_rad) == 1 for t in description.torque_limit_tables)
-        self._sim: Simulation | None = None
-        self._links: LowerLinkMasses | None = None
-        self._urdf_key: tuple | None = None
+        start_xy = tuple(float(v) for v in data.base.position_m[0, :2])
+        self._world = SegmentWorld(description, start_xy, torque_source)
+        self._helpers = [_Helper(description, start_xy, torque_source) for _ in range(max(0, workers - 1))]
         self.simulated_steps = 0
 
     @property
@@ -107,26 +115,10 @@ class SegmentSimulator:
         self._delivered.clear()
 
     def close(self) -> None:
-        if self._sim is not None:
-            self._sim.close()
-            self._sim = None
-
-    def _configure(self, model: SimModel) -> Simulation:
-        effects = model.effects
-        if self.torque_source == "effort":  # measured torques are what the actuators delivered
-            effects = dataclasses.replace(
-                effects, actuator_delay_s=0.0, actuator_lag_s=0.0, torque_gain=1.0, torque_limit_scale=1.0
-            )
-        key = (model.robot, effects.payload_mass_kg, effects.payload_offset_m, model.course.name)
-        if self._sim is None or key != self._urdf_key:
-            self.close()
-            start_xy = tuple(self.data.base.position_m[0, :2])  # type: ignore[union-attr]
-            self._sim = Simulation(self.description, model.course, effects=effects, initial_xy=start_xy)
-            self._links = LowerLinkMasses(self._sim)
-            self._urdf_key = key
-        sim = self._sim
-        sim.set_contact_model(model.course, effects)
-        return sim
+        self._world.close()
+        for helper in self._helpers:
+            helper.close()
+        self._helpers = []
 
     def predict(
         self,
@@ -140,15 +132,12 @@ class SegmentSimulator:
         segments start from the measured angles minus them and the predicted angles are read through the
         same encoders (plus them). ``link_mass_kg``: (4,) extra mass at each leg's lower-link centre of mass
         [kg] (``links.LowerLinkMasses``; None: the description's masses)."""
-        sim = self._configure(model)
-        assert self._links is not None
-        self._links.apply(np.zeros(len(self._links.links)) if link_mass_kg is None else link_mass_kg)
+        sim = self._world.configure(model)
         base = self.data.base
         assert base is not None
-        offsets = plan.sample_offsets
-        out = np.empty((len(plan.starts), len(offsets), STATE_SIZE))
-        for s, i0 in enumerate(plan.starts):
-            sim.set_state(
+        inputs = []
+        for i0 in plan.starts:
+            state = (
                 base.position_m[i0],
                 base.quat_xyzw[i0],
                 base.lin_vel_world_m_s[i0],
@@ -157,16 +146,27 @@ class SegmentSimulator:
                 self.data.qd_rad_s[i0],
             )
             delivered = self._segment_torques(sim, i0, plan.horizon_steps)
-            j = 0
-            for step in range(1, plan.horizon_steps + 1):
-                if delivered is None:
-                    sim.step(self.torques[i0 + step])
-                else:
-                    sim.step_delivered(delivered[step - 1])
-                if step == offsets[j]:
-                    out[s, j] = state_vector(sim)
-                    j = min(j + 1, len(offsets) - 1)
-            self.simulated_steps += plan.horizon_steps
+            if delivered is None:  # the torques as recorded, after the warm-up of the commands
+                warmup = ACTUATOR_WARMUP_STEPS if self.torque_source == "command" else 0
+                inputs.append((state, None, self.torques[i0 - warmup + 1 : i0 + plan.horizon_steps + 1]))
+            else:
+                inputs.append((state, delivered, None))
+        offsets = plan.sample_offsets
+        helpers = [h for h in self._helpers if h.alive] if len(inputs) > 1 else []
+        if helpers:
+            share = len(helpers) + 1
+            for k, helper in enumerate(helpers, 1):
+                helper.send(model, link_mass_kg, inputs[k::share], offsets, plan.horizon_steps)
+            out = np.empty((len(inputs), len(offsets), STATE_SIZE))
+            out[0::share] = self._world.run(model, link_mass_kg, inputs[0::share], offsets, plan.horizon_steps)
+            for k, helper in enumerate(helpers, 1):
+                part = helper.receive()
+                if part is None:  # the helper failed (logged): its segments are run here
+                    part = self._world.run(model, link_mass_kg, inputs[k::share], offsets, plan.horizon_steps)
+                out[k::share] = part
+        else:
+            out = self._world.run(model, link_mass_kg, inputs, offsets, plan.horizon_steps)
+        self.simulated_steps += len(inputs) * plan.horizon_steps
         if q_offset_rad is not None:
             out[..., Q_START : Q_START + len(q_offset_rad)] += q_offset_rad
         return out
@@ -178,9 +178,6 @@ class SegmentSimulator:
         actuator effects (the candidates that change only the plant reuse them). None when the torque limits
         depend on the joint angles: then ``Simulation.step`` runs the actuator model on the simulated angles."""
         if not self._constant_limits:
-            if self.torque_source == "command":
-                for k in range(i0 - ACTUATOR_WARMUP_STEPS + 1, i0 + 1):
-                    sim.actuators.delivered_torque(self.torques[k])
             return None
         actuators = sim.actuators
         e = actuators.effects
@@ -202,6 +199,139 @@ class SegmentSimulator:
                 self._delivered.clear()
             self._delivered[key] = out
         return out
+
+
+class SegmentWorld:
+    """The PyBullet world that re-simulates segments: rebuilt for another payload (part of the URDF), the
+    other parameters switched in place."""
+
+    def __init__(self, description: RobotDescription, start_xy: tuple[float, float], torque_source: str) -> None:
+        self.description = description
+        self.start_xy = start_xy
+        self.torque_source = torque_source
+        self.sim: Simulation | None = None
+        self.links: LowerLinkMasses | None = None
+        self._urdf_key: tuple | None = None
+
+    def close(self) -> None:
+        if self.sim is not None:
+            self.sim.close()
+            self.sim = None
+
+    def configure(self, model: SimModel) -> Simulation:
+        effects = model.effects
+        if self.torque_source == "effort":  # measured torques are what the actuators delivered
+            effects = dataclasses.replace(
+                effects, actuator_delay_s=0.0, actuator_lag_s=0.0, torque_gain=1.0, torque_limit_scale=1.0
+            )
+        key = (model.robot, effects.payload_mass_kg, effects.payload_offset_m, model.course.name)
+        if self.sim is None or key != self._urdf_key:
+            self.close()
+            self.sim = Simulation(self.description, model.course, effects=effects, initial_xy=self.start_xy)
+            self.links = LowerLinkMasses(self.sim)
+            self._urdf_key = key
+        sim = self.sim
+        sim.set_contact_model(model.course, effects)
+        return sim
+
+    def run(
+        self, model: SimModel, link_mass_kg: np.ndarray | None, inputs: list, offsets: np.ndarray, horizon: int
+    ) -> np.ndarray:
+        """(len(inputs), len(offsets), STATE_SIZE) states at ``offsets`` of segments of ``horizon`` steps, each
+        input (start state: base position, quaternion, linear and angular velocity, q, qd; the delivered
+        torques (horizon, 12), or None and the recorded torques from the actuator model's warm-up on)."""
+        sim = self.configure(model)
+        assert self.links is not None
+        self.links.apply(np.zeros(len(self.links.links)) if link_mass_kg is None else link_mass_kg)
+        out = np.empty((len(inputs), len(offsets), STATE_SIZE))
+        for s, (state, delivered, recorded) in enumerate(inputs):
+            sim.set_state(*state)
+            if delivered is None:
+                warmup = len(recorded) - horizon
+                for k in range(warmup):
+                    sim.actuators.delivered_torque(recorded[k])
+            j = 0
+            for step in range(1, horizon + 1):
+                if delivered is None:
+                    sim.step(recorded[warmup + step - 1])
+                else:
+                    sim.step_delivered(delivered[step - 1])
+                if step == offsets[j]:
+                    out[s, j] = state_vector(sim)
+                    j = min(j + 1, len(offsets) - 1)
+        return out
+
+
+class _Helper:
+    """A process with a ``SegmentWorld`` of its own, simulating a share of each prediction's segments."""
+
+    def __init__(self, description: RobotDescription, start_xy: tuple[float, float], torque_source: str) -> None:
+        context = multiprocessing.get_context("spawn")
+        self._connection, child = context.Pipe()
+        self._process = context.Process(
+            target=_helper_loop, args=(child, description, start_xy, torque_source), daemon=True
+        )
+        self._process.start()
+        child.close()
+        self.alive = True
+
+    def send(self, model, link_mass_kg, inputs, offsets, horizon) -> None:
+        try:
+            self._connection.send((model, link_mass_kg, inputs, offsets, horizon))
+        except (OSError, ValueError) as exc:
+            self._fail(f"cannot reach it: {exc}")
+
+    def receive(self) -> np.ndarray | None:
+        """The share's states, or None when the helper failed (then it is not used again)."""
+        if not self.alive:
+            return None
+        try:
+            status, payload = self._connection.recv()
+        except (EOFError, OSError) as exc:
+            self._fail(f"it ended: {exc!r}")
+            return None
+        if status != "ok":
+            self._fail(payload)
+            return None
+        return payload
+
+    def _fail(self, why: str) -> None:
+        if self.alive:
+            LOG.warning("segment helper process failed (%s): its segments run in this process", why)
+        self.alive = False
+
+    def close(self) -> None:
+        if self.alive:
+            try:
+                self._connection.send(None)
+            except (OSError, ValueError):
+                pass
+        self.alive = False
+        self._process.join(timeout=10.0)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join()
+        self._connection.close()
+
+
+def _helper_loop(connection, description: RobotDescription, start_xy, torque_source: str) -> None:
+    """Body of a ``_Helper`` process: runs the shares it is sent until it is sent None."""
+    world = SegmentWorld(description, start_xy, torque_source)
+    try:
+        while True:
+            try:
+                request = connection.recv()
+            except EOFError:
+                return
+            if request is None:
+                return
+            try:
+                connection.send(("ok", world.run(*request)))
+            except Exception as exc:  # reported to the parent, which runs the share itself
+                connection.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        world.close()
+        connection.close()
 
 
 STATE_SIZE = 3 + 4 + 3 + 3 + 12 + 12

@@ -54,8 +54,8 @@ def stepping() -> MeasuredData:
 
 def _plain_replay(segments: SegmentSimulator, model: SimModel, plan: SegmentPlan, link_mass_kg=None) -> np.ndarray:
     """``SegmentSimulator.predict`` as it was before the shortcuts: ``Simulation.step`` every physics step."""
-    sim = segments._configure(model)
-    segments._links.apply(np.zeros(4) if link_mass_kg is None else link_mass_kg)
+    sim = segments._world.configure(model)
+    segments._world.links.apply(np.zeros(4) if link_mass_kg is None else link_mass_kg)
     data, base = segments.data, segments.data.base
     offsets = plan.sample_offsets
     out = np.empty((len(plan.starts), len(offsets), STATE_SIZE))
@@ -99,11 +99,14 @@ MODELS = {
 }
 
 
-@pytest.mark.parametrize("source", ["effort", "command"])
-def test_segments_replay_bit_for_bit_as_with_the_bridges_step(stepping: MeasuredData, source: str) -> None:
+@pytest.mark.parametrize(("source", "workers"), [("effort", 1), ("command", 1), ("effort", 2), ("command", 3)])
+def test_segments_replay_bit_for_bit_as_with_the_bridges_step(
+    stepping: MeasuredData, source: str, workers: int
+) -> None:
+    """Also with the segments shared among processes (``workers``): each in a world of its own."""
     description = load_robot_description("hyq")
-    plan = SegmentPlan(np.array([100, 260, 420, 580]), 100, 10)
-    fast = SegmentSimulator(description, stepping, source)
+    plan = SegmentPlan(np.array([100, 260, 420, 580, 340]), 100, 10)
+    fast = SegmentSimulator(description, stepping, source, workers=workers)
     plain = SegmentSimulator(description, stepping, source)
     try:
         for name, model in MODELS.items():
@@ -117,6 +120,17 @@ def test_segments_replay_bit_for_bit_as_with_the_bridges_step(stepping: Measured
         scaled = fast.torques * 0.7
         fast.torques, plain.torques = scaled, scaled
         np.testing.assert_array_equal(fast.predict(NOMINAL, plan), _plain_replay(plain, NOMINAL, plan))
+        offset = np.r_[np.zeros(8), 0.01, np.zeros(3)]
+        assert fast.simulated_steps == (len(MODELS) + 2) * len(plan.starts) * plan.horizon_steps
+        with_offset = fast.predict(NOMINAL, plan, q_offset_rad=offset)
+        saved = plain.data.q_rad.copy()
+        plain.data.q_rad[plan.starts] -= offset  # what an encoder offset means: the true angles are these
+        try:
+            reference = _plain_replay(plain, NOMINAL, plan)
+        finally:
+            plain.data.q_rad[:] = saved
+        reference[..., 13:25] += offset
+        np.testing.assert_array_equal(with_offset, reference)
     finally:
         fast.close()
         plain.close()
