@@ -687,10 +687,12 @@ def _local_variants(
             fit = _fit_signed(candidate, lambda v, b=base, pn=p.name: residual("fit", {**b, pn: v}), n_obs)
             _log_fit(fit)
             names = (*best.candidates, variant.name) if base else (variant.name,)  # type: ignore[attr-defined]
-            full = validated(Fit(names, {**base, **fit.values}, {**best.intervals, **fit.intervals}, fit.cost, n_obs))
+            full = Fit(names, {**base, **fit.values}, {**best.intervals, **fit.intervals}, fit.cost, n_obs)
             full.intervals = {k: v for k, v in full.intervals.items() if k in full.values}
             removes = (best.cost - full.cost) / max(best.cost - refloor, 1e-300)
-            if acceptable(full, best, best_val) and removes >= MOSTLY_EXPLAINED and full.bic() < chosen.bic():
+            # the validation segments are re-simulated only for an option that passes the other two tests
+            passes = removes >= MOSTLY_EXPLAINED and full.bic() < chosen.bic()
+            if passes and acceptable(validated(full), best, best_val):
                 chosen = full
                 scope = "joint" if variant is ENCODER_OFFSET else "leg"
                 chosen_note = (
