@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from tal_core.robot_description import RobotDescription
-from tal_core.ros.bag_io import BagError, BagReader, message_class
+from tal_core.ros.bag_io import BagError, BagReader
 
 from . import cdr
 from .errors import MeasuredDataError
@@ -152,13 +152,12 @@ def load_measured(
         reader = BagReader(path)
         buffers: dict[str, list] = {name: [] for name in TOPICS}
         by_topic = {topic: name for name, topic in TOPICS.items()}
-        rclpy_types: dict[str, object] = {}
         for record in reader.messages(list(TOPICS.values()), decode=False):
             # the types cdr.py knows straight from their bytes, the others (or a message that does not parse
             # there) by rclpy; a type rclpy does not know is skipped, as BagReader does
             message = cdr.decode(record.type_name, record.data)
             if message is None:
-                message = _rclpy_decode(record.type_name, record.data, rclpy_types)
+                message = reader.decode(record.type_name, record.data)
                 if message is None:
                     continue
             name = by_topic[record.topic]
@@ -204,21 +203,6 @@ def load_measured(
         data.cmd_vel = np.array([[m.linear.x, m.linear.y, m.angular.z] for _, m in buffers["cmd_vel"]])
     _attach_contacts(data, buffers["contacts"])
     return data
-
-
-def _rclpy_decode(type_name: str, data: bytes, classes: dict[str, object]):
-    """``data`` deserialised by rclpy into a ``type_name`` message; None for a type rclpy does not know
-    (warned once per type)."""
-    from rclpy.serialization import deserialize_message
-
-    if type_name not in classes:
-        try:
-            classes[type_name] = message_class(type_name)
-        except BagError as exc:
-            classes[type_name] = None
-            LOG.warning("skipping messages of unknown type %s: %s", type_name, exc)
-    cls = classes[type_name]
-    return None if cls is None else deserialize_message(data, cls)
 
 
 def _joint_arrays(

@@ -343,6 +343,7 @@ class BagReader:
             raise BagError(f"bag {self.path}: no MCAP file found ({[str(p) for p in mcaps]})")
         self.files = mcaps
         self.report = ReadReport()
+        self._classes: dict[str, Any] = {}   # decode(): message classes by type name
 
     def _read_metadata(self) -> dict | None:
         meta = self.path / METADATA_FILE
@@ -383,6 +384,11 @@ class BagReader:
                 yield BagMessage(channel.topic, type_name, record.log_time, record.publish_time, record.data, decoded)
         if strict and not self.report.complete:
             raise BagError(self.report.error)
+
+    def decode(self, type_name: str, data: bytes) -> Any:
+        """One record's bytes (``messages(decode=False)``) as its rclpy message; None for a type rclpy does not
+        know (warned once, in ``report.skipped_types``)."""
+        return self._decode(type_name, data, self._classes)
 
     def _decode(self, type_name: str, data: bytes, classes: dict[str, Any]) -> Any:
         from rclpy.serialization import deserialize_message
