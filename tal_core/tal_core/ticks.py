@@ -105,6 +105,10 @@ class StampedInbox:
             return None
         return due
 
+    def seen(self, stamp_ns: int) -> bool:
+        """Whether an input with this stamp was received (among the last ``keep``): a re-sent one."""
+        return self._received(stamp_ns)
+
     def _received(self, stamp_ns: int) -> bool:
         return any(abs(stamp - stamp_ns) <= TICK_TOLERANCE_NS for stamp in self._recent)
 
