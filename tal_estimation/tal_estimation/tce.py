@@ -290,13 +290,7 @@ class KelvinVoigtWindows:
         total_w = sums[_W]
         mean_p = float(w @ pen) / total_w
         variance_p = max(sums[_PP] / total_w - mean_p**2, 0.0)
-        variance_f = max(sums[_FF] / total_w - (sums[_F] / total_w) ** 2, 0.0)
-        std_f, std_p = math.sqrt(variance_f), math.sqrt(variance_p)
-        if std_f >= s.min_force_variation_n and std_f >= s.rigid_stiffness_n_per_m * std_p:
-            ratio = std_f / std_p if std_p > 0.0 else math.inf
-            est.stiffness_n_per_m = float(min(ratio, s.stiffness_range_n_per_m[1]))
-            est.confidence = count / s.window
-            est.valid, est.stale, est.clamped, est.rigid = True, False, False, True
+        if self._rigid(est, count, sums, math.sqrt(variance_p)):
             return
         if math.sqrt(sums[_PP] / total_w) < s.min_penetration_m or math.sqrt(variance_p) < \
                 s.min_penetration_variation_m:
@@ -324,6 +318,20 @@ class KelvinVoigtWindows:
         est.confidence = float(np.clip(fill * max(r2, 0.0), 0.0, 1.0)) * (0.5 if est.clamped else 1.0) * consistent
         est.valid, est.stale, est.rigid = True, False, False
 
+    def _rigid(self, est: LegEstimate, count: int, sums: np.ndarray, std_p: float) -> bool:
+        """Whether the window shows ground at least rigid_stiffness_n_per_m stiff (std F / ``std_p``, with F
+        varying by min_force_variation_n); if so ``est`` becomes that lower bound, flagged rigid."""
+        s = self.settings
+        total_w = sums[_W]
+        std_f = math.sqrt(max(sums[_FF] / total_w - (sums[_F] / total_w) ** 2, 0.0))
+        if not (std_f >= s.min_force_variation_n and std_f >= s.rigid_stiffness_n_per_m * std_p):
+            return False
+        ratio = std_f / std_p if std_p > 0.0 else math.inf
+        est.stiffness_n_per_m = float(min(ratio, s.stiffness_range_n_per_m[1]))
+        est.confidence = count / s.window
+        est.valid, est.stale, est.clamped, est.rigid = True, False, False, True
+        return True
+
     def _fit_with_drift(self, est: LegEstimate, count: int, sums: np.ndarray) -> None:
         """``base_drift_fit``: F = k p (+ d dp/dt) + g t + c by weighted least squares (g = k e, c also takes
         d e and a touchdown depth that was off); the rigid check on the part of p that t and a constant do not
@@ -333,19 +341,14 @@ class KelvinVoigtWindows:
         # p's variance left after its regression on (t, 1): what the drift cannot have made
         drift = np.array([[sums[_TT], sums[_T]], [sums[_T], total_w]])
         det_drift = drift[0, 0] * drift[1, 1] - drift[0, 1] ** 2
-        cross = np.array([sums[_TP], sums[_P]])
         if not det_drift > 1e-12 * drift[0, 0] * drift[1, 1]:
             self._keep_previous(est)
             return
-        explained_p = float(cross @ np.linalg.solve(drift, cross))
-        variance_p = max(sums[_PP] - explained_p, 0.0) / total_w
-        variance_f = max(sums[_FF] / total_w - (sums[_F] / total_w) ** 2, 0.0)
-        std_f, std_p = math.sqrt(variance_f), math.sqrt(variance_p)
-        if std_f >= s.min_force_variation_n and std_f >= s.rigid_stiffness_n_per_m * std_p:
-            ratio = std_f / std_p if std_p > 0.0 else math.inf
-            est.stiffness_n_per_m = float(min(ratio, s.stiffness_range_n_per_m[1]))
-            est.confidence = count / s.window
-            est.valid, est.stale, est.clamped, est.rigid = True, False, False, True
+        # p and F on (t, 1) in one solve: what of p the drift cannot have made, and what of F it explains
+        cross_p, cross_f = np.array([sums[_TP], sums[_P]]), np.array([sums[_TF], sums[_F]])
+        on_drift = np.linalg.solve(drift, np.column_stack([cross_p, cross_f]))
+        std_p = math.sqrt(max(sums[_PP] - float(cross_p @ on_drift[:, 0]), 0.0) / total_w)
+        if self._rigid(est, count, sums, std_p):
             est.penetration_offset_m = 0.0
             return
         if std_p < s.min_penetration_variation_m:
@@ -373,8 +376,7 @@ class KelvinVoigtWindows:
         # Confidence from what the ground's terms explain beyond the drift's (t, 1): F rises and falls with
         # the time since touchdown on any ground, so the plain R^2 stayed high where p only carried noise
         # (rigid ground under a noisy estimate read 3,600 N/m at its 10 % quantile, adopted; measured).
-        drift_rhs = np.array([sums[_TF], sums[_F]])
-        residual_drift = max(sums[_FF] - float(drift_rhs @ np.linalg.solve(drift, drift_rhs)), 0.0)
+        residual_drift = max(sums[_FF] - float(cross_f @ on_drift[:, 1]), 0.0)
         residual = max(sums[_FF] - float(theta @ rhs), 0.0)
         r2 = 1.0 - residual / residual_drift if residual_drift > 0.0 else 0.0
         k_clamped = float(np.clip(k, *s.stiffness_range_n_per_m))
