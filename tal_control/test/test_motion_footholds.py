@@ -13,6 +13,7 @@ from tal_control.motion.footholds import (
     raibert_footholds_xy,
     terrain_height,
     terrain_normal,
+    terrain_normals,
 )
 from tal_core.errors import InputError
 from tal_core.heightmap import HeightMapGrid
@@ -97,6 +98,33 @@ def test_terrain_normal_fallbacks():
     np.testing.assert_allclose(terrain_normal(lambda x, y: [0.0, 0.0, 0.0], 0.0, 0.0), [0.0, 0.0, 1.0])
     tilted = terrain_normal(lambda x, y: [0.0, -1.0, 1.0], 0.0, 0.0)
     np.testing.assert_allclose(tilted, [0.0, -math.sqrt(0.5), math.sqrt(0.5)])
+
+
+def test_terrain_normals_ask_a_batched_callback_once_and_fall_back_per_row():
+    class Normals:
+        calls = 0
+
+        def __call__(self, x, y):
+            raise AssertionError("the batched form is used")
+
+        def many(self, x, y):
+            Normals.calls += 1
+            return np.array([[0.0, -1.0, 1.0], [0.0, 0.0, 0.0], [np.nan, 0.0, 1.0]])
+
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    out = terrain_normals(Normals(), xy)
+    assert Normals.calls == 1
+    np.testing.assert_allclose(out, [[0.0, -math.sqrt(0.5), math.sqrt(0.5)], [0, 0, 1], [0, 0, 1]])
+    # a plain callback: one call per point, as terrain_normal
+    np.testing.assert_allclose(terrain_normals(lambda x, y: [0.0, -1.0, 1.0], xy[:1]), out[:1])
+    np.testing.assert_allclose(terrain_normals(None, xy), np.tile([0.0, 0.0, 1.0], (3, 1)))
+
+    class Wrong(Normals):
+        def many(self, x, y):
+            return np.zeros((2, 3))
+
+    with pytest.raises(InputError, match="shape"):
+        terrain_normals(Wrong(), xy)
 
 
 @pytest.mark.parametrize(

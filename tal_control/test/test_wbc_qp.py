@@ -136,6 +136,10 @@ def test_invalid_references_are_rejected(model) -> None:
     refs = references(model)
     with pytest.raises(InputError, match="com_position"):
         WbcReferences(**{**refs.__dict__, "com_position": np.array([np.nan, 0.0, 0.0])})
+    normals = refs.normals.copy()
+    normals[2, 1] = np.inf
+    with pytest.raises(InputError, match="'normals' has NaN or inf"):
+        WbcReferences(**{**refs.__dict__, "normals": normals})
     with pytest.raises(InputError, match="stance"):
         WbcReferences(**{**refs.__dict__, "stance": np.ones(3, dtype=bool)})
     with pytest.raises(InputError, match="unknown joint"):

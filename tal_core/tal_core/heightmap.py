@@ -126,8 +126,42 @@ class HeightMapGrid:
         bottom = (1.0 - wc) * item(r1, c0) + wc * item(r1, c1)
         return (1.0 - wr) * top + wr * bottom
 
+    def normals_at(self, x: ArrayLike, y: ArrayLike) -> FloatArray:
+        """Unit terrain normals (n, 3) (world) at world points (x, y) [m] (arrays of n), from central
+        differences one cell apart of the bilinear heights; straight up where a difference is unknown.
+        One array look-up for all points (a controller asks for its four feet every tick)."""
+        x = np.asarray(x, dtype=float).reshape(-1)
+        y = np.asarray(y, dtype=float).reshape(-1)
+        if x.shape != y.shape:
+            raise InputError(f"heightmap normals_at needs as many x as y, got {x.size} and {y.size}")
+        h = self.resolution_m
+        z = self.height_at(np.concatenate([x + h, x - h, x, x]), np.concatenate([y, y, y + h, y - h]))
+        z = z.reshape(4, x.size)
+        normals = np.empty((x.size, 3))
+        normals[:, 0] = -(z[0] - z[1]) / (2 * h)
+        normals[:, 1] = -(z[2] - z[3]) / (2 * h)
+        normals[:, 2] = 1.0
+        normals[~np.isfinite(normals).all(axis=1)] = (0.0, 0.0, 1.0)
+        return normals / np.sqrt((normals * normals).sum(axis=1))[:, None]
+
     def _inside(self, rows: FloatArray, cols: FloatArray) -> NDArray[np.bool_]:
         return (rows >= -0.5) & (rows < self.rows - 0.5) & (cols >= -0.5) & (cols < self.cols - 0.5)
+
+
+class GridHeights:
+    """A heightmap's surface as estimators and controllers take it: ``heights(x, y)`` -> float [m] for one
+    point, ``heights.many(xs, ys)`` -> array for several in one look-up (the same values, bit for bit)."""
+
+    __slots__ = ("grid",)
+
+    def __init__(self, grid: HeightMapGrid) -> None:
+        self.grid = grid
+
+    def __call__(self, x: float, y: float) -> float:
+        return float(self.grid.height_at(x, y))
+
+    def many(self, x: ArrayLike, y: ArrayLike) -> FloatArray:
+        return self.grid.height_at(x, y)
 
 
 def _check_pose(center_xy: ArrayLike, yaw: float, resolution_m: float) -> None:

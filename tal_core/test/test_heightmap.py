@@ -129,3 +129,24 @@ def test_scalar_queries_are_bit_identical_to_array_queries() -> None:
         one_by_one = np.array([grid.height_at(float(x), float(y)) for x, y in xy])
         assert np.isnan(batch).any() and np.isfinite(batch).any()
         np.testing.assert_array_equal(one_by_one, batch)
+
+
+def test_normals_at_match_the_scalar_heightmap_normal_and_are_up_where_unknown() -> None:
+    from tal_core.ros.conversions import HeightmapNormals, heightmap_normal
+
+    rng = np.random.default_rng(3)
+    heights = rng.normal(0.0, 0.05, (21, 25)).astype(np.float32)
+    heights[3, 4] = np.nan
+    grid = HeightMapGrid(center_xy=(1.0, -0.5), yaw=0.4, resolution_m=0.02, heights=heights)
+    centres = grid.cell_world_xy().reshape(-1, 2)[::7]
+    xy = centres + rng.normal(0.0, 0.004, centres.shape)
+    xy = np.vstack([xy, [[50.0, 50.0]], grid.cell_world_xy()[3, 4][None]])   # outside; next to the NaN cell
+    many = HeightmapNormals(grid).many(xy[:, 0], xy[:, 1])
+    one = np.array([heightmap_normal(grid, x, y) for x, y in xy])
+    np.testing.assert_allclose(many, one, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(many, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_array_equal(many[-2], [0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(many[-1], [0.0, 0.0, 1.0])
+    assert not np.allclose(many[:, :2], 0.0)   # the random relief tilts most normals
+    with pytest.raises(InputError, match="as many x as y"):
+        grid.normals_at([0.0, 1.0], [0.0])

@@ -558,19 +558,27 @@ class TerrainComplianceEstimator:
         forces = m.foot_forces_from_joint_torques(dyn.foot_jacobians, tau, h)
         radius = m.description.foot_radius_m
         up = np.array([0.0, 0.0, 1.0])
+        many = getattr(height, "many", None)
+        if many is not None:
+            # One look-up for the four feet and their relief points (tal_core.heightmap.GridHeights).
+            offsets = np.array(((0.0, 0.0), *self._relief_offsets))
+            around_xy = feet[:, None, :2] + offsets[None]
+            around_z = np.asarray(many(around_xy[..., 0].ravel(), around_xy[..., 1].ravel()),
+                                  dtype=float).reshape(NUM_LEGS, len(offsets))
         samples = []
         for leg in range(NUM_LEGS):
             force = forces[leg]
             x, y = float(feet[leg, 0]), float(feet[leg, 1])
             n = up if normal is None else np.asarray(normal(x, y), dtype=float)
             n = n / np.linalg.norm(n)
-            surface_z = float(height(x, y))
+            surface_z = float(height(x, y)) if many is None else float(around_z[leg, 0])
             penetration = foot_penetration(feet[leg], radius, surface_z, n)
             rate = float(-(n @ velocities[leg]))
             in_contact = bool(n @ force >= self.settings.contact_force_threshold_n)
-            relief = 0.0  # only stance samples enter the fit: four more look-ups for those alone
+            relief = 0.0  # only stance samples enter the fit: their relief (the look-ups' spread) alone
             if in_contact:
-                around = [surface_z] + [float(height(x + dx, y + dy)) for dx, dy in self._relief_offsets]
+                around = (around_z[leg] if many is not None else
+                          [surface_z] + [float(height(x + dx, y + dy)) for dx, dy in self._relief_offsets])
                 relief = float(np.ptp(around))   # NaN where a look-up is unknown (Python's max would skip it)
             samples.append(ContactSample(in_contact, force, n, penetration, rate, feet[leg], velocities[leg],
                                          relief))   # rows of this call's own arrays

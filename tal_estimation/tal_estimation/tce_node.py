@@ -24,6 +24,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError
+from tal_core.heightmap import GridHeights
 from tal_core.legs import LEGS
 from tal_core.robot_model import RobotModel
 from tal_core.ros.cdr import CdrView, subscribe_view
@@ -164,8 +165,7 @@ class TceNode(Node):
         except InputError as exc:
             self._reject("heightmap", exc)
             return
-        self._publish(self.driver.add_heightmap(ns_from_stamp(msg.header.stamp),
-                                                lambda x, y: float(grid.height_at(x, y))))
+        self._publish(self.driver.add_heightmap(ns_from_stamp(msg.header.stamp), GridHeights(grid)))
 
     def _on_joints(self, view: CdrView) -> None:
         stamp_ns = view.stamp_ns

@@ -177,6 +177,35 @@ def test_stance_samples_at_a_step_edge_are_left_out(model) -> None:
         TceSettings(max_surface_relief_m=float("nan"))
 
 
+def test_contact_states_from_a_heightmap_in_one_look_up_equal_the_point_by_point_ones(model) -> None:
+    """GridHeights' batched look-up (surface and relief points of the four feet at once) gives the same
+    samples, bit for bit, as the same heights asked one point at a time."""
+    from tal_core.heightmap import GridHeights, HeightMapGrid
+
+    q = model.neutral_q()
+    q[2] -= 0.01
+    v = np.zeros(model.nv)
+    model.update(q, v)
+    feet = model.foot_positions()
+    rng = np.random.default_rng(5)
+    heights = rng.normal(0.0, 0.01, (41, 41)).astype(np.float32)
+    heights[20:, 30:] = np.nan                        # unknown cells near one foot
+    grid = HeightMapGrid(center_xy=tuple(feet[:, :2].mean(axis=0)), yaw=0.2, resolution_m=0.025, heights=heights)
+    tau = np.zeros(12)
+    h = model.nonlinear_effects()
+    to_v = model.canonical_joint_v_indices()
+    for leg in Leg:
+        tau_leg = model.leg_torques_for_foot_force(leg, np.array([0.0, 0.0, 150.0 + 20.0 * leg]))
+        for j, vi in enumerate(model.leg_joint_v_indices(leg)):
+            tau[int(np.flatnonzero(to_v == vi)[0])] = tau_leg[j] + h[vi]
+    batched = TerrainComplianceEstimator(model).contact_states(q, v, tau, height=GridHeights(grid))
+    single = TerrainComplianceEstimator(model).contact_states(q, v, tau, height=lambda x, y: float(grid.height_at(x, y)))
+    for a, b in zip(batched, single, strict=True):
+        assert a.in_contact == b.in_contact
+        np.testing.assert_array_equal([a.penetration_m, a.surface_relief_m], [b.penetration_m, b.surface_relief_m])
+    assert all(s.in_contact for s in batched) and any(s.surface_relief_m > 0.0 for s in batched)
+
+
 def test_batched_windows_match_single_channel_fits() -> None:
     """All legs fitted together give the same estimates as one window per leg, samples fed per leg."""
     settings = TceSettings(window=120, min_samples=30)

@@ -326,6 +326,9 @@ def run_closed_loop(config: ClosedLoopConfig, hook: TickHook | None = None,
     def normal_fn(x: float, y: float) -> np.ndarray:
         return np.asarray(course.normal(x, y), dtype=float).reshape(3)
 
+    height_fn.many = course.height  # type: ignore[attr-defined]  # several points in one look-up
+    normal_fn.many = course.normal  # type: ignore[attr-defined]
+
     if config.trunk_oscillation is not None:
         controller.motion.set_trunk_oscillation(config.trunk_oscillation)
     tce = None

@@ -64,6 +64,25 @@ def terrain_normal(normal_fn: NormalFunction | None, x: float, y: float) -> np.n
     return normal / norm
 
 
+def terrain_normals(normal_fn: NormalFunction | None, xy: np.ndarray) -> np.ndarray:
+    """Unit terrain normals (n, 3) at world points ``xy`` (n, 2) [m], as ``terrain_normal`` gives each. A
+    ``normal_fn`` with a ``many(xs, ys)`` method (n, 3) is asked once for all points (e.g.
+    ``tal_core.ros.conversions.HeightmapNormals``); a row it returns non-finite or zero is vertical."""
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    many = getattr(normal_fn, "many", None)
+    if many is None:
+        return np.array([terrain_normal(normal_fn, x, y) for x, y in xy]).reshape(-1, 3)
+    normals = np.asarray(many(xy[:, 0], xy[:, 1]), dtype=float)
+    if normals.shape != (len(xy), 3):
+        raise InputError(f"terrain normals callback gave shape {normals.shape} for {len(xy)} points")
+    norms = np.sqrt((normals * normals).sum(axis=1))
+    bad = ~(np.isfinite(norms) & (norms > 1e-9))
+    if bad.any():
+        normals, norms = normals.copy(), norms.copy()
+        normals[bad], norms[bad] = _UP, 1.0
+    return normals / norms[:, None]
+
+
 def hip_at_touchdown(hip_xy_world: object, commanded_vel_world_xy: object, yaw_rate: float,
                      swing_time_left_s: float, rotation_centre_xy_world: object | None = None) -> np.ndarray:
     """(2,) [m] where the hip will be at touchdown if the trunk follows the command: the rotation centre

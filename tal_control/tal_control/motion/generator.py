@@ -26,7 +26,7 @@ from tal_control.motion.footholds import (
     NormalFunction,
     raibert_footholds_xy,
     terrain_height,
-    terrain_normal,
+    terrain_normals,
 )
 from tal_control.motion.gait import STAND, GaitParameters, GaitPhase, GaitScheduler
 from tal_control.motion.swing import SwingTrajectory
@@ -335,7 +335,7 @@ class MotionGenerator:
                 x, y, z = ground[leg]
                 ground[leg, 2] = terrain_height(terrain_height_fn, x, y, z)
         footholds = np.where(phase.swing[:, None], self._targets, ground)
-        normals = np.array([terrain_normal(terrain_normal_fn, x, y) for x, y in footholds[:, :2]])
+        normals = terrain_normals(terrain_normal_fn, footholds[:, :2])
         trunk = self._trunk.update(t_s, cmd, phase, FeetMotion(positions, velocities, accelerations),
                                    footholds, measured.com)
         self._last = MotionTargets(

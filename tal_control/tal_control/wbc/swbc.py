@@ -376,6 +376,15 @@ class StandardWbc:
             self._model_rows = lay.compliant_rows.start + np.arange(lay.n_force)
             self._eps_bound_rows = lay.compliant_rows.start + lay.n_force + np.arange(lay.n_force)
             A[self._model_rows, sl["force"]] = eye_f
+            three = np.arange(3)
+            legs3 = 3 * np.arange(NUM_LEGS)[:, None] + three            # (4, 3) a leg's three rows / columns
+            rows = (self._model_rows[legs3], self._eps_bound_rows[legs3], sl["task_low_rows"].start + legs3,
+                    sl["task_high_rows"].start + legs3)
+            cols = lay.penetration.start + legs3
+            blocks = np.concatenate([r[:, :, None] * lay.n_vars + cols[:, None, :]
+                                     for r in (rows[1], rows[0], rows[2], rows[3])])   # frame, model, task low, high
+            self._compliant_index = (rows, blocks)
+            self._frames_key: bytes | None = None
         self._Q = np.diag(s.wrench_weights)
         self._friction_key: bytes | None = None
         # Rows of the torque/joint blocks in Pinocchio's joint order that hold each canonical joint.
@@ -468,7 +477,7 @@ class StandardWbc:
     def _compliant_rows(self, refs: WbcReferences, target: np.ndarray, lower: np.ndarray,
                         upper: np.ndarray) -> None:
         """c3-stance task: F = K eps + D deps, J qdd + dJ v = -d2eps, n.eps >= 0 (thesis' c3WBC)."""
-        lay, sl, s = self.layout, self._slices, self.settings
+        s = self.settings
         A = self._A
         dt = s.control_period_s
         touchdown = refs.stance & ~self._was_stance
@@ -497,45 +506,46 @@ class StandardWbc:
         k_t = per_leg(refs.stiffness_tangential, k_n)
         d_n = per_leg(refs.damping_normal, s.default_damping_ns_per_m)
         d_t = per_leg(refs.damping_tangential, d_n)
-        eye3 = np.eye(3)
-        for leg in range(NUM_LEGS):
-            rows = slice(3 * leg, 3 * leg + 3)
-            eps_cols = lay.leg_cols(lay.penetration, leg)
-            n = normals[leg]
-            t1, t2 = tangent_basis(n)
-            contact_R = np.vstack([n, t1, t2])         # rows: contact-frame axes in world coordinates
-            model_rows = self._model_rows[rows]
-            bound_rows = self._eps_bound_rows[rows]
-            A[bound_rows, eps_cols] = contact_R
-            task_low = sl["task_low_rows"].start + 3 * leg
-            task_high = sl["task_high_rows"].start + 3 * leg
-            if refs.stance[leg]:
-                K = contact_R.T @ np.diag([k_n[leg], k_t[leg], k_t[leg]]) @ contact_R
-                D = contact_R.T @ np.diag([d_n[leg], d_t[leg], d_t[leg]]) @ contact_R
-                # F = K eps_k + D (eps_k - eps_{k-1})/dt with eps_k = dt^2 u + offset (u: the variable)
-                offset = self._eps_offset[leg]
-                A[model_rows, eps_cols] = -(K + D / dt) * dt**2
-                lower[model_rows] = upper[model_rows] = (K + D / dt) @ offset - D @ self._eps_prev[leg] / dt
-                # J qdd + u = -dJ v   (the foot follows the penetration; replaces the rigid stance row)
-                A[task_low:task_low + 3, eps_cols] = eye3
-                A[task_high:task_high + 3, eps_cols] = eye3
-                rhs = target[rows] - self._stance_task_acceleration(refs, leg)
-                lower[task_low:task_low + 3] = upper[task_low:task_low + 3] = rhs
-                # normal penetration >= 0:  n.u >= -n.offset / dt^2
-                lower[bound_rows] = np.array([-float(n @ offset) / dt**2, -INF, -INF])
-                upper[bound_rows] = INF
-            else:
-                A[model_rows, eps_cols] = 0.0
-                A[task_low:task_low + 3, eps_cols] = 0.0
-                A[task_high:task_high + 3, eps_cols] = 0.0
-                lower[bound_rows] = upper[bound_rows] = 0.0
-                # model rows stay unbounded (-INF, INF): F is pinned to zero by the friction rows
-
-    def _stance_task_acceleration(self, refs: WbcReferences, leg: int) -> np.ndarray:
-        """The rigid stance-task impedance term that ``target`` holds for stance legs (removed in c3 mode)."""
+        # All four legs at once: contact frames R (rows n, t1, t2), K = R^T diag(k_n, k_t, k_t) R, D alike.
+        R = self._contact_frames(normals)
+        K = np.einsum("lki,lk,lkj->lij", R, np.column_stack([k_n, k_t, k_t]), R)
+        D = np.einsum("lki,lk,lkj->lij", R, np.column_stack([d_n, d_t, d_t]), R)
+        stance = refs.stance
+        (model_rows, bound_rows, task_low, _), blocks = self._compliant_index
+        # The blocks of A, each leg's 3 x 3 at its rows and penetration columns (flat indices into A):
+        # contact frame rows; F = K eps_k + D (eps_k - eps_{k-1})/dt with eps_k = dt^2 u + offset (u: the
+        # variable), swing legs 0; J qdd + u = -dJ v (the foot follows the penetration; replaces the rigid
+        # stance row), low and high task rows alike.
+        KD = K + D / dt
+        eye = np.where(stance[:, None, None], np.eye(3), 0.0)
+        np.put(A, blocks, np.concatenate([R, np.where(stance[:, None, None], -KD * dt**2, 0.0), eye, eye]))
+        offset = self._eps_offset
         m = self.model
-        foot = m.foot_positions()[leg]
-        return self.gains.K_st * (refs.touchdown_position[leg] - foot) - self.gains.D_st * m.foot_velocities()[leg]
+        g = self.gains
+        stance_acc = g.K_st * (refs.touchdown_position - m.foot_positions()) - g.D_st * velocities
+        model_rhs = np.einsum("lij,lj->li", KD, offset) - np.einsum("lij,lj->li", D, self._eps_prev) / dt
+        task_rhs = target.reshape(NUM_LEGS, 3) - stance_acc
+        legs = np.flatnonzero(stance)
+        lower[model_rows[legs]] = upper[model_rows[legs]] = model_rhs[legs]   # swing: unbounded (-INF, INF),
+        lower[task_low[legs]] = upper[task_low[legs]] = task_rhs[legs]        # F pinned by the friction rows
+        # stance: normal penetration >= 0, n.u >= -n.offset / dt^2; swing: u = 0
+        bound_low = np.zeros((NUM_LEGS, 3))
+        bound_low[legs] = -INF
+        bound_low[legs, 0] = -np.einsum("lj,lj->l", normals[legs], offset[legs]) / dt**2
+        lower[bound_rows] = bound_low
+        upper[bound_rows] = np.where(stance[:, None], INF, 0.0)
+
+    def _contact_frames(self, normals: np.ndarray) -> np.ndarray:
+        """(4, 3, 3) rows n, t1, t2 of each leg's contact frame (world), kept while the normals stay."""
+        key = normals.tobytes()
+        if key != self._frames_key:
+            self._frames_key = key
+            frames = np.empty((NUM_LEGS, 3, 3))
+            for leg in range(NUM_LEGS):
+                t1, t2 = tangent_basis(normals[leg])
+                frames[leg] = (normals[leg], t1, t2)
+            self._frames = frames
+        return self._frames
 
     def _fill_friction_rows(self, normals: np.ndarray) -> None:
         key = normals.tobytes()

@@ -42,6 +42,13 @@ class WbcGains:
                 raise InputError(f"WBC gain {name} must be a finite number >= 0, got {value!r}")
 
 
+_REFERENCE_SHAPES = {
+    "com_position": (3,), "com_velocity": (3,), "com_acceleration": (3,), "world_R_base": (3, 3),
+    "angular_velocity": (3,), "angular_acceleration": (3,), "foot_position": (NUM_LEGS, 3),
+    "foot_velocity": (NUM_LEGS, 3), "foot_acceleration": (NUM_LEGS, 3), "stance": (NUM_LEGS,),
+    "load_factor": (NUM_LEGS,), "touchdown_position": (NUM_LEGS, 3), "normals": (NUM_LEGS, 3)}
+
+
 @dataclass(frozen=True)
 class WbcReferences:
     """What the motion generator asks of the WBC for one cycle (world frame, per-leg arrays (4, 3))."""
@@ -66,17 +73,18 @@ class WbcReferences:
     damping_tangential: np.ndarray | None = None     # (4,)
 
     def __post_init__(self) -> None:
-        shapes = {"com_position": (3,), "com_velocity": (3,), "com_acceleration": (3,), "world_R_base": (3, 3),
-                  "angular_velocity": (3,), "angular_acceleration": (3,), "foot_position": (NUM_LEGS, 3),
-                  "foot_velocity": (NUM_LEGS, 3), "foot_acceleration": (NUM_LEGS, 3), "stance": (NUM_LEGS,),
-                  "load_factor": (NUM_LEGS,), "touchdown_position": (NUM_LEGS, 3), "normals": (NUM_LEGS, 3)}
-        for name, shape in shapes.items():
+        floats = []
+        for name, shape in _REFERENCE_SHAPES.items():
             value = np.asarray(getattr(self, name), dtype=bool if name == "stance" else float)
             if value.shape != shape:
                 raise InputError(f"WBC reference '{name}' must have shape {shape}, got {value.shape}")
-            if name != "stance" and not np.all(np.isfinite(value)):
-                raise InputError(f"WBC reference '{name}' has NaN or inf")
+            if name != "stance":
+                floats.append(value.reshape(-1))
             object.__setattr__(self, name, value)
+        if not np.isfinite(np.concatenate(floats)).all():   # one check a cycle; the culprit only on failure
+            bad = next(name for name in _REFERENCE_SHAPES
+                       if name != "stance" and not np.all(np.isfinite(getattr(self, name))))
+            raise InputError(f"WBC reference '{bad}' has NaN or inf")
         for name in ("stiffness_normal", "stiffness_tangential", "damping_normal", "damping_tangential"):
             value = getattr(self, name)
             if value is None:

@@ -143,3 +143,19 @@ def heightmap_normal(grid: HeightMapGrid, x: float, y: float) -> np.ndarray:
     if not np.all(np.isfinite(normal)):
         return np.array([0.0, 0.0, 1.0])
     return normal / np.linalg.norm(normal)
+
+
+class HeightmapNormals:
+    """The terrain normal of a heightmap as the motion generator takes it: ``normals(x, y)`` -> (3,) for one
+    point (``heightmap_normal``), ``normals.many(xs, ys)`` -> (n, 3) for several in one look-up."""
+
+    __slots__ = ("grid",)
+
+    def __init__(self, grid: HeightMapGrid) -> None:
+        self.grid = grid
+
+    def __call__(self, x: float, y: float) -> np.ndarray:
+        return heightmap_normal(self.grid, x, y)
+
+    def many(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return self.grid.normals_at(x, y)
