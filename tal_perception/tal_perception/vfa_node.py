@@ -35,8 +35,9 @@ from rclpy.node import Node
 from tal_core.errors import InputError
 from tal_core.heightmap import HeightMapGrid
 from tal_core.robot_model import RobotModel
+from tal_core.ros.cdr import CdrView, subscribe_view
 from tal_core.ros.conversions import heightmap_grid
-from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_core.ticks import CLOCK_RESET_NS, HeldTicks, StampedInbox, TickAnswers
 from tal_msgs.msg import Foothold, FootholdArray, GaitState, HeightMap
 
@@ -48,20 +49,22 @@ FRAME = "world"
 TIMING_WINDOW = 1000  # selections kept for the timing statistics (the latest ones)
 
 
-def gait_snapshot_from_message(msg: GaitState) -> GaitSnapshot:
-    """GaitSnapshot (plain arrays, world frame) of a tal_msgs/GaitState; VfaInputError on bad content."""
-    if msg.header.frame_id != FRAME:
-        raise VfaInputError("gait_state_frame", f"gait_state frame_id must be '{FRAME}', got "
-                            f"'{msg.header.frame_id}'")
-    linear, angular = msg.base_twist.linear, msg.base_twist.angular
+def gait_snapshot_from_view(view: CdrView) -> GaitSnapshot:
+    """GaitSnapshot (plain arrays, world frame) of a serialised tal_msgs/GaitState read in place
+    (``tal_core.ros.cdr.CdrView``: no Python message with a Point object per position); VfaInputError on bad
+    content."""
+    frame = view.per_layout("frame_id", lambda msg: msg.header.frame_id)
+    if frame != FRAME:
+        raise VfaInputError("gait_state_frame", f"gait_state frame_id must be '{FRAME}', got '{frame}'")
     return GaitSnapshot(
-        stamp_s=ns_from_stamp(msg.header.stamp) * 1e-9, step_frequency_hz=msg.step_frequency,
-        duty_factor=msg.duty_factor, step_height_m=msg.step_height,
-        base_twist=np.array([linear.x, linear.y, linear.z, angular.x, angular.y, angular.z]),
-        swing=np.array(msg.swing, dtype=bool), time_to_touchdown_s=np.array(msg.time_to_touchdown, dtype=float),
-        step_count=np.array(msg.step_count, dtype=np.int64), liftoff_position=_points(msg.liftoff_position),
-        nominal_foothold=_points(msg.nominal_foothold), hip_position=_points(msg.hip_position),
-        hip_velocity=_points(msg.hip_velocity))
+        stamp_s=view.stamp_ns * 1e-9, step_frequency_hz=float(view.array("step_frequency")[0]),
+        duty_factor=float(view.array("duty_factor")[0]), step_height_m=float(view.array("step_height")[0]),
+        base_twist=np.concatenate([view.vector("base_twist.linear"), view.vector("base_twist.angular")]),
+        swing=view.array("swing").astype(bool), time_to_touchdown_s=view.array("time_to_touchdown").astype(float),
+        step_count=view.array("step_count").astype(np.int64),
+        liftoff_position=view.vectors("liftoff_position").copy(),
+        nominal_foothold=view.vectors("nominal_foothold").copy(), hip_position=view.vectors("hip_position").copy(),
+        hip_velocity=view.vectors("hip_velocity").copy())
 
 
 def grid_from_message(msg: HeightMap) -> tuple[HeightMapGrid, float]:
@@ -151,7 +154,10 @@ class VfaNode(Node):
 
         self.pub_footholds = self.create_publisher(FootholdArray, "footholds", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "vfa/diagnostics", 10)
-        self.create_subscription(GaitState, "gait_state", self._on_gait_state, 10)
+        # 250 Hz, read in place (building the Python message, a Point per position, cost more than the
+        # selections)
+        subscribe_view(self, GaitState, "gait_state", self._on_gait_state, 10,
+                       on_error=lambda exc: self._reject("gait_state", str(exc)))
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         self.create_timer(self.diagnostics_period_s, self._publish_diagnostics)
         self.get_logger().info(f"vfa ready: robot '{robot}', selector '{selector}', maps stale after "
@@ -198,21 +204,22 @@ class VfaNode(Node):
             else:
                 self.duplicate_maps += 1  # the simulator repeats its first sample until the wbc answers
 
-    def _on_gait_state(self, msg: GaitState) -> None:
-        stamp_ns = ns_from_stamp(msg.header.stamp)
+    def _on_gait_state(self, view: CdrView) -> None:
+        stamp_ns = view.stamp_ns
         repeat, again = self.answers.seen(stamp_ns)
         if again is not None:
             self.pub_footholds.publish(again)
         if repeat:
             return
-        for _, gait_state in self.held.offer(stamp_ns, msg):
+        for _, gait_state in self.held.offer(stamp_ns, view):
             self._update(gait_state)
 
-    def _update(self, msg: GaitState) -> None:
+    def _update(self, view: CdrView) -> None:
         """One gait state whose maps are here: the selections, and the answer."""
-        self._use_maps(ns_from_stamp(msg.header.stamp))
+        stamp_ns = view.stamp_ns
+        self._use_maps(stamp_ns)
         try:
-            decisions = self.planner.update(gait_snapshot_from_message(msg))
+            decisions = self.planner.update(gait_snapshot_from_view(view))
         except VfaInputError as exc:
             self._reject(exc.reason, str(exc))
             return
@@ -225,10 +232,10 @@ class VfaNode(Node):
         if not decisions and not self.answer_every_gait_state:
             return
         out = FootholdArray(footholds=[foothold_message(d) for d in decisions])
-        out.header.stamp = msg.header.stamp
+        out.header.stamp = stamp_from_ns(stamp_ns)
         out.header.frame_id = FRAME
         self.pub_footholds.publish(out)
-        self.answers.answered(ns_from_stamp(msg.header.stamp), out)
+        self.answers.answered(stamp_ns, out)
         self.published_messages += 1 if decisions else 0
         self.empty_answers += 0 if decisions else 1
         self.published_footholds += len(decisions)

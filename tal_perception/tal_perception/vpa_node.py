@@ -34,13 +34,13 @@ from rclpy.node import Node
 from tal_core.errors import InputError
 from tal_core.legs import NUM_LEGS
 from tal_core.robot_model import RobotModel
-from tal_core.ros.cdr import subscribe_stamped
-from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, write_summary
+from tal_core.ros.cdr import CdrView, subscribe_view
+from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_core.ticks import HeldTicks, StampedInbox, TickAnswers
 from tal_msgs.msg import BodyPoseReference, FootholdArray, GaitState, HeightMap
 
 from .errors import VfaInputError
-from .vfa_node import FRAME, gait_snapshot_from_message, grid_from_message
+from .vfa_node import FRAME, gait_snapshot_from_view, grid_from_message
 from .vpa_planner import SOURCES, PosePlanner, PoseReference
 from .vpa_settings import LEG_WEIGHTINGS, SWING_HIP_MODELS, CostKind, VpaSettings
 
@@ -111,9 +111,9 @@ class VpaNode(Node):
         self.pub_pose = self.create_publisher(BodyPoseReference, "body_pose_reference", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "vpa/diagnostics", 10)
         # 250 Hz in, an update every update_period_s: only the gait states the planner uses are deserialised.
-        subscribe_stamped(self, GaitState, "gait_state", self._on_gait_state, 10,
-                          wants=lambda stamp: self.planner.wants(stamp) or stamp == self.answers.answered_ns,
-                          on_error=lambda exc: self._reject("gait_state", str(exc)))
+        subscribe_view(self, GaitState, "gait_state", self._on_gait_state, 10,
+                       wants=lambda stamp: self.planner.wants(stamp) or stamp == self.answers.answered_ns,
+                       on_error=lambda exc: self._reject("gait_state", str(exc)))
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         self.create_subscription(FootholdArray, "footholds", self._on_footholds, 10)
         self.create_timer(self.diagnostics_period_s, self._publish_diagnostics)
@@ -159,22 +159,22 @@ class VpaNode(Node):
             for leg, point in footholds:
                 self.planner.set_foothold(leg, point)
 
-    def _on_gait_state(self, msg: GaitState) -> None:
-        stamp_ns = ns_from_stamp(msg.header.stamp)
+    def _on_gait_state(self, view: CdrView) -> None:
+        stamp_ns = view.stamp_ns
         repeat, again = self.answers.seen(stamp_ns)
         if again is not None:
             self.pub_pose.publish(again)
         if repeat:
             return
-        for _, gait_state in self.held.offer(stamp_ns, msg):
+        for _, gait_state in self.held.offer(stamp_ns, view):
             self._update(gait_state)
 
-    def _update(self, msg: GaitState) -> None:
+    def _update(self, view: CdrView) -> None:
         """One gait state whose maps are here: the planner's update, and the reference it gives."""
-        self._use_inputs(ns_from_stamp(msg.header.stamp))
+        self._use_inputs(view.stamp_ns)
         try:
-            snapshot = gait_snapshot_from_message(msg)
-            targets = np.array([[p.x, p.y, p.z] for p in msg.target_foothold], dtype=float)
+            snapshot = gait_snapshot_from_view(view)
+            targets = view.vectors("target_foothold").copy()
             reference = self.planner.update(snapshot, targets if np.isfinite(targets).all() else None)
         except VfaInputError as exc:
             self._reject(exc.reason, str(exc))
@@ -191,10 +191,10 @@ class VpaNode(Node):
         if reference.status not in ("ok", "tbr"):
             self.get_logger().warn(f"{reference.status}: pose held", throttle_duration_sec=1.0)
         out = pose_message(reference)
-        out.header.stamp = msg.header.stamp
+        out.header.stamp = stamp_from_ns(view.stamp_ns)
         out.header.frame_id = FRAME
         self.pub_pose.publish(out)
-        self.answers.answered(ns_from_stamp(msg.header.stamp), out)
+        self.answers.answered(view.stamp_ns, out)
         self.published += 1
 
     # -- outputs ------------------------------------------------------------------------------------
