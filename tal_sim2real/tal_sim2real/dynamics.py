@@ -405,7 +405,8 @@ def _dynamics_with(
     before_el = scaled_elements(meas["ho"], pred_before) ** 2
     after_el = scaled_elements(meas["ho"], pred_after) ** 2
     # re-estimated with the updated model
-    floor_el = _noise_floor_parts(sim, data, updated, ho_plan, pred_after, extras)
+    floor_el = _noise_floor_parts(sim, data, updated, ho_plan, pred_after, extras,
+                                  draws=settings.holdout_floor_draws)
     result = SubsystemResult(
         "dynamics",
         floor,
@@ -553,27 +554,36 @@ def _noise_floor_parts(
     plan: SegmentPlan,
     clean: np.ndarray,
     extras: dict[str, np.ndarray] | None = None,
+    draws: int = 1,
 ) -> np.ndarray:
     """Per element (segments, samples, 36 components; see ``scaled_elements``): the squared residual the
     correct model would leave, were it ``model``: predictions from initial states and driving torques
     perturbed by the measured noise levels (white-noise std from second differences) against the
     unperturbed ones (``clean``, ``model``'s prediction on ``plan``), plus the measurement noise of the
     compared samples. Estimated with a model far from the truth it is too high (the perturbations of a
-    wrong model grow faster): re-estimate it with each accepted model."""
+    wrong model grow faster): re-estimate it with each accepted model. ``draws``: perturbations averaged
+    (seeds 0, 1, ...; one draw is the first of them): one draw's total varied fourfold between seeds."""
+    if draws < 1:
+        raise ValueError(f"noise floor draws must be >= 1, got {draws}")
     sigma_q = white_noise_std(data.q_rad)
     sigma_qd = white_noise_std(data.qd_rad_s)
-    rng = np.random.default_rng(0)
     saved_q, saved_qd, saved_tau = data.q_rad.copy(), data.qd_rad_s.copy(), sim.torques
-    try:
-        data.q_rad[plan.starts] += rng.normal(0.0, sigma_q, (len(plan.starts), data.q_rad.shape[1]))
-        data.qd_rad_s[plan.starts] += rng.normal(0.0, sigma_qd, (len(plan.starts), data.qd_rad_s.shape[1]))
-        if sim.torque_source == "effort":  # the measured torques that drive the segments are noisy too
-            sim.torques = saved_tau + rng.normal(0.0, white_noise_std(saved_tau), saved_tau.shape)
-        perturbed = sim.predict(model, plan, **(extras or {}))
-    finally:
-        data.q_rad[:], data.qd_rad_s[:] = saved_q, saved_qd
-        sim.torques = saved_tau
-    parts = scaled_elements(clean, perturbed) ** 2
+    total: np.ndarray | None = None
+    for seed in range(draws):
+        rng = np.random.default_rng(seed)
+        try:
+            data.q_rad[plan.starts] += rng.normal(0.0, sigma_q, (len(plan.starts), data.q_rad.shape[1]))
+            data.qd_rad_s[plan.starts] += rng.normal(0.0, sigma_qd, (len(plan.starts), data.qd_rad_s.shape[1]))
+            if sim.torque_source == "effort":  # the measured torques that drive the segments are noisy too
+                sim.torques = saved_tau + rng.normal(0.0, white_noise_std(saved_tau), saved_tau.shape)
+            perturbed = sim.predict(model, plan, **(extras or {}))
+        finally:
+            data.q_rad[:], data.qd_rad_s[:] = saved_q, saved_qd
+            sim.torques = saved_tau
+        squared = scaled_elements(clean, perturbed) ** 2
+        total = squared if total is None else total + squared
+    assert total is not None
+    parts = total / draws
     masks, _ = component_channels()
     parts[..., masks["joint_position"]] += (sigma_q / CHANNEL_SCALES["joint_position"]) ** 2
     parts[..., masks["joint_velocity"]] += (sigma_qd / CHANNEL_SCALES["joint_velocity"]) ** 2

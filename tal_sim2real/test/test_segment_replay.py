@@ -181,3 +181,34 @@ def test_a_prediction_is_simulated_once_per_model_plan_and_torques() -> None:
     sim.torques = raw
     np.testing.assert_array_equal(predict({"payload_mass_kg": 2.0}, plan), first)
     assert sim.calls == 6
+
+
+def test_the_noise_floor_averages_its_draws_and_leaves_the_data_as_it_was(
+    stepping: MeasuredData, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The held-out floor (the remainder verdict's yardstick) is the mean over ``draws`` perturbations, seeds
+    0, 1, ...; one draw is the first of them; the measured data and torques are restored after each."""
+    from tal_sim2real.dynamics import _noise_floor_parts
+
+    description = load_robot_description("hyq")
+    plan = SegmentPlan(np.array([100, 300, 500]), 60, 10)
+    sim = SegmentSimulator(description, stepping, "effort")
+    q, qd, tau = stepping.q_rad.copy(), stepping.qd_rad_s.copy(), sim.torques.copy()
+    try:
+        clean = sim.predict(NOMINAL, plan)
+        one = _noise_floor_parts(sim, stepping, NOMINAL, plan, clean)
+        two = _noise_floor_parts(sim, stepping, NOMINAL, plan, clean, draws=2)
+        np.testing.assert_array_equal(_noise_floor_parts(sim, stepping, NOMINAL, plan, clean, draws=1), one)
+        real_rng = np.random.default_rng
+        with monkeypatch.context() as patch:   # the single draw of seed 1
+            patch.setattr(np.random, "default_rng", lambda seed: real_rng(seed + 1))
+            second = _noise_floor_parts(sim, stepping, NOMINAL, plan, clean)
+        np.testing.assert_allclose(two, (one + second) / 2.0, rtol=1e-12)
+        assert one.sum() != pytest.approx(second.sum(), rel=1e-3)  # the draws differ
+        np.testing.assert_array_equal(stepping.q_rad, q)
+        np.testing.assert_array_equal(stepping.qd_rad_s, qd)
+        np.testing.assert_array_equal(sim.torques, tau)
+        with pytest.raises(ValueError, match="draws"):
+            _noise_floor_parts(sim, stepping, NOMINAL, plan, clean, draws=0)
+    finally:
+        sim.close()
