@@ -58,9 +58,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 
 from tal_core.errors import InputError, TalCoreError
+from tal_core.heightmap import GridNormals
 from tal_core.robot_model import RobotModel
 from tal_core.ros.cdr import CdrView, subscribe_view
-from tal_core.ros.conversions import HeightmapNormals, JointStateReader, base_state_from_odometry_view, heightmap_grid
+from tal_core.ros.conversions import JointStateReader, base_state_from_odometry_view, heightmap_grid
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node, stamp_from_ns, write_summary
 from tal_msgs.msg import (
     BodyPoseReference,
@@ -611,7 +612,7 @@ class WbcNode(Node):
                 world_base_height, roll, pitch = self._body_pose
                 self.controller.motion.set_body_pose_reference(world_base_height + self.map_aligner.offset_m,
                                                                roll, pitch)
-        normal = HeightmapNormals(grid) if grid is not None else None
+        normal = GridNormals(grid) if grid is not None else None
         try:
             out = self.controller.tick(stamp_ns * 1e-9, base, q, qd, tick.command, height, normal,
                                        impedance=self._impedance, foot_contact=tick.contacts)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tal_core.errors import InputError
-from tal_core.heightmap import HeightMapGrid, extract_heightmap
+from tal_core.heightmap import GridNormals, HeightMapGrid, extract_heightmap
 from tal_core.terrain import load_course
 
 TAN_15 = math.tan(math.radians(15.0))
@@ -131,9 +131,7 @@ def test_scalar_queries_are_bit_identical_to_array_queries() -> None:
         np.testing.assert_array_equal(one_by_one, batch)
 
 
-def test_normals_at_match_the_scalar_heightmap_normal_and_are_up_where_unknown() -> None:
-    from tal_core.ros.conversions import HeightmapNormals, heightmap_normal
-
+def test_normals_at_match_the_scalar_normal_and_are_up_where_unknown() -> None:
     rng = np.random.default_rng(3)
     heights = rng.normal(0.0, 0.05, (21, 25)).astype(np.float32)
     heights[3, 4] = np.nan
@@ -141,8 +139,8 @@ def test_normals_at_match_the_scalar_heightmap_normal_and_are_up_where_unknown()
     centres = grid.cell_world_xy().reshape(-1, 2)[::7]
     xy = centres + rng.normal(0.0, 0.004, centres.shape)
     xy = np.vstack([xy, [[50.0, 50.0]], grid.cell_world_xy()[3, 4][None]])   # outside; next to the NaN cell
-    many = HeightmapNormals(grid).many(xy[:, 0], xy[:, 1])
-    one = np.array([heightmap_normal(grid, x, y) for x, y in xy])
+    many = GridNormals(grid).many(xy[:, 0], xy[:, 1])
+    one = np.array([GridNormals(grid)(x, y) for x, y in xy])
     np.testing.assert_allclose(many, one, rtol=0.0, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(many, axis=1), 1.0, atol=1e-12)
     np.testing.assert_array_equal(many[-2], [0.0, 0.0, 1.0])

@@ -52,6 +52,10 @@ from .streaming import EstimatorOutput, StreamingEstimator
 GYRO_VARIANCE_RAD2_S2 = 1e-4  # [rad^2/s^2] reported variance of the bias-corrected angular rate
 
 
+SENSOR_QUEUE = 200
+"""Queued samples of each 1 kHz input (0.2 s): every IMU sample enters the filter, so a busy machine delays
+them rather than drops them."""
+
 class StateEstimatorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("state_estimator", **kwargs)
@@ -168,9 +172,9 @@ class StateEstimatorNode(Node):
         # message is built for the 1 kHz IMU and joint states, the ground truth or the impedance.
         self.read_joints = JointStateReader(self.joint_index, velocities_optional=self.velocities_optional,
                                             efforts=True, efforts_optional=self.contact_source != "torque")
-        subscribe_view(self, JointState, "joint_states", self._on_joints, 50, wants=self.stream.wants_joints,
+        subscribe_view(self, JointState, "joint_states", self._on_joints, SENSOR_QUEUE, wants=self.stream.wants_joints,
                        on_error=lambda exc: self._reject("joints", str(exc)))
-        subscribe_view(self, Imu, "imu", self._on_imu, 50, on_error=lambda exc: self._reject("imu", str(exc)))
+        subscribe_view(self, Imu, "imu", self._on_imu, SENSOR_QUEUE, on_error=lambda exc: self._reject("imu", str(exc)))
         if mode == "terrain_aware":
             subscribe_view(self, TerrainImpedance, "terrain_impedance", self._on_impedance, 10,
                            on_error=lambda exc: self._reject("terrain_impedance", str(exc)))

@@ -60,6 +60,8 @@ MAP_RESEND_AFTER_S = 0.5
 """[s] of wall time a lockstep tick waits before the last heightmaps are sent again (then once per this period)."""
 RESENT_MAPS = 2
 """Heightmaps re-sent while a tick waits: a waiting consumer's due map is the last or the one before it."""
+SENSOR_HISTORY = 100
+"""Samples each sensor writer keeps for a reader that fell behind (0.1 s of the 1 kHz topics)."""
 
 EFFECT_PARAMETERS: dict[str, tuple[object, str]] = {
     "actuator_delay_s": (0.0, "[s] transport delay of the joint torques"),
@@ -124,7 +126,11 @@ class SimBridgeNode(Node):
         self._map_subscribers_ready = self.mode != "lockstep" or p["map_subscribers"] == 0
         self.final_summary: dict[str, object] | None = None  # set when duration_s is reached
 
-        qos_sensor = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+        # Reliable, and 100 samples (0.1 s of the 1 kHz topics) kept for readers that fall behind: a reliable
+        # writer re-sends only what its history still holds (with 10, an estimator descheduled for 10 ms on a
+        # busy machine lost IMU samples and re-initialised).
+        qos_sensor = QoSProfile(depth=SENSOR_HISTORY, reliability=ReliabilityPolicy.RELIABLE,
+                                history=HistoryPolicy.KEEP_LAST)
         self.pub_clock = self.create_publisher(ClockMsg, "clock", qos_sensor)
         self.pub_joints = self.create_publisher(JointState, "joint_states", qos_sensor)
         self.pub_imu = self.create_publisher(Imu, "imu", qos_sensor)

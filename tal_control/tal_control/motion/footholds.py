@@ -67,7 +67,7 @@ def terrain_normal(normal_fn: NormalFunction | None, x: float, y: float) -> np.n
 def terrain_normals(normal_fn: NormalFunction | None, xy: np.ndarray) -> np.ndarray:
     """Unit terrain normals (n, 3) at world points ``xy`` (n, 2) [m], as ``terrain_normal`` gives each. A
     ``normal_fn`` with a ``many(xs, ys)`` method (n, 3) is asked once for all points (e.g.
-    ``tal_core.ros.conversions.HeightmapNormals``); a row it returns non-finite or zero is vertical."""
+    ``tal_core.heightmap.GridNormals``); a row it returns non-finite or zero is vertical."""
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
     many = getattr(normal_fn, "many", None)
     if many is None:

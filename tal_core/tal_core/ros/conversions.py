@@ -132,30 +132,3 @@ def heightmap_grid(msg: HeightMap) -> HeightMapGrid:
         raise InputError(f"heightmap has {heights.size} heights for {msg.rows} x {msg.cols} cells")
     return HeightMapGrid(center_xy=(msg.center.x, msg.center.y), yaw=msg.yaw, resolution_m=msg.resolution,
                          heights=heights.reshape(msg.rows, msg.cols))
-
-
-def heightmap_normal(grid: HeightMapGrid, x: float, y: float) -> np.ndarray:
-    """Unit terrain normal (world) from central differences of the heightmap; up where unknown."""
-    h = grid.resolution_m
-    dzdx = (grid.height_at(x + h, y) - grid.height_at(x - h, y)) / (2 * h)
-    dzdy = (grid.height_at(x, y + h) - grid.height_at(x, y - h)) / (2 * h)
-    normal = np.array([-float(dzdx), -float(dzdy), 1.0])
-    if not np.all(np.isfinite(normal)):
-        return np.array([0.0, 0.0, 1.0])
-    return normal / np.linalg.norm(normal)
-
-
-class HeightmapNormals:
-    """The terrain normal of a heightmap as the motion generator takes it: ``normals(x, y)`` -> (3,) for one
-    point (``heightmap_normal``), ``normals.many(xs, ys)`` -> (n, 3) for several in one look-up."""
-
-    __slots__ = ("grid",)
-
-    def __init__(self, grid: HeightMapGrid) -> None:
-        self.grid = grid
-
-    def __call__(self, x: float, y: float) -> np.ndarray:
-        return heightmap_normal(self.grid, x, y)
-
-    def many(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return self.grid.normals_at(x, y)
