@@ -126,17 +126,6 @@ class HeightMapGrid:
         bottom = (1.0 - wc) * item(r1, c0) + wc * item(r1, c1)
         return (1.0 - wr) * top + wr * bottom
 
-    def normal_at(self, x: float, y: float) -> FloatArray:
-        """Unit terrain normal (3,) (world) at world point (x, y) [m]: ``normals_at`` of one point by scalar
-        look-ups; straight up where a difference is unknown."""
-        h = self.resolution_m
-        dzdx = (self._height_at_point(x + h, y) - self._height_at_point(x - h, y)) / (2 * h)
-        dzdy = (self._height_at_point(x, y + h) - self._height_at_point(x, y - h)) / (2 * h)
-        normal = np.array([-dzdx, -dzdy, 1.0])
-        if not np.all(np.isfinite(normal)):
-            return np.array([0.0, 0.0, 1.0])
-        return normal / np.linalg.norm(normal)
-
     def normals_at(self, x: ArrayLike, y: ArrayLike) -> FloatArray:
         """Unit terrain normals (n, 3) (world) at world points (x, y) [m] (arrays of n), from central
         differences one cell apart of the bilinear heights; straight up where a difference is unknown.
@@ -185,7 +174,7 @@ class GridNormals:
         self.grid = grid
 
     def __call__(self, x: float, y: float) -> FloatArray:
-        return self.grid.normal_at(float(x), float(y))
+        return self.grid.normals_at(x, y)[0]
 
     def many(self, x: ArrayLike, y: ArrayLike) -> FloatArray:
         return self.grid.normals_at(x, y)

@@ -51,10 +51,10 @@ from .streaming import EstimatorOutput, StreamingEstimator
 
 GYRO_VARIANCE_RAD2_S2 = 1e-4  # [rad^2/s^2] reported variance of the bias-corrected angular rate
 
-
 SENSOR_QUEUE = 200
 """Queued samples of each 1 kHz input (0.2 s): every IMU sample enters the filter, so a busy machine delays
 them rather than drops them."""
+
 
 class StateEstimatorNode(Node):
     def __init__(self, **kwargs) -> None:

@@ -289,10 +289,6 @@ class VfaNode(Node):
         super().destroy_node()
 
 
-def _points(points) -> np.ndarray:
-    return np.array([[p.x, p.y, p.z] for p in points], dtype=float)
-
-
 def _point(xyz: np.ndarray) -> Point:
     return Point(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2]))
 
