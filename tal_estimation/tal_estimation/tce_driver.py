@@ -25,12 +25,15 @@ be read or a tick the TCE refuses is counted in ``rejected`` and reported to ``o
 With ``base_period_s`` (the base state's publishing period; a node's default) a tick waits for the base state
 of its own stamp, the newest on the base publisher's grid at or before it, so the result does not depend on
 whether the joint state or the base state arrives first (lockstep runs repeat bit for bit). A waiting tick
-is computed when that base state arrives (``set_base`` returns it) or, with whatever base state is there
-(counted in ``late_base_ticks``), on the first joint sample more than ``max_defer_s`` after it: the robot
-moved on; or at the latest when the next tick is due (``add_joints_all``): every tick is answered. A waiting
-tick that the next one replaced unanswered stalled lockstep tours on the estimate: the estimator's tick waits
-for the TCE's answer one period back, and the TCE's next tick for that estimator tick's estimate, so the two
-waited on each other until the bridge's 2 s lockstep timeout, one control period at a time.
+is computed when that base state arrives (``set_base`` returns it, with the base state of its own stamp even
+when a newer one came first) or, with whatever base state is there (counted in ``late_base_ticks``), on the
+first joint sample more than ``max_defer_s`` after it: the robot moved on. Waiting ticks queue in stamp order:
+the next tick's sample may come before the waiting one's base state (another topic; in a lockstep tour on the
+estimate 0.6 % of the ticks), and it then waits behind it; a third waiting tick (``MAX_WAITING_TICKS``) runs the
+oldest with what is there. Every tick is answered: a waiting tick that the next one replaced unanswered
+stalled lockstep tours on the estimate (the estimator's tick waits for the TCE's answer one period back, and
+the TCE's next tick for that estimator tick's estimate), and one answered with the latest base state when its
+successor came made those tours differ from run to run.
 
 Heightmaps streamed with ``add_heightmap`` come into use at the first tick at or after their stamp. With
 ``heightmap_period_s`` (the publisher's period on the sim-time grid, as the bridge's) a tick also waits for
@@ -43,6 +46,7 @@ slightly from one map to the next); maps that came after the tick that should ha
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -72,6 +76,13 @@ MAX_AVERAGED_TORQUES = 16
 
 MAX_ACCELERATION_GAP_PERIODS = 2.5
 """Ticks between two joint samples over which the legs' accelerations are still finite-differenced."""
+
+MAX_WAITING_TICKS = 2
+"""Ticks that may wait at once for their base state or map (in lockstep the wbc waits for the answer to the
+previous tick, so a third sample never comes first); a third runs the oldest with what is there (late)."""
+
+KEPT_BASE_STATES = 16
+"""Recent base states kept by stamp: a waiting tick takes the one of its own stamp."""
 
 
 @dataclass(frozen=True)
@@ -143,8 +154,10 @@ class TceDriver:
         # inputs on a busy machine loses some); after a longer gap the tick's samples skip the fit (``step``).
         self._accelerations = FiniteDifferenceAcceleration(max_gap_s=MAX_ACCELERATION_GAP_PERIODS * period_s)
         self._next_tick_ns = 0
-        self._base: tuple[int, BaseState] | None = None
-        self._pending: tuple[int, float, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+        self._base: tuple[int, BaseState] | None = None   # the newest
+        self._bases: dict[int, BaseState] = {}            # recent ones by stamp (KEPT_BASE_STATES)
+        self._base_order: deque[int] = deque()
+        self._pending: deque[tuple[int, float, tuple[np.ndarray, np.ndarray, np.ndarray]]] = deque()
         # The joint torques of the samples between two ticks (``average_torque``): their mean is the torque of
         # the interval whose finite-differenced acceleration the tick uses.
         self.average_torque = bool(average_torque)
@@ -174,23 +187,43 @@ class TceDriver:
         return self._terrain.missed
 
     def add_heightmap(self, stamp_ns: int, height: HeightFunction, normal: NormalFunction | None = None
-                      ) -> TceTick | None:
+                      ) -> list[TceTick]:
         """A streamed map (see the module docstring): in use from the first tick at or after ``stamp_ns``; the
-        waiting tick it completes, if any."""
+        waiting ticks it completes, oldest first."""
         self._terrain.add(stamp_ns, (height, normal))
-        return self._run_pending() if self._pending is not None and self._ready(self._pending[0]) else None
+        return self._run_ready()
 
-    def set_base(self, stamp_ns: int, base: BaseState) -> TceTick | None:
-        """The latest base state (world frame) and its stamp; the waiting tick it completes, if any."""
-        self._base = (stamp_ns, base)
-        if self._pending is not None and self._ready(self._pending[0]):
-            return self._run_pending()
-        return None
+    def set_base(self, stamp_ns: int, base: BaseState) -> list[TceTick]:
+        """A base state (world frame) and its stamp; the waiting ticks it completes, oldest first."""
+        stamp_ns = int(stamp_ns)
+        if self._base is None or stamp_ns >= self._base[0]:
+            self._base = (stamp_ns, base)
+        if stamp_ns not in self._bases:
+            self._base_order.append(stamp_ns)
+            while len(self._base_order) > KEPT_BASE_STATES:
+                del self._bases[self._base_order.popleft()]
+        self._bases[stamp_ns] = base
+        return self._run_ready()
 
     def _ready(self, stamp_ns: int) -> bool:
-        """Whether the base state and the map a tick at ``stamp_ns`` waits for have arrived."""
+        """Whether the base state and the map a tick at ``stamp_ns`` waits for have arrived (a newer base state
+        than its own: its own will not come)."""
         return (self._base is not None and self._base[0] >= self._expected_base_stamp(stamp_ns)
                 and self._terrain.awaited(stamp_ns) is None)
+
+    def _base_for(self, stamp_ns: int) -> tuple[int, BaseState] | None:
+        """The base state a tick at ``stamp_ns`` uses: that of its own stamp when it came, else the newest."""
+        if self.base_period_ns is not None:
+            expected = self._expected_base_stamp(stamp_ns)
+            if expected in self._bases:
+                return expected, self._bases[expected]
+        return self._base
+
+    def _run_ready(self) -> list[TceTick]:
+        out = []
+        while self._pending and self._ready(self._pending[0][0]):
+            out.append(self._tick(*self._pending.popleft()))
+        return [tick for tick in out if tick is not None]
 
     def _use_terrain(self, stamp_ns: int) -> None:
         due = self._terrain.due(stamp_ns)
@@ -215,7 +248,7 @@ class TceDriver:
         waiting one whose base state did not come in time (or whose successor is due), and its own. ``read()``
         gives the arrays (called only for a tick). ``t_s``: the tick's time [s] (default stamp_ns * 1e-9)."""
         out: list[TceTick | None] = []
-        if self._overdue(stamp_ns):
+        while self._overdue(stamp_ns):
             out.append(self._run_pending(late=True))
         waits = self.base_period_ns is not None
         if not reaches_tick(stamp_ns, self._next_tick_ns):
@@ -226,15 +259,15 @@ class TceDriver:
         no_terrain = self.height is None and not map_awaited and not self._terrain.has_due(stamp_ns)
         if no_terrain or (self._base is None and not waits):
             return [tick for tick in out if tick is not None]
-        if self._pending is not None:   # the next tick is due: the waiting one is answered with what is here
+        while len(self._pending) >= MAX_WAITING_TICKS:   # too many wait: the oldest runs with what is here
             out.append(self._run_pending(late=True))
         self._next_tick_ns = tick_after(stamp_ns, self.period_ns)
         self._torque_last_ns = max(self._torque_last_ns, stamp_ns)
         t = stamp_ns * 1e-9 if t_s is None else t_s
         arrays = self._read(read)
         if arrays is not None:
-            if not self._ready(stamp_ns) and (waits or map_awaited):
-                self._pending = (stamp_ns, t, arrays)
+            if self._pending or (not self._ready(stamp_ns) and (waits or map_awaited)):
+                self._pending.append((stamp_ns, t, arrays))   # behind the waiting ones, in stamp order
             else:
                 out.append(self._tick(stamp_ns, t, arrays))
         return [tick for tick in out if tick is not None]
@@ -246,13 +279,12 @@ class TceDriver:
         return ((stamp_ns + TICK_TOLERANCE_NS) // self.base_period_ns) * self.base_period_ns
 
     def _overdue(self, stamp_ns: int) -> bool:
-        return self._pending is not None and stamp_ns - self._pending[0] > self.max_defer_ns
+        return bool(self._pending) and stamp_ns - self._pending[0][0] > self.max_defer_ns
 
     def _run_pending(self, late: bool = False) -> TceTick | None:
-        assert self._pending is not None
-        stamp_ns, t_s, arrays = self._pending
-        self._pending = None
-        if late:
+        """The oldest waiting tick, now (late: without what it waited for, counted)."""
+        stamp_ns, t_s, arrays = self._pending.popleft()
+        if late and not self._ready(stamp_ns):
             if self._terrain.awaited(stamp_ns) is not None:
                 self.late_heightmap_ticks += 1
             else:
@@ -300,11 +332,12 @@ class TceDriver:
 
     def _tick(self, stamp_ns: int, t_s: float, arrays: tuple[np.ndarray, np.ndarray, np.ndarray]) -> TceTick | None:
         self._use_terrain(stamp_ns)
-        if self._base is None or stamp_ns - self._base[0] > self.stale_state_periods * self.period_ns:
+        base = self._base_for(stamp_ns)
+        if base is None or stamp_ns - base[0] > self.stale_state_periods * self.period_ns:
             self.stale_ticks += 1
             return None
         try:
-            tick = self.step(t_s, self._base[1], *arrays)
+            tick = self.step(t_s, base[1], *arrays)
         except (InputError, ValueError) as exc:
             self._rejected(exc)
             return None

@@ -1,16 +1,16 @@
 """Node ``tce``: Terrain Compliance Estimator, publishing ``terrain_impedance`` at the control rate.
 
-Subscribes: joint_states (positions, velocities, measured torques), the base state (``ground_truth/odom``
-or ``state_estimate``, parameter base_source: the thesis measured the base with motion capture, so
-experiments that reproduce it use ground truth), terrain/heightmap (the undeformed surface under the
-feet). When it ticks and what a tick does is ``tal_estimation.tce_driver.TceDriver`` (shared with the
-offline runners): ticks lie on the sim-time grid k * control_period_s and wait for the base state of their
-own stamp (ground truth comes at the control rate, the estimate every estimate_period_s; wait_for_base false:
-the latest as it arrives), up to max_defer_s past the tick on the wall clock, and with heightmap_period_s
-for the heightmap of their grid point; a tick's joint torques are the mean over the samples since the
-previous tick (average_torque); a base state older than
-``stale_state_periods`` skips the tick; feet outside the heightmap give no sample (counted). This node
-converts messages and publishes. Thresholds, stale_state_periods and summary_path are live parameters.
+Subscribes: joint_states (positions, velocities, measured torques), the base state (``ground_truth/odom`` or
+``state_estimate``, parameter base_source: the thesis measured the base with motion capture, so experiments that
+reproduce it use ground truth), terrain/heightmap or ground_truth/heightmap (heightmap_topic: the undeformed
+surface under the feet, in the frame of the base state). When it ticks and what a tick does is
+``tal_estimation.tce_driver.TceDriver`` (shared with the offline runners): ticks lie on the sim-time grid k *
+control_period_s and wait for the base state of their own stamp (ground truth comes at the control rate, the
+estimate every estimate_period_s; wait_for_base false: the latest as it arrives), up to max_defer_s past the
+tick on the wall clock, and with heightmap_period_s for the heightmap of their grid point; a tick's joint
+torques are the mean over the samples since the previous tick (average_torque); a base state older than
+``stale_state_periods`` skips the tick; feet outside the heightmap give no sample (counted). This node converts
+messages and publishes. Thresholds, stale_state_periods and summary_path are live parameters.
 """
 
 from __future__ import annotations
@@ -56,6 +56,11 @@ class TceNode(Node):
         max_defer = declare(self, "max_defer_s", 0.0,
                             "[s] sim time a tick waits for its base state past the next joint sample (0: lockstep; "
                             "on the wall clock the next sample comes 1 ms later)", low=0.0, high=0.1)
+        heightmap_topic = declare(self, "heightmap_topic", "terrain/heightmap",
+                                  "the undeformed terrain: terrain/heightmap (the robot's map, in the frame of the "
+                                  "state it uses) or ground_truth/heightmap (the simulator's world-frame map, for a "
+                                  "TCE on the ground-truth base when the robot's map is in the estimate's frame)",
+                                  choices=("terrain/heightmap", "ground_truth/heightmap"))
         heightmap_period = declare(self, "heightmap_period_s", 0.0,
                                    "[s] the heightmap's publishing period on the sim-time grid: a tick waits for "
                                    "the map of its grid point (lockstep); 0: maps are used as they arrive",
@@ -126,7 +131,7 @@ class TceNode(Node):
                        wants=lambda stamp: self.driver.wants_joints(stamp) or stamp == self.answers.answered_ns,
                        on_error=lambda exc: self._reject("joint_states", exc))
         subscribe_view(self, Odometry, topic, self._on_base, 10, on_error=lambda exc: self._reject("base state", exc))
-        self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
+        self.create_subscription(HeightMap, heightmap_topic, self._on_heightmap, 10)
 
     @property
     def tce(self) -> TerrainComplianceEstimator:
@@ -157,7 +162,8 @@ class TceNode(Node):
         except InputError as exc:
             self._reject("base state", exc)
             return
-        self._publish(self.driver.set_base(view.stamp_ns, base))
+        for tick in self.driver.set_base(view.stamp_ns, base):
+            self._publish(tick)
 
     def _on_heightmap(self, msg: HeightMap) -> None:
         try:
@@ -165,7 +171,8 @@ class TceNode(Node):
         except InputError as exc:
             self._reject("heightmap", exc)
             return
-        self._publish(self.driver.add_heightmap(ns_from_stamp(msg.header.stamp), GridHeights(grid)))
+        for tick in self.driver.add_heightmap(ns_from_stamp(msg.header.stamp), GridHeights(grid)):
+            self._publish(tick)
 
     def _on_joints(self, view: CdrView) -> None:
         stamp_ns = view.stamp_ns

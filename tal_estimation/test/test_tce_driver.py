@@ -172,15 +172,48 @@ def test_a_tick_waits_for_the_base_state_of_its_stamp_in_any_arrival_order() -> 
         for k in range(13):
             events = [("joints", k)] + ([("base", k)] if k in bases else [])
             for kind, stamp in (events[::-1] if base_first else events):
-                tick = (driver.add_joints(stamp * MS, read()) if kind == "joints"
-                        else driver.set_base(stamp * MS, bases[stamp]))
-                if tick is not None:
-                    ticks.append(tick)
+                new = ([driver.add_joints(stamp * MS, read())] if kind == "joints"
+                       else driver.set_base(stamp * MS, bases[stamp]))
+                ticks += [tick for tick in new if tick is not None]
         assert driver.late_base_ticks == 0
         results.append([(t.stamp_ns, t.samples[Leg.LF].penetration_m) for t in ticks])
     assert [stamp for stamp, _ in results[0]] == [0, 4 * MS, 8 * MS, 12 * MS]
     assert results[0] == results[1]
     assert results[0][1][1] == pytest.approx(results[0][0][1] + 0.002)  # 4 ms: the base 2 mm lower
+
+
+def test_the_next_tick_waits_behind_a_waiting_one_and_each_takes_the_base_state_of_its_own_stamp() -> None:
+    """The sample of 4 ms comes before the base state of 0 ms (another topic): the tick of 4 ms queues behind the
+    tick of 0 ms, and when the base states come each tick takes its own, as when they come in time, so a lockstep
+    run does not depend on the order; a third waiting tick runs the oldest with what is there."""
+    base, q, tau = standing()
+    bases = {k: BaseState(base.position + [0.0, 0.0, -0.0005 * k], base.quat_xyzw, np.zeros(3), np.zeros(3))
+             for k in (0, 4)}
+    results = []
+    for late_base in (False, True):
+        driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.004, max_defer_s=0.004)
+        driver.set_terrain(flat)
+        assert driver.add_joints(0, read()) is None
+        ticks = []
+        if late_base:   # the base state of 0 ms comes after the next tick's sample
+            assert driver.add_joints(4 * MS, read()) is None      # 4 ms is not past the 0 ms tick's wait
+            ticks += driver.set_base(0, bases[0])
+        else:
+            ticks += driver.set_base(0, bases[0])
+            ticks.append(driver.add_joints(4 * MS, read()))
+        ticks += driver.set_base(4 * MS, bases[4])
+        ticks = [t for t in ticks if t is not None]
+        assert [t.stamp_ns for t in ticks] == [0, 4 * MS] and driver.late_base_ticks == 0
+        results.append([t.samples[Leg.LF].penetration_m for t in ticks])
+    assert results[0] == results[1]
+    assert results[0][1] == pytest.approx(results[0][0] + 0.002)   # each tick on its own base state
+    driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.004, max_defer_s=0.1)
+    driver.set_terrain(flat)
+    driver.set_base(0, bases[0])
+    assert driver.add_joints(0, read()) is not None
+    assert driver.add_joints(4 * MS, read()) is None and driver.add_joints(8 * MS, read()) is None
+    late = driver.add_joints(12 * MS, read())                     # a third would wait: the oldest runs now
+    assert late is not None and late.stamp_ns == 4 * MS and driver.late_base_ticks == 1
 
 
 def test_a_waiting_tick_runs_late_when_the_robot_moves_on() -> None:
@@ -202,31 +235,31 @@ def test_a_waiting_tick_runs_late_when_the_robot_moves_on() -> None:
     estimate.set_terrain(flat)
     estimate.set_base(3 * MS, base)
     assert estimate.add_joints(8 * MS, read()) is None  # waits for the estimate of 6 ms
-    tick = estimate.set_base(6 * MS, base)
-    assert tick is not None and tick.stamp_ns == 8 * MS
+    assert [t.stamp_ns for t in estimate.set_base(6 * MS, base)] == [8 * MS]
     with pytest.raises(InputError, match="base_period_s must be > 0"):
         TceDriver(RobotModel.from_name("hyq"), base_period_s=0.0)
 
 
 def test_a_waiting_tick_is_answered_when_the_next_one_is_due() -> None:
     """max_defer_s of a whole period (the lockstep tour's): the tick of 4 ms still waits for its estimate when
-    the sample of 8 ms makes the next tick due. It is answered then, with the base state there is (late), and
-    the 8 ms tick waits in its place; replacing it unanswered left the estimator waiting for it and the TCE for
-    the estimator (a lockstep stall). Both ticks of one sample come back, oldest first."""
+    the sample of 8 ms makes the next tick due. The 8 ms tick waits behind it, and each is answered when its own
+    estimate comes, oldest first (replacing the waiting one unanswered left the estimator waiting for it and the
+    TCE for the estimator, a lockstep stall; answering it with the base state there was made runs differ). A
+    tick whose estimate does not come is answered on the first sample past max_defer_s."""
     base = standing()[0]
     driver = TceDriver(RobotModel.from_name("hyq"), period_s=0.004, base_period_s=0.003, max_defer_s=0.004)
     driver.set_terrain(flat)
     driver.set_base(0, base)
     assert [t.stamp_ns for t in driver.add_joints_all(0, read())] == [0]
     assert driver.add_joints_all(4 * MS, read()) == []              # waits for the estimate of 3 ms
-    ticks = driver.add_joints_all(8 * MS, read())
-    assert [t.stamp_ns for t in ticks] == [4 * MS] and driver.late_base_ticks == 1
-    tick = driver.set_base(6 * MS, base)                              # the 8 ms tick's estimate
-    assert tick is not None and tick.stamp_ns == 8 * MS
+    assert driver.add_joints_all(8 * MS, read()) == []              # waits behind it (the estimate of 6 ms)
+    assert [t.stamp_ns for t in driver.set_base(3 * MS, base)] == [4 * MS]
+    assert [t.stamp_ns for t in driver.set_base(6 * MS, base)] == [8 * MS]
+    assert driver.late_base_ticks == 0
     driver.set_base(9 * MS, base)
     assert driver.add_joints_all(12 * MS, read()) == []               # waits for the estimate of 12 ms
     late = driver.add_joints_all(17 * MS, read())                     # overdue: answered on the 9 ms estimate
-    assert [t.stamp_ns for t in late] == [12 * MS] and driver.late_base_ticks == 2
+    assert [t.stamp_ns for t in late] == [12 * MS] and driver.late_base_ticks == 1
 
 
 def test_with_the_heightmap_period_a_tick_waits_for_the_map_of_its_grid_point() -> None:
@@ -242,13 +275,12 @@ def test_with_the_heightmap_period_a_tick_waits_for_the_map_of_its_grid_point() 
             events = [("joints", k)] + ([("base", k)] if k % 4 == 0 else []) + ([("map", k)] if k % 8 == 0 else [])
             for kind, stamp in (events[::-1] if map_first else events):
                 if kind == "joints":
-                    tick = driver.add_joints(stamp * MS, read())
+                    new = [driver.add_joints(stamp * MS, read())]
                 elif kind == "base":
-                    tick = driver.set_base(stamp * MS, base)
+                    new = driver.set_base(stamp * MS, base)
                 else:
-                    tick = driver.add_heightmap(stamp * MS, lambda x, y, h=-0.001 * stamp / 8: h)
-                if tick is not None:
-                    ticks.append(tick)
+                    new = driver.add_heightmap(stamp * MS, lambda x, y, h=-0.001 * stamp / 8: h)
+                ticks += [tick for tick in new if tick is not None]
         assert driver.late_heightmaps == 0 and driver.late_heightmap_ticks == 0
         results.append([(t.stamp_ns, t.samples[Leg.LF].penetration_m) for t in ticks])
     assert [stamp for stamp, _ in results[0]] == [0, 4 * MS, 8 * MS, 12 * MS]
