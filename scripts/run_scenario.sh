@@ -4,8 +4,9 @@
 #   tour            (default) the whole graph, each node its own process: HyQ trots at 0.2 m/s for 60 s of sim
 #                   time (lockstep) over rigid ground, T1 and T2 soft patches, 4 stairs up and down (course graph_tour):
 #                   sim_bridge (121x121 heightmap) + state_estimator (terrain-aware leg odometry) + tce + wbc
-#                   (STANCE: c3WBC with the TCE's impedance; CONTACT_MODEL=rigid: sWBC; on the ground-truth base like
-#                   the vfa/vpa; with the bridge's ground_truth/contacts as foot contact sensors for late and
+#                   (STANCE: c3WBC with the TCE's impedance; CONTACT_MODEL=rigid: sWBC; the wbc and tce on the state
+#                   estimate and the heightmap in its frame, STATE_SOURCE=ground_truth: on the true base and map;
+#                   with the bridge's ground_truth/contacts as foot contact sensors for late and
 #                   early touchdowns and swings ending 2 cm below the foothold: CONTACT_SOURCE=none,
 #                   TOUCHDOWN_DEPTH_M=0 turn them off; ViTAL's stairs settings of footholds and pose filter) + vfa + vpa
 #                   (VPA CNN, 20 Hz) + bag_recorder + cmd_vel_script; prints the summary of graph_report
@@ -144,6 +145,16 @@ tour() {
     local contact_model="${CONTACT_MODEL:-compliant}" odometry="${LEG_ODOMETRY:-terrain_aware}"
     local contact_source="${CONTACT_SOURCE:-ground_truth}" touchdown_depth="${TOUCHDOWN_DEPTH_M:-0.02}"
     local dir="$RUN_ROOT"
+    # A robot has no ground truth: the wbc and the tce run on the state estimate, and the heightmap the wbc, vfa,
+    # vpa and tce read is in the estimate's frame, as a robot's own elevation map would be (the bridge places
+    # each map with the estimate of its instant). STATE_SOURCE=ground_truth runs them on the true base and map
+    # (the thesis' motion capture).
+    local state_source="${STATE_SOURCE:-estimate}" map_frame=estimate
+    case "$state_source" in
+        estimate) ;;
+        ground_truth) map_frame=world ;;
+        *) echo "STATE_SOURCE must be estimate or ground_truth, got '$state_source'" >&2; exit 2 ;;
+    esac
     local topics="${RECORDED_TOPICS%]}, 'footholds', 'body_pose_reference']"
     # Lockstep: the wbc waits for every input's answer to the previous tick (tce, vfa, vpa on its 50 ms grid),
     # so the run repeats itself bit for bit; on the wall clock the wbc waits for nobody's estimates.
@@ -174,7 +185,7 @@ tour() {
         topics="['ground_truth/odom', 'ground_truth/contacts', 'joint_command', 'state_estimate', \
 'terrain_impedance', 'footholds', 'body_pose_reference', 'cmd_vel_stamped']"
     fi
-    echo "[run] tour: the whole graph ($mode). HyQ trots at $speed m/s over rigid -> T1 -> T2 -> rigid -> 4 stairs" \
+    echo "[run] tour: the whole graph ($mode, control and TCE on the $state_source base state). HyQ trots at $speed m/s over rigid -> T1 -> T2 -> rigid -> 4 stairs" \
          "up -> landing -> stairs down for $duration s of sim time: sim_bridge, state_estimator ($odometry leg odometry), tce," \
          "wbc ($contact_model contact model), vfa, vpa, bag_recorder, cmd_vel_script"
     bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge -m "$dir/resources.json" "${priorities[@]}" \
@@ -189,9 +200,12 @@ tour() {
         -s "sim_bridge.heightmap_rows:=121" -s "sim_bridge.heightmap_cols:=121" \
         -s "sim_bridge.summary_path:=$dir/bridge_summary.json" \
         -s "wbc.gait:=trot" -s "wbc.contact_model:=$contact_model" -s "wbc.impedance_source:=tce" \
-        -s "wbc.state_source:=ground_truth" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" \
+        -s "wbc.state_source:=$state_source" -s "wbc.summary_path:=$dir/wbc_summary.json" -s "wbc.command_source_wait_s:=$COMMAND_SOURCE_WAIT_S" \
         -s "wbc.contact_source:=$contact_source" -s "wbc.touchdown_depth_m:=$touchdown_depth" \
-        -s "tce.base_source:=ground_truth" -s "tce.summary_path:=$dir/tce_summary.json" \
+        -s "sim_bridge.foot_sensors:=$([ "$contact_source" = sensor ] && echo true || echo false)" \
+        -s "wbc.contact_grace_s:=$([ "$contact_source" = sensor ] && echo 0.012 || echo 0.0)" \
+        -s "sim_bridge.heightmap_frame:=$map_frame" -s "wbc.map_alignment_time_constant_s:=0.0" \
+        -s "tce.base_source:=$state_source" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=$odometry" \
         -s "state_estimator.impedance_period_s:=$(impedance_period "$mode")" \
         -s "state_estimator.impedance_max_defer_s:=$(impedance_period "$mode")" \

@@ -24,7 +24,7 @@ pytestmark = pytest.mark.ros
 
 TOPICS = {
     "clock": Clock, "joint_states": JointState, "imu": Imu, "ground_truth/odom": Odometry,
-    "ground_truth/contacts": ContactState, "terrain/heightmap": HeightMap,
+    "ground_truth/contacts": ContactState, "terrain/heightmap": HeightMap, "foot_contacts": ContactState,
 }
 
 
@@ -50,7 +50,8 @@ class Probe:
 
 def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(context, spin_until) -> None:
     bridge = SimBridgeNode(context=context, parameter_overrides=[
-        Parameter("course", value="flat_t2"), Parameter("duration_s", value=1.0)])
+        Parameter("course", value="flat_t2"), Parameter("duration_s", value=1.0),
+        Parameter("foot_sensors", value=True)])
     controller = StandControllerNode(context=context)
     probe = Probe(context)
     executor = SingleThreadedExecutor(context=context)
@@ -82,7 +83,7 @@ def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(contex
     # the very first ones.
     extra = 1 + summary["initial_state_repeats"]
     for topic, expected in (("clock", 250), ("joint_states", 1000), ("imu", 1000), ("ground_truth/odom", 250),
-                            ("ground_truth/contacts", 250), ("terrain/heightmap", 20)):
+                            ("ground_truth/contacts", 250), ("terrain/heightmap", 20), ("foot_contacts", 250)):
         assert expected - 5 <= probe.counts[topic] <= expected + extra, (topic, probe.counts[topic], extra)
     last_clock = probe.last["clock"].clock
     assert last_clock.sec + last_clock.nanosec * 1e-9 == pytest.approx(1.0)
@@ -92,6 +93,10 @@ def test_lockstep_with_stand_controller_publishes_every_topic_at_its_rate(contex
     contacts = probe.last["ground_truth/contacts"]
     assert all(contacts.in_contact)
     assert sum(f.z for f in contacts.force) == pytest.approx(86.774 * 9.81, rel=0.05)
+    sensors = probe.last["foot_contacts"]   # the feet's sensors: noisy loads, flags, nothing a sensor cannot know
+    assert all(sensors.in_contact)
+    assert sum(f.z for f in sensors.force) == pytest.approx(86.774 * 9.81, rel=0.05)
+    assert all(math.isnan(p.x) for p in sensors.foot_position) and all(math.isnan(d) for d in sensors.penetration)
     heightmap = probe.last["terrain/heightmap"]
     assert (heightmap.rows, heightmap.cols, len(heightmap.heights)) == (33, 33, 33 * 33)
     imu = probe.last["imu"]

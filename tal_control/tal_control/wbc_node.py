@@ -5,7 +5,8 @@ state_source), cmd_vel_stamped (TwistStamped, applied from the first tick at or 
 lockstep run with a scripted command does not depend on when the script's process runs), cmd_vel (Twist,
 applied from the tick after it arrives, unless stamped commands are in use; see velocity_command),
 footholds, body_pose_reference, terrain/heightmap, and with contact_source ground_truth
-ground_truth/contacts (the simulator's foot contacts standing in for foot contact sensors) or with
+ground_truth/contacts (the simulator's foot contacts), with sensor foot_contacts (the feet's contact sensors'
+flags, the bridge's foot_sensors: noisy, delayed, thresholded) or with
 contact_source estimate the state estimator's contact_estimate (on its tick grid) for touchdowns: a planned
 stance foot that does not touch searches for the ground, a swing foot that lands late in its swing is a
 support; ``TouchdownSearch``).
@@ -136,6 +137,7 @@ class WbcNode(Node):
                                                motion=MotionParameters(touchdown_depth_m=p["touchdown_depth_m"],
                                                                        k_feedback=p["foothold_feedback_s"],
                                                                        foothold_centre=p["foothold_centre"],
+                                                                       contact_grace_s=p["contact_grace_s"],
                                                                        **_pose_filter_parameters(p)))
         self.joint_names = list(self.model.description.joint_names)
         self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
@@ -204,7 +206,8 @@ class WbcNode(Node):
         self.create_subscription(BodyPoseReference, "body_pose_reference", self._on_body_pose, 10)
         self.create_subscription(HeightMap, "terrain/heightmap", self._on_heightmap, 10)
         if p["contact_source"] != "none":
-            contact_topic = "ground_truth/contacts" if p["contact_source"] == "ground_truth" else "contact_estimate"
+            contact_topic = {"ground_truth": "ground_truth/contacts", "estimate": "contact_estimate",
+                             "sensor": "foot_contacts"}[p["contact_source"]]
             subscribe_view(self, ContactState, contact_topic, self._on_contacts, 10,
                            on_error=lambda exc: self._reject("contacts", exc))
         self._impedance: LegImpedance | None = None
@@ -290,8 +293,13 @@ class WbcNode(Node):
                                       "foot contacts for late and early touchdowns: none (trust the gait plan) "
                                       "or ground_truth (ground_truth/contacts, the simulator's contacts as foot "
                                       "contact sensors) or estimate (contact_estimate, the state estimator's "
-                                      "contacts on its tick grid, estimate_period_s)",
-                                      choices=("none", "ground_truth", "estimate")),
+                                      "contacts on its tick grid, estimate_period_s) or sensor (foot_contacts' "
+                                      "flags: the feet's contact sensors, on the control grid)",
+                                      choices=("none", "ground_truth", "estimate", "sensor")),
+            "contact_grace_s": declare(self, "contact_grace_s", 0.0,
+                                       "[s] with contact_source: a planned stance leg is a support this long "
+                                       "without a reported contact before it searches for the ground (a foot "
+                                       "sensor's latency)", low=0.0, high=0.5),
             "touchdown_depth_m": declare(self, "touchdown_depth_m", 0.0,
                                          "[m] swings end this far below the foothold (a target a little too "
                                          "high still meets the ground)", low=0.0, high=0.1,

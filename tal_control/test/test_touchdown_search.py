@@ -106,3 +106,19 @@ def test_a_swing_foot_landing_late_in_its_swing_is_held_as_a_support() -> None:
     assert search.early_touchdowns.tolist() == [0, 1, 0, 0]
     with pytest.raises(MotionConfigError):
         TouchdownSearch(early_touchdown_progress=0.0)
+
+
+def test_with_a_contact_grace_a_late_sensor_flag_does_not_start_a_search() -> None:
+    """contact_grace_s 12 ms (a foot sensor's sample of delay plus a tick): a leg whose stance began is a support
+    as planned until its flag comes; one whose flag has not come after the grace searches for the ground."""
+    search = TouchdownSearch(contact_grace_s=0.012)
+    _update(search, 0.0, [False, True, True, False], [False, True, True, False])
+    stance = [True, False, False, True]                  # the other diagonal touches down at 4 ms
+    out = _update(search, 0.004, stance, [False, True, False, False])
+    assert out.supported.tolist() == [True, False, False, True] and not out.searching.any()
+    out = _update(search, 0.008, stance, [True, False, False, False])   # LF's flag came, RH's not yet
+    assert out.supported.tolist() == [True, False, False, True] and not out.searching.any()
+    out = _update(search, 0.016, stance, [True, False, False, False])   # 12 ms without RH's flag
+    assert out.searching.tolist() == [False, False, False, True] and search.searches.tolist() == [0, 0, 0, 1]
+    with pytest.raises(MotionConfigError, match="contact_grace_s"):
+        TouchdownSearch(contact_grace_s=-0.001)

@@ -6,6 +6,7 @@ the live bridge publishes.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -133,6 +134,14 @@ class SensorWriters:
         contacts = ContactState()
         contacts.header.frame_id = "world"
         self._contacts = CdrTemplate(contacts)
+        sensors = ContactState()
+        sensors.header.frame_id = "feet"
+        for field in ("foot_position", "foot_velocity", "normal"):
+            for vector in getattr(sensors, field):
+                vector.x = vector.y = vector.z = math.nan
+        sensors.penetration = [math.nan] * 4
+        sensors.penetration_rate = [math.nan] * 4
+        self._foot_sensors = CdrTemplate(sensors)
         self._clock = CdrTemplate(Clock())
         self._heightmaps: dict[tuple[int, int], CdrTemplate] = {}
 
@@ -175,6 +184,20 @@ class SensorWriters:
         t.field("penetration")[:] = [c.penetration_m for c in contacts]
         t.field("penetration_rate")[:] = [float(-(c.velocity_m_s @ c.normal)) if c.in_contact else 0.0
                                           for c in contacts]
+        return t.data()
+
+    def foot_sensors(self, stamp_ns: int, readings_n: np.ndarray, in_contact: np.ndarray) -> bytes:
+        """Foot contact sensors (``foot_sensor.FootForceSensor``) as a ContactState: each foot's reading [N] as
+        the force's z (its norm is the reading), the flags as in_contact and probability; a sensor knows no
+        foot position, velocity, normal or penetration (NaN)."""
+        t = self._foot_sensors
+        t.set_stamp(stamp_ns)
+        flags = np.asarray(in_contact, bool)
+        t.field("in_contact")[:] = flags
+        t.field("probability")[:] = flags
+        force = np.zeros((len(flags), 3))
+        force[:, 2] = readings_n
+        t.field("force")[:] = force
         return t.data()
 
     def heightmap(self, stamp_ns: int, grid: HeightMapGrid) -> bytes:

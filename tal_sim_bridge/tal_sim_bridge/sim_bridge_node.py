@@ -3,6 +3,17 @@
 Publishes (relative names): joint_states, imu, ground_truth/odom (1 kHz by default), clock and
 ground_truth/contacts (250 Hz), terrain/heightmap (20 Hz). Subscribes: joint_command.
 
+foot_sensors: the four feet's contact sensors (``foot_sensor.py``: load with noise, a sample's delay, a flag
+with hysteresis) on foot_contacts at the contact rate, for controllers and estimators that use foot sensors
+rather than the simulator's ground_truth/contacts.
+
+heightmap_frame: world (default) publishes terrain/heightmap in the true world frame; estimate publishes it in
+the state estimate's frame, as a robot's own elevation map would be (``odom_maps.py``: a map captured at tick t
+is placed with the estimate of the estimator's newest tick at or before t, subscribed from state_estimate, and
+waits for it; in lockstep the next control period waits with it, so no consumer sees a later joint state
+before that map), and the world-frame map as ground_truth/heightmap (motion-capture experiments: a TCE on the
+ground-truth base).
+
 Modes:
   * lockstep: physics advances one control period (control_period_s) only after a joint_command stamped
     at (or after) the current control tick arrives, so results do not depend on machine speed. If no
@@ -39,9 +50,11 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, JointState
 
+from tal_core.errors import InputError
 from tal_core.heightmap import extract_heightmap
 from tal_core.robot_description import load_robot_description
-from tal_core.ros.cdr import stamp_ns_of
+from tal_core.ros.cdr import CdrView, stamp_ns_of, subscribe_view
+from tal_core.ros.conversions import base_state_from_odometry_view
 from tal_core.ros.node_utils import declare, ns_from_stamp, run_node
 from tal_core.rotations import yaw_from_quat_xyzw
 from tal_core.terrain import load_course
@@ -51,7 +64,9 @@ from .bridge_core import BridgeCore, ImuModel
 from .effects import ModelEffects
 from .errors import CommandRejectedError
 from .fall import DEFAULT_CONFIRM_S, DEFAULT_MIN_HEIGHT_RATIO, FallDetector
+from .foot_sensor import FootForceSensor, FootSensorSettings
 from .latency import CommandLatency
+from .odom_maps import EstimateFrameMaps, PlacedMap, PlanarPose
 from .physics import Simulation
 from .sensor_messages import SensorWriters
 from .stepping import LockstepGate, OutputSchedule, RealtimePacer
@@ -120,6 +135,11 @@ class SimBridgeNode(Node):
         self._last_resend_s = self._run_start_s
         # the last maps published, raw CDR, oldest first (re-sent while a tick waits)
         self._recent_heightmaps: deque[bytes] = deque(maxlen=RESENT_MAPS)
+        self._recent_truth_maps: deque[bytes] = deque(maxlen=RESENT_MAPS)
+        self.estimate_maps = (EstimateFrameMaps(round(p["estimate_period_s"] * 1e9))
+                              if p["heightmap_frame"] == "estimate" else None)
+        self.rejected_estimates = 0
+        self._command_held = False   # lockstep: the command came, the step waits for a waiting map's estimate
         self._last_map_resend_s = 0.0
         self.heightmap_resends = 0
         self.commands_before_map_subscribers = 0  # first commands dropped while map consumers were matching
@@ -136,7 +156,20 @@ class SimBridgeNode(Node):
         self.pub_imu = self.create_publisher(Imu, "imu", qos_sensor)
         self.pub_odom = self.create_publisher(Odometry, "ground_truth/odom", qos_sensor)
         self.pub_contacts = self.create_publisher(ContactState, "ground_truth/contacts", qos_sensor)
+        self.foot_sensor = None
+        self._last_foot_sensors: bytes | None = None
+        if p["foot_sensors"]:
+            self.foot_sensor = FootForceSensor(FootSensorSettings(
+                delay_samples=round(p["foot_sensor_delay_s"] * p["contact_rate_hz"]),
+                noise_std_n=p["foot_sensor_noise_n"], threshold_n=p["foot_sensor_threshold_n"],
+                hysteresis_fraction=p["foot_sensor_hysteresis"], seed=p["seed"] + 1))
+            self.pub_foot_sensors = self.create_publisher(ContactState, "foot_contacts", qos_sensor)
         self.pub_heightmap = self.create_publisher(HeightMap, "terrain/heightmap", qos_sensor)
+        self.pub_truth_map = None
+        if self.estimate_maps is not None:
+            self.pub_truth_map = self.create_publisher(HeightMap, "ground_truth/heightmap", qos_sensor)
+            subscribe_view(self, Odometry, "state_estimate", self._on_estimate, 50,
+                           on_error=self._reject_estimate)
         self.create_subscription(JointCommand, "joint_command", self._on_command, 10)
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -195,6 +228,27 @@ class SimBridgeNode(Node):
             "heightmap_cols": declare(self, "heightmap_cols", 33, "[-] cells along y", low=1, high=1001),
             "heightmap_resolution_m": declare(self, "heightmap_resolution_m", 0.02, "[m] cell size",
                                               low=0.001, high=1.0),
+            "foot_sensors": declare(self, "foot_sensors", False,
+                                    "publish the feet's contact sensors on foot_contacts (at contact_rate_hz)"),
+            "foot_sensor_delay_s": declare(self, "foot_sensor_delay_s", 0.004,
+                                           "[s] foot_sensors: delay of a reading (whole sensor samples)",
+                                           low=0.0, high=1.0),
+            "foot_sensor_noise_n": declare(self, "foot_sensor_noise_n", 5.0, "[N] foot_sensors: reading noise std",
+                                           low=0.0, high=1e4),
+            "foot_sensor_threshold_n": declare(self, "foot_sensor_threshold_n", 50.0,
+                                               "[N] foot_sensors: the contact flag turns on at this reading",
+                                               low=0.0, high=1e5),
+            "foot_sensor_hysteresis": declare(self, "foot_sensor_hysteresis", 0.3,
+                                              "[-] foot_sensors: the flag turns off below (1 - this) x threshold",
+                                              low=0.0, high=0.99),
+            "heightmap_frame": declare(self, "heightmap_frame", "world",
+                                       "frame of terrain/heightmap: world (the truth) or estimate (the state "
+                                       "estimate's, as a robot's own map; the world map then goes to "
+                                       "ground_truth/heightmap)", choices=("world", "estimate")),
+            "estimate_period_s": declare(self, "estimate_period_s", 0.003,
+                                         "[s] heightmap_frame estimate: the estimator's tick (a map captured at t "
+                                         "waits for the estimate of the newest tick at or before t)",
+                                         low=0.0005, high=0.1),
             "initial_x_m": declare(self, "initial_x_m", 0.0, "[m] world x of the robot at start",
                                    low=-1e4, high=1e4),
             "initial_y_m": declare(self, "initial_y_m", 0.0, "[m] world y of the robot at start",
@@ -265,7 +319,12 @@ class SimBridgeNode(Node):
             # The run starts now (in both modes): discovery and the controllers' start-up are not sim time.
             self.pacer.start_s = self._run_start_s = time.monotonic()
         if self.gate.releases(stamp_ns):
-            self._advance_control_period()
+            if self.estimate_maps is not None and self.estimate_maps.waiting:
+                # Lockstep: a map waits for the estimate of its instant; the next steps' joint states must not
+                # reach a consumer (the tce) before that map does, so the step waits for the estimate too.
+                self._command_held = True
+            else:
+                self._advance_control_period()
 
     def _awaiting_map_subscribers(self, now: float) -> bool:
         """Lockstep, before the first step: whether a command must wait for the map consumers' subscriptions
@@ -275,10 +334,10 @@ class SimBridgeNode(Node):
         if self.core.sim.step_count or self.core.commands.accepted:
             self._map_subscribers_ready = True
             return False
-        matched = self.pub_heightmap.get_subscription_count() >= self.params["map_subscribers"]
+        matched = self._map_subscriptions() >= self.params["map_subscribers"]
         if matched or now - self._run_start_s > self.params["startup_timeout_s"]:
             if not matched:
-                self.get_logger().warn(f"lockstep: {self.pub_heightmap.get_subscription_count()} of "
+                self.get_logger().warn(f"lockstep: {self._map_subscriptions()} of "
                                        f"{self.params['map_subscribers']} heightmap subscriptions matched after "
                                        f"{self.params['startup_timeout_s']} s; starting")
             self._map_subscribers_ready = True
@@ -286,9 +345,18 @@ class SimBridgeNode(Node):
             self.initial_state_repeats += 1
         return True
 
+    def _map_subscriptions(self) -> int:
+        count = self.pub_heightmap.get_subscription_count()
+        return count + (self.pub_truth_map.get_subscription_count() if self.pub_truth_map is not None else 0)
+
     def _check_lockstep_timeout(self) -> None:
         if self.finished or self.gate.awaiting_tick_ns is None:
             return
+        if (self.estimate_maps is not None and self.estimate_maps.waiting
+                and time.monotonic() - self.gate.waiting_since_s >= MAP_RESEND_AFTER_S):
+            # The estimate a map waits for has not come (the estimator is late or not running): place the
+            # waiting maps with the newest estimate there is (counted in late_estimate_maps).
+            self._publish_placed(self.estimate_maps.flush())
         if self.core.commands.accepted == 0 and self.core.sim.step_count == 0:
             # Controllers may join after the bridge (DDS discovery): re-send the initial state until the
             # first command arrives. Consumers drop the repeated stamp as not newer.
@@ -315,10 +383,14 @@ class SimBridgeNode(Node):
         for raw in self._recent_heightmaps:
             self.pub_heightmap.publish(raw)
             self.heightmap_resends += 1
+        for raw in self._recent_truth_maps:
+            assert self.pub_truth_map is not None
+            self.pub_truth_map.publish(raw)
         self._last_map_resend_s = now
 
     # -- stepping ---------------------------------------------------------------------------------------
     def _advance_control_period(self) -> None:
+        self._command_held = False
         self.gate.release()
         for _ in range(self.steps_per_control):
             if self._step_once():
@@ -373,6 +445,11 @@ class SimBridgeNode(Node):
         if due.contacts:
             contacts = self.core.sim.foot_contacts()
             self.pub_contacts.publish(self.writers.contact_state(stamp_ns, contacts))
+            if self.foot_sensor is not None:
+                if record or self._last_foot_sensors is None:   # a repeat of the initial state: the same reading
+                    readings, flags = self.foot_sensor.measure([c.force_n for c in contacts])
+                    self._last_foot_sensors = self.writers.foot_sensors(stamp_ns, readings, flags)
+                self.pub_foot_sensors.publish(self._last_foot_sensors)
             if record:
                 self.core.record_statistics(state, contacts)
         if due.heightmap:
@@ -389,10 +466,46 @@ class SimBridgeNode(Node):
         grid = extract_heightmap(self.core.sim.course, (state.base_position_m[0], state.base_position_m[1]), yaw,
                                  rows=p["heightmap_rows"], cols=p["heightmap_cols"],
                                  resolution_m=p["heightmap_resolution_m"])
-        raw = self.writers.heightmap(stamp_ns, grid)
-        if not self._recent_heightmaps or stamp_ns_of(self._recent_heightmaps[-1]) != stamp_ns:
-            self._recent_heightmaps.append(raw)  # (the initial state's repeats send the same stamp again)
-        self.pub_heightmap.publish(raw)
+        if self.estimate_maps is None:
+            self._send_map(self.pub_heightmap, self._recent_heightmaps, self.writers.heightmap(stamp_ns, grid))
+            return
+        assert self.pub_truth_map is not None
+        self._send_map(self.pub_truth_map, self._recent_truth_maps, self.writers.heightmap(stamp_ns, grid))
+        true_base = PlanarPose(float(state.base_position_m[0]), float(state.base_position_m[1]),
+                               float(state.base_position_m[2]), yaw)
+        placed = self.estimate_maps.add_map(stamp_ns, grid, true_base)
+        if self.mode == "realtime":
+            placed += self.estimate_maps.flush()  # a robot's map does not wait: the newest estimate places it
+        self._publish_placed(placed)
+
+    def _on_estimate(self, view: CdrView) -> None:
+        assert self.estimate_maps is not None
+        try:
+            base = base_state_from_odometry_view(view)
+            pose = PlanarPose.from_position_quat(base.position, base.quat_xyzw)
+        except InputError as exc:
+            self._reject_estimate(exc)
+            return
+        self._publish_placed(self.estimate_maps.add_estimate(view.stamp_ns, pose))
+
+    def _reject_estimate(self, exc: Exception) -> None:
+        self.rejected_estimates += 1
+        self.get_logger().warn(f"rejected state_estimate ({self.rejected_estimates} so far): {exc}",
+                               throttle_duration_sec=1.0)
+
+    def _publish_placed(self, placed: list[PlacedMap]) -> None:
+        for item in placed:
+            self._send_map(self.pub_heightmap, self._recent_heightmaps,
+                           self.writers.heightmap(item.stamp_ns, item.grid))
+        if self._command_held and self.estimate_maps is not None and not self.estimate_maps.waiting:
+            self._command_held = False
+            self._advance_control_period()
+
+    @staticmethod
+    def _send_map(publisher, recent: deque[bytes], raw: bytes) -> None:
+        if not recent or stamp_ns_of(recent[-1]) != stamp_ns_of(raw):
+            recent.append(raw)  # (the initial state's repeats send the same stamp again)
+        publisher.publish(raw)
 
     # -- end of run -------------------------------------------------------------------------------------
     def _fall_ends_run(self) -> bool:
@@ -429,6 +542,9 @@ class SimBridgeNode(Node):
                        commands_before_map_subscribers=self.commands_before_map_subscribers,
                        realtime_overruns=self.pacer.overruns, stop_on_fall=bool(self.params["stop_on_fall"]),
                        stopped_on_fall=self.stopped_on_fall, command_latency_ms=self.latency.summary())
+        if self.estimate_maps is not None:
+            summary.update(estimate_frame_maps=self.estimate_maps.summary(),
+                           rejected_estimates=self.rejected_estimates)
         return summary
 
     def destroy_node(self) -> None:

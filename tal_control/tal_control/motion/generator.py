@@ -72,6 +72,7 @@ class MotionParameters:
     pose_bandwidth_rad_s: float | None = None
     max_height_rate_m_s: float | None = None
     max_attitude_rate_rad_s: float | None = None
+    contact_grace_s: float = 0.0   # [s] a planned stance leg is a support that long without a reported contact
 
     def __post_init__(self) -> None:
         for name in ("pose_bandwidth_rad_s", "max_height_rate_m_s", "max_attitude_rate_rad_s"):
@@ -87,7 +88,8 @@ class MotionParameters:
                   "retarget_threshold_m": self.retarget_threshold_m >= 0.0,
                   "retarget_until_progress": 0.0 <= self.retarget_until_progress <= 1.0,
                   "min_external_time_left_s": self.min_external_time_left_s >= 0.0,
-                  "touchdown_depth_m": 0.0 <= self.touchdown_depth_m <= 0.1}
+                  "touchdown_depth_m": 0.0 <= self.touchdown_depth_m <= 0.1,
+                  "contact_grace_s": 0.0 <= self.contact_grace_s <= 0.5}
         if self.max_foothold_offset_m is not None:
             checks["max_foothold_offset_m"] = self.max_foothold_offset_m > 0.0
         for name, ok in checks.items():

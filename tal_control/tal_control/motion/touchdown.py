@@ -16,8 +16,12 @@ task while the WBC plans no force for it. Contacts earlier in the swing (lift-of
 stay swing contacts.
 
 Contact flags come from outside: the simulator's contacts, in the offline closed loop and, through the
-bridge's ``ground_truth/contacts`` (the ``wbc`` node's ``contact_source``), in the graph; they stand in
-for foot contact sensors. World frame, [m], [s]; legs LF, RF, LH, RH.
+bridge's ``ground_truth/contacts`` (the ``wbc`` node's ``contact_source``), in the graph; or the feet's
+contact sensors (``foot_contacts``), whose flag comes a sample late and only once the load passes a
+threshold. ``contact_grace_s``: for that long after a planned touchdown a leg is a support as planned even
+without a reported contact (the sensor's latency); only then does its search begin (with one sample of
+sensor delay and no grace, every touchdown started a search, the trot lost a diagonal's support and HyQ fell
+at 5 s). World frame, [m], [s]; legs LF, RF, LH, RH.
 """
 
 from __future__ import annotations
@@ -55,10 +59,15 @@ class TouchdownSearch:
     """Per-leg state machine (see the module docstring). One ``update`` per control tick."""
 
     def __init__(self, search_speed_mps: float = 0.2, max_depth_m: float = 0.08,
-                 early_touchdown_progress: float = 0.7) -> None:
+                 early_touchdown_progress: float = 0.7, contact_grace_s: float = 0.0) -> None:
         for name, value in (("search_speed_mps", search_speed_mps), ("max_depth_m", max_depth_m)):
             if not (math.isfinite(value) and value > 0.0):
                 raise MotionConfigError(f"TouchdownSearch: {name} must be > 0, got {value!r}")
+        if not (math.isfinite(contact_grace_s) and contact_grace_s >= 0.0):
+            raise MotionConfigError(f"TouchdownSearch: contact_grace_s must be >= 0, got {contact_grace_s!r}")
+        self.contact_grace_s = float(contact_grace_s)
+        self._stance_since = np.full(NUM_LEGS, -math.inf)  # [s] start of each leg's planned stance
+        self._was_stance = np.zeros(NUM_LEGS, dtype=bool)
         if not (math.isfinite(early_touchdown_progress) and 0.0 < early_touchdown_progress <= 1.0):
             raise MotionConfigError(f"TouchdownSearch: early_touchdown_progress must be in (0, 1], "
                                     f"got {early_touchdown_progress!r}")
@@ -88,6 +97,11 @@ class TouchdownSearch:
         position = np.array(foot_position, dtype=float)
         velocity = np.array(foot_velocity, dtype=float)
         acceleration = np.array(foot_acceleration, dtype=float)
+        began = stance & ~self._was_stance
+        self._stance_since[began] = t_s
+        self._was_stance = stance.copy()
+        if self.contact_grace_s > 0.0:   # a reported contact may be late: trust the plan that long
+            contact = contact | (stance & (t_s - self._stance_since < self.contact_grace_s - 1e-9))
         searching = stance & ~contact
         was_searching = np.isfinite(self._start[:, 0])
         anchored = stance & contact & was_searching
