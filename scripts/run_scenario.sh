@@ -204,6 +204,7 @@ tour() {
         -s "wbc.contact_source:=$contact_source" -s "wbc.touchdown_depth_m:=$touchdown_depth" \
         -s "sim_bridge.foot_sensors:=$([ "$contact_source" = sensor ] && echo true || echo false)" \
         -s "wbc.contact_grace_s:=$([ "$contact_source" = sensor ] && echo 0.012 || echo 0.0)" \
+        -s "wbc.contact_latch:=$([ "$contact_source" = sensor ] && echo true || echo false)" \
         -s "sim_bridge.heightmap_frame:=$map_frame" -s "wbc.map_alignment_time_constant_s:=0.0" \
         -s "tce.base_source:=$state_source" -s "tce.summary_path:=$dir/tce_summary.json" \
         -s "state_estimator.leg_odometry:=$odometry" \

@@ -123,8 +123,9 @@ class LocomotionController:
         self.model = model
         self.motion = MotionGenerator(model.description, gait, nominal_height_m=nominal_height_m, params=motion)
         self.wbc = StandardWbc(model, gains, settings)
-        self.touchdown_search = TouchdownSearch(contact_grace_s=(motion.contact_grace_s if motion is not None
-                                                                 else 0.0))
+        self.touchdown_search = TouchdownSearch(
+            contact_grace_s=motion.contact_grace_s if motion is not None else 0.0,
+            latch_contact=motion.latch_contact if motion is not None else False)
         self.ticks = 0
 
     def tick(self, t_s: float, base: BaseState, joint_position: np.ndarray, joint_velocity: np.ndarray,

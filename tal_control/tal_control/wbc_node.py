@@ -138,6 +138,7 @@ class WbcNode(Node):
                                                                        k_feedback=p["foothold_feedback_s"],
                                                                        foothold_centre=p["foothold_centre"],
                                                                        contact_grace_s=p["contact_grace_s"],
+                                                                       latch_contact=p["contact_latch"],
                                                                        **_pose_filter_parameters(p)))
         self.joint_names = list(self.model.description.joint_names)
         self.joint_index = {name: i for i, name in enumerate(self.joint_names)}
@@ -300,6 +301,9 @@ class WbcNode(Node):
                                        "[s] with contact_source: a planned stance leg is a support this long "
                                        "without a reported contact before it searches for the ground (a foot "
                                        "sensor's latency)", low=0.0, high=0.5),
+            "contact_latch": declare(self, "contact_latch", False,
+                                     "with contact_source: a contact reported in a planned stance holds until "
+                                     "lift-off (a load sensor's flag drops under a lightly loaded stance foot)"),
             "touchdown_depth_m": declare(self, "touchdown_depth_m", 0.0,
                                          "[m] swings end this far below the foothold (a target a little too "
                                          "high still meets the ground)", low=0.0, high=0.1,

@@ -122,3 +122,20 @@ def test_with_a_contact_grace_a_late_sensor_flag_does_not_start_a_search() -> No
     assert out.searching.tolist() == [False, False, False, True] and search.searches.tolist() == [0, 0, 0, 1]
     with pytest.raises(MotionConfigError, match="contact_grace_s"):
         TouchdownSearch(contact_grace_s=-0.001)
+
+
+def test_a_latched_contact_holds_until_lift_off_and_a_foot_that_never_reported_searches() -> None:
+    """latch_contact: LF reported its touchdown, then its flag dropped (a lightly loaded stance foot under a load
+    sensor's threshold): it stays a support; RH never reported one and searches once the grace is over; the next
+    stance starts unlatched."""
+    search = TouchdownSearch(contact_grace_s=0.008, latch_contact=True)
+    _update(search, 0.0, [False, True, True, False], [False, True, True, False])
+    stance = [True, False, False, True]
+    _update(search, 0.004, stance, [True, False, False, False])
+    out = _update(search, 0.016, stance, [False, False, False, False])
+    assert out.supported.tolist() == [True, False, False, False]
+    assert out.searching.tolist() == [False, False, False, True]
+    _update(search, 0.2, [False, True, True, False], [False, True, True, False])      # lift-off
+    _update(search, 0.4, stance, [False, False, False, False])                      # a new stance ...
+    out = _update(search, 0.412, stance, [False, False, False, False])              # ... with no report
+    assert out.searching.tolist() == [True, False, False, True]

@@ -73,6 +73,7 @@ class MotionParameters:
     max_height_rate_m_s: float | None = None
     max_attitude_rate_rad_s: float | None = None
     contact_grace_s: float = 0.0   # [s] a planned stance leg is a support that long without a reported contact
+    latch_contact: bool = False    # a contact reported in a planned stance holds until lift-off
 
     def __post_init__(self) -> None:
         for name in ("pose_bandwidth_rad_s", "max_height_rate_m_s", "max_attitude_rate_rad_s"):

@@ -21,7 +21,10 @@ contact sensors (``foot_contacts``), whose flag comes a sample late and only onc
 threshold. ``contact_grace_s``: for that long after a planned touchdown a leg is a support as planned even
 without a reported contact (the sensor's latency); only then does its search begin (with one sample of
 sensor delay and no grace, every touchdown started a search, the trot lost a diagonal's support and HyQ fell
-at 5 s). World frame, [m], [s]; legs LF, RF, LH, RH.
+at 5 s). ``latch_contact``: a contact reported once in a planned stance holds until lift-off (a load sensor's
+flag drops when the QP loads a stance foot lightly, down to its 10 N minimum, below a 50 N threshold: such a
+foot is touching, not lost); the search is then for feet that never reported their touchdown. World frame,
+[m], [s]; legs LF, RF, LH, RH.
 """
 
 from __future__ import annotations
@@ -59,13 +62,16 @@ class TouchdownSearch:
     """Per-leg state machine (see the module docstring). One ``update`` per control tick."""
 
     def __init__(self, search_speed_mps: float = 0.2, max_depth_m: float = 0.08,
-                 early_touchdown_progress: float = 0.7, contact_grace_s: float = 0.0) -> None:
+                 early_touchdown_progress: float = 0.7, contact_grace_s: float = 0.0,
+                 latch_contact: bool = False) -> None:
         for name, value in (("search_speed_mps", search_speed_mps), ("max_depth_m", max_depth_m)):
             if not (math.isfinite(value) and value > 0.0):
                 raise MotionConfigError(f"TouchdownSearch: {name} must be > 0, got {value!r}")
         if not (math.isfinite(contact_grace_s) and contact_grace_s >= 0.0):
             raise MotionConfigError(f"TouchdownSearch: contact_grace_s must be >= 0, got {contact_grace_s!r}")
         self.contact_grace_s = float(contact_grace_s)
+        self.latch_contact = bool(latch_contact)
+        self._confirmed = np.zeros(NUM_LEGS, dtype=bool)    # contact reported in the current planned stance
         self._stance_since = np.full(NUM_LEGS, -math.inf)  # [s] start of each leg's planned stance
         self._was_stance = np.zeros(NUM_LEGS, dtype=bool)
         if not (math.isfinite(early_touchdown_progress) and 0.0 < early_touchdown_progress <= 1.0):
@@ -100,6 +106,9 @@ class TouchdownSearch:
         began = stance & ~self._was_stance
         self._stance_since[began] = t_s
         self._was_stance = stance.copy()
+        if self.latch_contact:
+            self._confirmed = stance & (self._confirmed & ~began | contact)
+            contact = contact | self._confirmed
         if self.contact_grace_s > 0.0:   # a reported contact may be late: trust the plan that long
             contact = contact | (stance & (t_s - self._stance_since < self.contact_grace_s - 1e-9))
         searching = stance & ~contact
