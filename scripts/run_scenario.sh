@@ -6,9 +6,9 @@
 #                   sim_bridge (121x121 heightmap) + state_estimator (terrain-aware leg odometry) + tce + wbc
 #                   (STANCE: c3WBC with the TCE's impedance; CONTACT_MODEL=rigid: sWBC; the wbc and tce on the state
 #                   estimate and the heightmap in its frame, STATE_SOURCE=ground_truth: on the true base and map;
-#                   with the bridge's ground_truth/contacts as foot contact sensors for late and
-#                   early touchdowns and swings ending 2 cm below the foothold: CONTACT_SOURCE=none,
-#                   TOUCHDOWN_DEPTH_M=0 turn them off; ViTAL's stairs settings of footholds and pose filter) + vfa + vpa
+#                   with the bridge's modelled foot sensors (foot_contacts: noise, 4 ms delay, 15 N threshold) for
+#                   late and early touchdowns and swings ending 2 cm below the foothold: CONTACT_SOURCE=ground_truth
+#                   takes the simulator's contacts, CONTACT_SOURCE=none and TOUCHDOWN_DEPTH_M=0 turn them off; ViTAL's stairs settings of footholds and pose filter) + vfa + vpa
 #                   (VPA CNN, 20 Hz) + bag_recorder + cmd_vel_script; prints the summary of graph_report
 #   tour_realtime   the same following the wall clock (rates and deadline misses as the machine holds them)
 #   stance           STANCE: HyQ crawls at 0.1 m/s over the transition course (rigid, T1 soft, T2, T3,
@@ -143,7 +143,7 @@ tour() {
     # 30-35 s there; the bench's measurement window).
     local duration="${DURATION_S:-$([ "$mode" = realtime ] && echo 40.0 || echo 60.0)}"
     local contact_model="${CONTACT_MODEL:-compliant}" odometry="${LEG_ODOMETRY:-terrain_aware}"
-    local contact_source="${CONTACT_SOURCE:-ground_truth}" touchdown_depth="${TOUCHDOWN_DEPTH_M:-0.02}"
+    local contact_source="${CONTACT_SOURCE:-sensor}" touchdown_depth="${TOUCHDOWN_DEPTH_M:-0.02}"
     local dir="$RUN_ROOT"
     # A robot has no ground truth: the wbc and the tce run on the state estimate, and the heightmap the wbc, vfa,
     # vpa and tce read is in the estimate's frame, as a robot's own elevation map would be (the bridge places

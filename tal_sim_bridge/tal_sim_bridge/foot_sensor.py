@@ -23,8 +23,8 @@ from .errors import BridgeConfigError
 @dataclass(frozen=True)
 class FootSensorSettings:
     delay_samples: int = 1            # [-] sensor samples between the load and its reading
-    noise_std_n: float = 5.0          # [N] white noise on the reading
-    threshold_n: float = 50.0         # [N] the contact flag turns on at this reading
+    noise_std_n: float = 2.0          # [N] white noise on the reading (a calibrated load cell)
+    threshold_n: float = 15.0         # [N] the contact flag turns on at this reading
     hysteresis_fraction: float = 0.3  # [-] ... and off below (1 - this) * threshold_n
     seed: int = 0
 
