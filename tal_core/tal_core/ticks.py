@@ -210,3 +210,48 @@ class TickAnswers:
     def answered(self, stamp_ns: int, answer: object) -> None:
         """The answer just sent to the tick ``stamp_ns``."""
         self.answered_ns, self._answer = stamp_ns, answer
+
+
+class RecentByStamp:
+    """The ``keep`` most recently received items of a stream, by stamp: the one of an exact stamp, the newest,
+    or the newest at or before a stamp (a consumer that takes another stream's sample of its own tick and must
+    not depend on whether a newer one arrived first). A stamp received again keeps its first item."""
+
+    def __init__(self, keep: int) -> None:
+        if keep < 1:
+            raise ValueError(f"RecentByStamp needs keep >= 1, got {keep}")
+        self.keep = int(keep)
+        self._items: dict[int, object] = {}
+        self._order: deque[int] = deque()
+        self.newest_ns: int | None = None
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __contains__(self, stamp_ns: int) -> bool:
+        return stamp_ns in self._items
+
+    def add(self, stamp_ns: int, item: object) -> None:
+        stamp_ns = int(stamp_ns)
+        if stamp_ns in self._items:
+            return
+        self._items[stamp_ns] = item
+        self._order.append(stamp_ns)
+        if self.newest_ns is None or stamp_ns > self.newest_ns:
+            self.newest_ns = stamp_ns
+        while len(self._order) > self.keep:
+            del self._items[self._order.popleft()]
+        if self.newest_ns not in self._items:   # (the newest stamp was the oldest to arrive)
+            self.newest_ns = max(self._items)
+
+    def get(self, stamp_ns: int) -> object | None:
+        return self._items.get(stamp_ns)
+
+    def newest(self) -> tuple[int, object] | None:
+        """(stamp, item) of the newest stamp held (None: none)."""
+        return None if self.newest_ns is None else (self.newest_ns, self._items[self.newest_ns])
+
+    def at_or_before(self, stamp_ns: int) -> tuple[int, object] | None:
+        """(stamp, item) of the newest held at or before ``stamp_ns`` (None: none)."""
+        earlier = [stamp for stamp in self._items if stamp <= stamp_ns]
+        return None if not earlier else (max(earlier), self._items[max(earlier)])

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import pytest
 
-from tal_core.ticks import CLOCK_RESET_NS, HeldTicks, StampedInbox, TickAnswers, reaches_tick, tick_after
+from tal_core.ticks import (
+    CLOCK_RESET_NS,
+    HeldTicks,
+    RecentByStamp,
+    StampedInbox,
+    TickAnswers,
+    reaches_tick,
+    tick_after,
+)
 
 MS = 1_000_000
 
@@ -117,3 +125,17 @@ def test_tick_answers_say_which_tick_is_a_repeat_and_what_to_send_again() -> Non
     assert answers.seen(0) == (True, "answer@0") and answers.resent == 1
     assert answers.seen(4 * MS) == (False, None) and answers.answered_ns == 0
     assert answers.seen(4 * MS) == (True, None)          # the answer on record is to another tick
+
+
+def test_recent_by_stamp_keeps_the_newest_few_and_answers_exact_newest_and_at_or_before() -> None:
+    recent = RecentByStamp(keep=3)
+    assert recent.newest() is None and recent.at_or_before(10) is None
+    for stamp in (3, 9, 6):                      # out of order
+        recent.add(stamp, f"s{stamp}")
+    recent.add(6, "again")                       # a repeat keeps the first
+    assert recent.get(6) == "s6" and recent.newest() == (9, "s9")
+    assert recent.at_or_before(8) == (6, "s6") and recent.at_or_before(2) is None
+    recent.add(12, "s12")                        # the oldest to arrive (3) goes
+    assert 3 not in recent and len(recent) == 3 and recent.newest() == (12, "s12")
+    with pytest.raises(ValueError, match="keep"):
+        RecentByStamp(keep=0)

@@ -55,7 +55,7 @@ import numpy as np
 from tal_core.errors import InputError
 from tal_core.robot_model import RobotModel
 from tal_core.state import BaseState
-from tal_core.ticks import TICK_TOLERANCE_NS, StampedInbox, reaches_tick, tick_after
+from tal_core.ticks import TICK_TOLERANCE_NS, RecentByStamp, StampedInbox, reaches_tick, tick_after
 
 from .streaming import JointArrays
 from .tce import (
@@ -154,9 +154,7 @@ class TceDriver:
         # inputs on a busy machine loses some); after a longer gap the tick's samples skip the fit (``step``).
         self._accelerations = FiniteDifferenceAcceleration(max_gap_s=MAX_ACCELERATION_GAP_PERIODS * period_s)
         self._next_tick_ns = 0
-        self._base: tuple[int, BaseState] | None = None   # the newest
-        self._bases: dict[int, BaseState] = {}            # recent ones by stamp (KEPT_BASE_STATES)
-        self._base_order: deque[int] = deque()
+        self._bases = RecentByStamp(KEPT_BASE_STATES)   # recent base states by stamp
         self._pending: deque[tuple[int, float, tuple[np.ndarray, np.ndarray, np.ndarray]]] = deque()
         # The joint torques of the samples between two ticks (``average_torque``): their mean is the torque of
         # the interval whose finite-differenced acceleration the tick uses.
@@ -195,20 +193,14 @@ class TceDriver:
 
     def set_base(self, stamp_ns: int, base: BaseState) -> list[TceTick]:
         """A base state (world frame) and its stamp; the waiting ticks it completes, oldest first."""
-        stamp_ns = int(stamp_ns)
-        if self._base is None or stamp_ns >= self._base[0]:
-            self._base = (stamp_ns, base)
-        if stamp_ns not in self._bases:
-            self._base_order.append(stamp_ns)
-            while len(self._base_order) > KEPT_BASE_STATES:
-                del self._bases[self._base_order.popleft()]
-        self._bases[stamp_ns] = base
+        self._bases.add(stamp_ns, base)
         return self._run_ready()
 
     def _ready(self, stamp_ns: int) -> bool:
         """Whether the base state and the map a tick at ``stamp_ns`` waits for have arrived (a newer base state
         than its own: its own will not come)."""
-        return (self._base is not None and self._base[0] >= self._expected_base_stamp(stamp_ns)
+        newest = self._bases.newest_ns
+        return (newest is not None and newest >= self._expected_base_stamp(stamp_ns)
                 and self._terrain.awaited(stamp_ns) is None)
 
     def _base_for(self, stamp_ns: int) -> tuple[int, BaseState] | None:
@@ -216,8 +208,8 @@ class TceDriver:
         if self.base_period_ns is not None:
             expected = self._expected_base_stamp(stamp_ns)
             if expected in self._bases:
-                return expected, self._bases[expected]
-        return self._base
+                return expected, self._bases.get(expected)
+        return self._bases.newest()
 
     def _run_ready(self) -> list[TceTick]:
         out = []
@@ -257,7 +249,7 @@ class TceDriver:
             return [tick for tick in out if tick is not None]
         map_awaited = self._terrain.awaited(stamp_ns) is not None
         no_terrain = self.height is None and not map_awaited and not self._terrain.has_due(stamp_ns)
-        if no_terrain or (self._base is None and not waits):
+        if no_terrain or (self._bases.newest_ns is None and not waits):
             return [tick for tick in out if tick is not None]
         while len(self._pending) >= MAX_WAITING_TICKS:   # too many wait: the oldest runs with what is here
             out.append(self._run_pending(late=True))

@@ -29,6 +29,7 @@ import numpy as np
 from tal_core.errors import InputError
 from tal_core.heightmap import HeightMapGrid
 from tal_core.rotations import yaw_from_quat_xyzw
+from tal_core.ticks import RecentByStamp
 
 MAX_PENDING_MAPS = 64
 """Maps waiting for their estimate (about 3 s at 20 Hz); the oldest is placed with the newest estimate beyond."""
@@ -86,9 +87,7 @@ class EstimateFrameMaps:
             raise InputError(f"EstimateFrameMaps: estimate_period_ns must be > 0, got {estimate_period_ns!r}")
         self.period_ns = int(estimate_period_ns)
         self._pending: deque[tuple[int, HeightMapGrid, PlanarPose]] = deque()
-        self._estimates: dict[int, PlanarPose] = {}
-        self._order: deque[int] = deque()
-        self.newest_stamp_ns: int | None = None
+        self._estimates = RecentByStamp(KEPT_ESTIMATES)
         self.placed_maps = 0
         self.late_estimate_maps = 0   # placed with an earlier estimate than their own (skipped or timed out)
         self.world_frame_maps = 0     # placed before any estimate (world frame)
@@ -112,14 +111,7 @@ class EstimateFrameMaps:
 
     def add_estimate(self, stamp_ns: int, pose: PlanarPose) -> list[PlacedMap]:
         """An estimate of ``stamp_ns`` (any order; a repeated stamp replaces nothing): the maps now placed."""
-        stamp_ns = int(stamp_ns)
-        if stamp_ns not in self._estimates:
-            self._estimates[stamp_ns] = pose
-            self._order.append(stamp_ns)
-            while len(self._order) > KEPT_ESTIMATES:
-                del self._estimates[self._order.popleft()]
-            if self.newest_stamp_ns is None or stamp_ns > self.newest_stamp_ns:
-                self.newest_stamp_ns = stamp_ns
+        self._estimates.add(stamp_ns, pose)
         return self._release()
 
     def flush(self) -> list[PlacedMap]:
@@ -136,7 +128,7 @@ class EstimateFrameMaps:
             expected = self.expected_stamp(stamp)
             if expected in self._estimates:
                 placed.append(self._place(stamp, grid, truth))
-            elif self.newest_stamp_ns is not None and self.newest_stamp_ns > expected:
+            elif self._estimates.newest_ns is not None and self._estimates.newest_ns > expected:
                 placed.append(self._place(stamp, grid, truth))   # its estimate was skipped
             else:
                 break
@@ -144,12 +136,7 @@ class EstimateFrameMaps:
         return placed
 
     def _estimate_for(self, stamp_ns: int) -> tuple[int, PlanarPose] | None:
-        expected = self.expected_stamp(stamp_ns)
-        if expected in self._estimates:
-            return expected, self._estimates[expected]
-        earlier = [s for s in self._estimates if s <= expected]
-        stamp = max(earlier) if earlier else (self.newest_stamp_ns if self._estimates else None)
-        return None if stamp is None else (stamp, self._estimates[stamp])
+        return self._estimates.at_or_before(self.expected_stamp(stamp_ns)) or self._estimates.newest()
 
     def _place(self, stamp_ns: int, grid: HeightMapGrid, true_base: PlanarPose) -> PlacedMap:
         found = self._estimate_for(stamp_ns)
