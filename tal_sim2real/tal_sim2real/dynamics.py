@@ -17,7 +17,7 @@ from .library import LEGS, VARIANTS_BY_NAME, Candidate, where_of
 from .measured import MeasuredData, white_noise_std
 from .model import PARAMETER_NAMES, SimModel
 from .outcomes import STIFF_GROUND_N_PER_M, Finding, Settings, SubsystemResult
-from .remainder import MOSTLY_EXPLAINED, Remainder, judge, localise
+from .remainder import MOSTLY_EXPLAINED, Remainder, judge, localise, set_aside
 from .segments import (
     CHANNEL_SCALES,
     SegmentPlan,
@@ -425,7 +425,11 @@ def _dynamics_with(
     if phases is not None:
         idx = ho_plan.starts[:, None] + ho_plan.sample_offsets[None, :]
         element_phase = phases[idx][..., np.maximum(joint_of, 0) // 3]
-    localise(remainder, after_el, floor_el, masks, data.joint_names, joint_of, element_phase)
+    # isolated events (a contact transition a segment resolves differently) are set aside and listed; the
+    # verdict and the localisation are those of the segments left
+    keep = set_aside(remainder, after_el, floor_el, data.t_s[ho_plan.starts], data.joint_names, joint_of)
+    phase_kept = None if element_phase is None else element_phase[keep]
+    localise(remainder, after_el[keep], floor_el[keep], masks, data.joint_names, joint_of, phase_kept)
     result.remainder = judge(remainder, result.named, at_floor)
     result.verdict = result.remainder.verdict
     result.channels_before = channel_rms(meas["ho"], pred_before)

@@ -230,13 +230,20 @@ def _readme(out, data, duration_s, seed, control, run: MujocoRun, record_s, resu
             f"- {name}: held-out cost {r.after:.4g} against a floor of {r.floor:.4g} re-estimated with the "
             f"updated model ({r.ratio:.3g} x; {'a remainder' if r.flagged else 'no remainder'})."
         )
-        if not r.flagged:
+        if r.isolated:
+            events = ", ".join(f"{e.start_s:.1f} s ({e.ratio:.3g} x, {e.joint})" for e in r.isolated)
+            lines.append(
+                f"  - without its {len(r.isolated)} isolated held-out segments ({events}, "
+                f"{100 * sum(e.share for e in r.isolated):.0f} % of the excess): {r.systematic_ratio:.3g} x"
+            )
+        if r.systematic_ratio <= 1.0:
             continue
+        lines.append("  - where the excess over the floor is" + ("" if r.flagged else " (below the threshold)") + ":")
         for table in ("channel", "joint", "leg", "phase"):
             groups = getattr(r, f"by_{table}")
             ranked = sorted(groups.items(), key=lambda kv: -kv[1].share)[:3]
             cells = ", ".join(f"{k} {100 * g.share:.0f} % ({g.ratio:.3g} x)" for k, g in ranked)
-            lines.append(f"  - per {table}: {cells}")
+            lines.append(f"    - per {table}: {cells}")
     lines += [
         "",
         "Share: the group's part of the excess over the floor; (x): its cost / floor. Plot: "

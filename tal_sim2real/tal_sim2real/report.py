@@ -80,7 +80,7 @@ def plot_remainder(result: Identification, path: Path) -> Path | None:
 
 
 def _remainder_lines(result: Identification) -> list[str]:
-    from .remainder import MOSTLY_EXPLAINED, REMAINDER_FACTOR
+    from .remainder import ISOLATED_SEGMENTS, MOSTLY_EXPLAINED, REMAINDER_FACTOR
 
     remainders = result.remainders
     if not remainders:
@@ -91,13 +91,30 @@ def _remainder_lines(result: Identification) -> list[str]:
         f"Held-out cost of the updated model against the noise floor re-estimated with it (1 = at the floor). "
         f'Above {REMAINDER_FACTOR:g} floors a remainder is reported: "partly explained" when the named effects '
         f'remove at least {100 * MOSTLY_EXPLAINED:.0f}% of the held-out excess, otherwise "not explained by the '
-        "library\". Share: the group's part of the excess over the floor (where to look).",
+        "library\". Share: the group's part of the excess over the floor (where to look). The dynamics' "
+        f"verdict and tables leave out its worst {100 * ISOLATED_SEGMENTS:.0f}% of held-out open-loop segments, "
+        "listed below as isolated events (a contact transition a re-simulated segment resolves differently).",
         "",
-        "| subsystem | held-out before | after | floor (updated model) | after / floor | verdict |",
-        "|---|---|---|---|---|---|",
+        "| subsystem | held-out before | after | floor (updated model) | after / floor | without isolated segments "
+        "| verdict |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, r in remainders.items():
-        lines.append(f"| {name} | {_fmt(r.before)} | {_fmt(r.after)} | {_fmt(r.floor)} | {r.ratio:.3g} | {r.verdict} |")
+        kept = f"{r.systematic_ratio:.3g} ({len(r.isolated)} set aside)" if r.isolated else "-"
+        lines.append(
+            f"| {name} | {_fmt(r.before)} | {_fmt(r.after)} | {_fmt(r.floor)} | {r.ratio:.3g} | {kept} | {r.verdict} |"
+        )
+    for name, r in remainders.items():
+        if not r.isolated:
+            continue
+        lines += [
+            "",
+            f"{name}, isolated segments:",
+            "",
+            "| start [s] | cost / floor | share of the excess | joint |",
+            "|---|---|---|---|",
+        ]
+        lines += [f"| {e.start_s:.2f} | {e.ratio:.3g} | {100 * e.share:.0f}% | {e.joint} |" for e in r.isolated]
     for name, r in remainders.items():
         for table in ("channel", "joint", "leg", "phase"):
             groups = getattr(r, f"by_{table}")
