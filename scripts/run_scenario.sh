@@ -2,7 +2,7 @@
 # `make run SCENARIO=...`: run one scenario of the full node graph and print its summary.
 # Scenarios:
 #   tour            (default) the whole graph, each node its own process: HyQ trots at 0.2 m/s for 60 s of sim
-#                   time (lockstep) over rigid ground, T1 and T2 soft patches, 4 stairs up and down (course graph_tour):
+#                   time (lockstep) over rigid ground, T1 and T2 soft patches, 4 stairs up, a gap, 4 down (course graph_tour):
 #                   sim_bridge (121x121 heightmap) + state_estimator (terrain-aware leg odometry) + tce + wbc
 #                   (STANCE: c3WBC with the TCE's impedance; CONTACT_MODEL=rigid: sWBC; the wbc and tce on the state
 #                   estimate and the heightmap in its frame, STATE_SOURCE=ground_truth: on the true base and map;
@@ -139,7 +139,7 @@ stance() {
 
 tour() {
     local mode="${MODE:-lockstep}" speed="${SPEED_M_S:-0.2}"
-    # Lockstep: 60 s, the whole course (the stairs up and down). On the wall clock: 40 s (HyQ falls at
+    # Lockstep: 60 s, the whole course (the stairs up, the gap and the stairs down). On the wall clock: 40 s (HyQ falls at
     # 30-35 s there; the bench's measurement window).
     local duration="${DURATION_S:-$([ "$mode" = realtime ] && echo 40.0 || echo 60.0)}"
     local contact_model="${CONTACT_MODEL:-compliant}" odometry="${LEG_ODOMETRY:-terrain_aware}"
@@ -186,7 +186,7 @@ tour() {
 'terrain_impedance', 'footholds', 'body_pose_reference', 'cmd_vel_stamped']"
     fi
     echo "[run] tour: the whole graph ($mode, control and TCE on the $state_source base state). HyQ trots at $speed m/s over rigid -> T1 -> T2 -> rigid -> 4 stairs" \
-         "up -> landing -> stairs down for $duration s of sim time: sim_bridge, state_estimator ($odometry leg odometry), tce," \
+         "up -> landing with a gap -> stairs down for $duration s of sim time: sim_bridge, state_estimator ($odometry leg odometry), tce," \
          "wbc ($contact_model contact model), vfa, vpa, bag_recorder, cmd_vel_script"
     bash "$ROOT/scripts/run_graph.sh" -d "$dir" -w sim_bridge -m "$dir/resources.json" "${priorities[@]}" \
         -s "sim_bridge.course:=graph_tour" -s "sim_bridge.duration_s:=$duration" -s "sim_bridge.mode:=$mode" \

@@ -42,6 +42,7 @@ from tal_lab.section_drift import SectionDrift, format_section_table
 SOFT_N_PER_M = 1e5  # [N/m] patches softer than this are shaded in the trajectory plot
 LOOKBACK_S = 2.5  # [s] the TCE window is 250 stance samples at 250 Hz: ~1.7 s of trot at duty factor 0.6
 ADOPT_CONFIDENCE = 0.1  # [-] the wbc's impedance_min_confidence default: estimates it adopts
+SOFT_READING_N_PER_M = 5e4  # [N/m] a confident estimate below this on rigid ground is a false soft reading
 
 
 @dataclass(frozen=True)
@@ -186,6 +187,8 @@ def stiffness_table(series: BagSeries, course_name: str) -> list[dict]:
         confident = k[np.array([s[4] for s in samples]) >= ADOPT_CONFIDENCE]
         rows.append({"patch": patch, "true_n_per_m": true_k, "median_n_per_m": median,
                      "confident_share": confident.size / k.size,
+                     "confident_below_5e4": int(np.count_nonzero(confident < SOFT_READING_N_PER_M)),
+                     "confident_samples": int(confident.size),
                      "confident_median_n_per_m": float(np.median(confident)) if confident.size else math.nan,
                      "p10_n_per_m": float(np.percentile(k, 10)), "p90_n_per_m": float(np.percentile(k, 90)),
                      "samples": int(k.size), "error_pct": 100.0 * (median - true_k) / true_k})
@@ -206,12 +209,13 @@ def format_graph_sections(rates: list[RateResult], stiffness: list[dict], resour
               f"c3WBC adopts an estimate from confidence {ADOPT_CONFIDENCE} on (``ImpedanceGate``); on rigid "
               "ground the TCE reports a lower bound (std F / std p >= 5e4 N/m).", "",
               "| patch | true [N/m] | median estimate [N/m] | 10-90 % [N/m] | error of the median [%] | samples "
-              "| confident (adopted) share | median of the confident [N/m] |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| confident (adopted) share | median of the confident [N/m] | confident below 5e4 N/m |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for row in stiffness:
         lines.append(f"| {row['patch']} | {row['true_n_per_m']:.4g} | {row['median_n_per_m']:.4g} | "
                      f"{row['p10_n_per_m']:.4g} - {row['p90_n_per_m']:.4g} | {row['error_pct']:+.2f} | "
-                     f"{row['samples']} | {row['confident_share']:.2f} | {row['confident_median_n_per_m']:.4g} |")
+                     f"{row['samples']} | {row['confident_share']:.2f} | {row['confident_median_n_per_m']:.4g} | "
+                     f"{row['confident_below_5e4']} of {row['confident_samples']} |")
     if vfa is not None or vpa is not None:
         lines += ["", "## ViTAL", ""]
         if vfa is not None:

@@ -101,6 +101,9 @@ def test_an_estimate_counts_for_a_patch_only_once_the_lookback_lies_on_it(tmp_pa
     assert rows["soft_t1"]["confident_share"] == pytest.approx(0.75, abs=0.01)   # RF's are not adopted
     assert rows["soft_t1"]["confident_median_n_per_m"] == 3500.0                 # LH, RH exact, LF doubled
     assert rows["default"]["true_n_per_m"] == 2.0e6
+    # the soft-reading census: every confident T1 estimate is below 5e4 N/m, no confident rigid one is
+    assert rows["soft_t1"]["confident_below_5e4"] == rows["soft_t1"]["confident_samples"] > 0
+    assert rows["default"]["confident_below_5e4"] == 0 < rows["default"]["confident_samples"]
     assert rows["soft_t1"]["samples"] == len(t1) == pytest.approx(4 * (25.0 - 12.5) / 0.020, abs=8)
 
 
