@@ -253,5 +253,5 @@ class RecentByStamp:
 
     def at_or_before(self, stamp_ns: int) -> tuple[int, object] | None:
         """(stamp, item) of the newest held at or before ``stamp_ns`` (None: none)."""
-        earlier = [stamp for stamp in self._items if stamp <= stamp_ns]
-        return None if not earlier else (max(earlier), self._items[max(earlier)])
+        stamp = max((s for s in self._items if s <= stamp_ns), default=None)
+        return None if stamp is None else (stamp, self._items[stamp])

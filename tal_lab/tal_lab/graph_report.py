@@ -209,7 +209,8 @@ def format_graph_sections(rates: list[RateResult], stiffness: list[dict], resour
               f"c3WBC adopts an estimate from confidence {ADOPT_CONFIDENCE} on (``ImpedanceGate``); on rigid "
               "ground the TCE reports a lower bound (std F / std p >= 5e4 N/m).", "",
               "| patch | true [N/m] | median estimate [N/m] | 10-90 % [N/m] | error of the median [%] | samples "
-              "| confident (adopted) share | median of the confident [N/m] | confident below 5e4 N/m |",
+              "| confident (adopted) share | median of the confident [N/m] "
+              f"| confident below {SOFT_READING_N_PER_M:g} N/m |",
               "|---|---|---|---|---|---|---|---|---|"]
     for row in stiffness:
         lines.append(f"| {row['patch']} | {row['true_n_per_m']:.4g} | {row['median_n_per_m']:.4g} | "

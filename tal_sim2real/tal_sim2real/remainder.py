@@ -189,10 +189,11 @@ def set_aside(
     aside = [i for i in np.argsort(-excess, kind="stable")[: int(fraction * n)] if excess[i] > 0]
     total_excess = float(np.clip(excess, 0.0, None).sum())
     comp_excess = (cost - floor).reshape(n, -1, cost.shape[-1]).sum(axis=1)
+    on_joint = joint_of >= 0
     remainder.isolated = []
     for i in sorted(aside, key=lambda i: starts_s[i]):
         keep[i] = False
-        joint_excess = [comp_excess[i][joint_of == j].sum() for j in range(len(joint_names))]
+        joint_excess = np.bincount(joint_of[on_joint], comp_excess[i][on_joint], minlength=len(joint_names))
         remainder.isolated.append(
             IsolatedSegment(
                 float(starts_s[i]),

@@ -124,15 +124,12 @@ class EstimateFrameMaps:
     def _release(self) -> list[PlacedMap]:
         placed = []
         while self._pending:
-            stamp, grid, truth = self._pending[0]
-            expected = self.expected_stamp(stamp)
-            if expected in self._estimates:
-                placed.append(self._place(stamp, grid, truth))
-            elif self._estimates.newest_ns is not None and self._estimates.newest_ns > expected:
-                placed.append(self._place(stamp, grid, truth))   # its estimate was skipped
-            else:
+            expected = self.expected_stamp(self._pending[0][0])
+            newest = self._estimates.newest_ns
+            # its own estimate came, or a later one did (its own was skipped)
+            if expected not in self._estimates and (newest is None or newest <= expected):
                 break
-            self._pending.popleft()
+            placed.append(self._place(*self._pending.popleft()))
         return placed
 
     def _estimate_for(self, stamp_ns: int) -> tuple[int, PlanarPose] | None:

@@ -498,8 +498,7 @@ class SimBridgeNode(Node):
             self._send_map(self.pub_heightmap, self._recent_heightmaps,
                            self.writers.heightmap(item.stamp_ns, item.grid))
         if self._command_held and self.estimate_maps is not None and not self.estimate_maps.waiting:
-            self._command_held = False
-            self._advance_control_period()
+            self._advance_control_period()   # (clears _command_held)
 
     @staticmethod
     def _send_map(publisher, recent: deque[bytes], raw: bytes) -> None:
